@@ -142,3 +142,38 @@ def backproject(uv_px: jax.Array, depth: jax.Array, x_robot: jax.Array, camera: 
     y = (uv_px[..., 1] - camera.cy) / camera.fy * depth
     p_cam = jnp.stack([x, y, depth], axis=-1)
     return p_cam @ R + position
+
+
+# --------------------------------------------------------------------------------------------------
+# Gate visibility (the paper's visibility counts: the fraction of a gate seen by the camera).
+# --------------------------------------------------------------------------------------------------
+
+
+def gate_outline_points(gate, n_per_side: int = 16) -> jax.Array:
+    """Points evenly spaced on the outline of a gate's inner opening.
+
+    Args:
+        gate: a ``world.track.Gate``, single or batched (leading axes ``...``).
+        n_per_side: points per side; each side starts at its corner (top-left, top-right, bottom-right,
+            bottom-left as seen along the normal) and stops before the next.
+
+    Returns:
+        (..., 4 * n_per_side, 3) world points.
+    """
+    corners = gate.corners()  # (..., 4, 3)
+    following = jnp.roll(corners, -1, axis=-2)
+    frac = jnp.arange(n_per_side, dtype=corners.dtype) / n_per_side
+    frac = frac.reshape((1,) * (corners.ndim - 1) + (n_per_side, 1))  # (..., 1, n, 1)
+    points = corners[..., :, None, :] + frac * (following - corners)[..., :, None, :]  # (..., 4, n, 3)
+    return points.reshape(*points.shape[:-3], 4 * n_per_side, 3)
+
+
+def gate_visibility(gate, x_robot: jax.Array, camera: Camera, n_per_side: int = 16) -> jax.Array:
+    """Fraction in [0, 1] of a gate's opening outline that projects into the image, in front of the camera.
+
+    Occlusion is not modelled. A single gate gives (); a batch of gates (...,).
+    """
+    points = gate_outline_points(gate, n_per_side)
+    uv, _, in_front = project(points, x_robot, camera)
+    seen = in_front & in_image(uv)
+    return jnp.mean(seen.astype(jnp.float32), axis=-1)

@@ -1,0 +1,60 @@
+"""Honest timing helpers: compile outside the timed region, block on every call, report spread."""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+
+def device_description() -> dict:
+    """The device JAX runs on, the CPU model and the library versions."""
+    device = jax.devices()[0]
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    import jaxlib
+
+    return {
+        "platform": device.platform,
+        "device_kind": getattr(device, "device_kind", str(device)),
+        "num_devices": jax.device_count(),
+        "cpu_model": cpu,
+        "cpu_count": __import__("os").cpu_count(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "python": platform.python_version(),
+    }
+
+
+def time_call(fn: Callable[[], object], repeats: int = 30, warmup: int = 3) -> dict:
+    """Time ``fn()`` (which must return JAX arrays) ``repeats`` times after ``warmup`` calls.
+
+    Returns a dict of ms figures: median, mean, two_sigma (2 x std), min, max, and the repeats.
+    """
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append((time.perf_counter() - start) * 1e3)
+    arr = np.asarray(times)
+    return {
+        "median_ms": float(statistics.median(times)),
+        "mean_ms": float(arr.mean()),
+        "two_sigma_ms": float(2 * arr.std()),
+        "min_ms": float(arr.min()),
+        "max_ms": float(arr.max()),
+        "repeats": repeats,
+    }

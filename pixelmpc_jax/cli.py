@@ -1,0 +1,109 @@
+"""The ``pixelmpc`` command: parses arguments and calls library functions (no logic of its own)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _writable_dir(path: str) -> Path:
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise argparse.ArgumentTypeError(f"output directory {path!r} cannot be written: {err}") from err
+    return out
+
+
+def _cmd_version(args) -> int:
+    import jax
+
+    from pixelmpc_jax import __version__
+
+    print(f"pixelmpc-jax {__version__} (jax {jax.__version__}, devices: {jax.devices()})")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    import jax.numpy as jnp
+    import numpy as np
+
+    from pixelmpc_jax.dynamics import quadrotor
+    from pixelmpc_jax.sim.waypoint import fly_to_waypoint, waypoint_config
+
+    start = quadrotor.hover_state((0.0, 0.0, 2.0))
+    waypoint = jnp.asarray([args.distance, 0.0, 2.0, 0.0])
+    config = waypoint_config(num_samples=args.samples)
+    print(f"MPPI hover-to-waypoint: {args.distance:.1f} m, N={config.num_samples}, T={config.horizon}, "
+          f"{args.seconds:.1f} s at {1 / config.dt:.0f} Hz ...")
+    flight = fly_to_waypoint(start, waypoint, num_ticks=int(round(args.seconds / config.dt)), seed=args.seed,
+                             config=config)
+    states = np.asarray(flight.states)
+    error = np.linalg.norm(states[:, :3] - np.asarray(waypoint[:3]), axis=1)
+    times = np.arange(len(states)) * config.dt
+    reached = np.nonzero(error < 0.2)[0]
+    summary = {
+        "final_position": states[-1, :3].round(3).tolist(),
+        "final_error_m": float(error[-1]),
+        "time_to_within_0.2m_s": float(times[reached[0]]) if reached.size else None,
+        "max_error_last_second_m": float(error[times >= times[-1] - 1.0].max()),
+    }
+    for key, value in summary.items():
+        print(f"  {key}: {value}")
+    if args.out:
+        out = args.out
+        (out / "demo.json").write_text(json.dumps(summary, indent=2))
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+        for i, name in enumerate("xyz"):
+            ax[0].plot(times, states[:, i], label=name)
+        ax[0].set(xlabel="time [s]", ylabel="position [m]", title="position")
+        ax[0].legend()
+        ax[1].plot(times, error)
+        ax[1].set(xlabel="time [s]", ylabel="distance to waypoint [m]", yscale="log", title="error")
+        fig.tight_layout()
+        fig.savefig(out / "demo.png", dpi=120)
+        print(f"  wrote {out / 'demo.json'} and {out / 'demo.png'}")
+    return 0 if error[-1] < 0.5 else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pixelmpc",
+        description="PixelMPC in JAX: perception-aware MPPI with Deep Optical Flow dynamics.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("version", help="print the package, JAX version and devices")
+    p.set_defaults(func=_cmd_version)
+
+    p = sub.add_parser("demo", help="MPPI flies the quadrotor model from hover to a waypoint and holds it")
+    p.add_argument("--distance", type=float, default=5.0, help="waypoint distance ahead, m (default 5)")
+    p.add_argument("--seconds", type=float, default=4.0, help="flight time, s (default 4)")
+    p.add_argument("--samples", type=int, default=512, help="MPPI samples (default 512)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=_writable_dir, default=None, help="write demo.json and demo.png here")
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 0
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

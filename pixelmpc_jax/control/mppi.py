@@ -1,0 +1,331 @@
+"""Model Predictive Path Integral control (Williams et al. 2017), generic and compiled.
+
+This module knows nothing of quadrotors or pixels. A problem is three functions written for ONE sample:
+
+    dynamics(x, u, params) -> x_next            # discrete-time model
+    running_cost(x, u, t, params) -> scalar     # charged on the state x = x_{t+1} reached by u_t
+    terminal_cost(x, params) -> scalar          # optional, on x_T
+
+and ``params`` is any pytree (network weights, targets, gate geometry) passed to all of them: new params
+never recompile. One optimisation iteration samples ``N`` noise sequences, rolls all of them out with
+``vmap`` over samples and ``lax.scan`` over the horizon, and updates the plan
+
+    S_k = sum_t running_cost + terminal_cost + gamma * sum_t U_t^T Sigma^-1 eps_{k,t}
+    w_k = softmax(-(S_k - min_j S_j) / lambda)           (non-finite S_k get w_k = 0)
+    U  <- clip(U + sum_k w_k eps_k, u_min, u_max)
+
+where ``eps_k`` is the noise after clipping the sampled controls to the bounds. A step runs ``K`` such
+iterations (``lax.scan``), returns ``U[0]`` and keeps the plan shifted by one step as the warm start.
+
+Usage::
+
+    ctrl = make_mppi(config, dynamics, running_cost)
+    state = ctrl.init(key, u_init)
+    u0, state, info = ctrl.step(state, x0, params)     # jitted, validated
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class MPPIConfig:
+    """Static MPPI settings; hashable, so a new config compiles once on purpose.
+
+    Attributes:
+        num_samples: N, sampled control sequences per iteration.
+        horizon: T, steps per rollout.
+        dt: step length (s); informational for the dynamics the user passes (the paper: 0.025).
+        noise_sigma: per-channel standard deviation of the control noise, length m.
+        temperature: lambda > 0 of the softmax weights.
+        iterations: K optimisation iterations per step.
+        u_min, u_max: per-channel control bounds (length m), or None for unbounded.
+        control_cost_weight: gamma of the ``gamma * U^T Sigma^-1 eps`` term (0 disables it).
+        nominal_sample: sample 0 uses zero noise, so the current plan is always among the candidates.
+    """
+
+    num_samples: int = 512
+    horizon: int = 80
+    dt: float = 0.025
+    noise_sigma: tuple[float, ...] = (0.2, 0.2, 0.3, 2.2)
+    temperature: float = 1.0
+    iterations: int = 1
+    u_min: tuple[float, ...] | None = None
+    u_max: tuple[float, ...] | None = None
+    control_cost_weight: float = 0.0
+    nominal_sample: bool = True
+
+    def __post_init__(self):
+        for name in ("num_samples", "horizon", "iterations"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+                raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
+        if not (isinstance(self.dt, (int, float)) and self.dt > 0 and math.isfinite(self.dt)):
+            raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {self.dt!r}")
+        if not (isinstance(self.temperature, (int, float)) and self.temperature > 0
+                and math.isfinite(self.temperature)):
+            raise ValueError(f"MPPIConfig.temperature (lambda) must be positive and finite, got {self.temperature!r}")
+        sigma = np.asarray(self.noise_sigma, dtype=np.float64)
+        if sigma.ndim != 1 or sigma.size == 0:
+            raise ValueError(
+                f"MPPIConfig.noise_sigma must be a 1-D sequence (m,), one std per control channel; "
+                f"got shape {sigma.shape}")
+        if not np.all(np.isfinite(sigma)) or np.any(sigma < 0):
+            raise ValueError(f"MPPIConfig.noise_sigma must be finite and >= 0, got {self.noise_sigma!r}")
+        object.__setattr__(self, "noise_sigma", tuple(float(s) for s in sigma))
+        m = sigma.size
+        for name in ("u_min", "u_max"):
+            bound = getattr(self, name)
+            if bound is None:
+                continue
+            arr = np.asarray(bound, dtype=np.float64)
+            if arr.shape != (m,):
+                raise ValueError(
+                    f"MPPIConfig.{name} must have shape ({m},) to match noise_sigma, got shape {arr.shape}")
+            object.__setattr__(self, name, tuple(float(b) for b in arr))
+        if self.u_min is not None and self.u_max is not None:
+            lo, hi = np.asarray(self.u_min), np.asarray(self.u_max)
+            if np.any(lo > hi):
+                bad = np.nonzero(lo > hi)[0].tolist()
+                raise ValueError(
+                    f"MPPIConfig: u_min > u_max in channels {bad} (u_min={self.u_min}, u_max={self.u_max})")
+        if not (isinstance(self.control_cost_weight, (int, float)) and self.control_cost_weight >= 0):
+            raise ValueError(f"MPPIConfig.control_cost_weight must be >= 0, got {self.control_cost_weight!r}")
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.noise_sigma)
+
+
+class MPPIState(NamedTuple):
+    """What MPPI carries between steps.
+
+    Attributes:
+        plan: (T, m) nominal control sequence (the warm start).
+        key: PRNG key, split with purpose names at every step.
+    """
+
+    plan: jax.Array
+    key: jax.Array
+
+
+class MPPIInfo(NamedTuple):
+    """Diagnostics of one step (the last iteration's figures).
+
+    Attributes:
+        min_cost, mean_cost: over the finite sample costs.
+        effective_sample_size: 1 / sum w_k^2, in [1, N].
+        num_nonfinite: samples whose cost was NaN or inf (excluded from the weights).
+        all_nonfinite: True when every sample was non-finite in some iteration (the plan was kept).
+        nominal_trajectory: (T+1, n) states predicted under the updated plan, starting at x0.
+        costs: (N,) total cost per sample.
+    """
+
+    min_cost: jax.Array
+    mean_cost: jax.Array
+    effective_sample_size: jax.Array
+    num_nonfinite: jax.Array
+    all_nonfinite: jax.Array
+    nominal_trajectory: jax.Array
+    costs: jax.Array
+
+
+class Controller(NamedTuple):
+    """An init/step pair.
+
+    Attributes:
+        init: ``init(key, u_init) -> MPPIState``; u_init is (T, m) or (m,) (repeated over the horizon).
+        step: ``step(state, x0, params) -> (u0, state, info)``, jitted, inputs validated before tracing.
+        step_pure: the same step, unjitted and unvalidated, to compose inside a larger jitted function
+            (a closed-loop episode scanned over time).
+        config: the MPPIConfig it was built with.
+    """
+
+    init: Callable[..., MPPIState]
+    step: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
+    step_pure: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
+    config: MPPIConfig
+
+
+def rollout_cost(
+    dynamics: Callable,
+    running_cost: Callable,
+    terminal_cost: Callable | None,
+    x0: jax.Array,
+    controls: jax.Array,
+    params: Any,
+) -> jax.Array:
+    """Total cost of one control sequence from x0. controls: (T, m) -> scalar."""
+
+    def body(x, inputs):
+        t, u = inputs
+        x_next = dynamics(x, u, params)
+        return x_next, running_cost(x_next, u, t, params)
+
+    horizon = controls.shape[0]
+    x_final, stage_costs = jax.lax.scan(body, x0, (jnp.arange(horizon), controls))
+    total = jnp.sum(stage_costs)
+    if terminal_cost is not None:
+        total = total + terminal_cost(x_final, params)
+    return total
+
+
+def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, params: Any) -> jax.Array:
+    """States visited by one control sequence, x0 included. controls: (T, m) -> (T+1, n)."""
+
+    def body(x, u):
+        x_next = dynamics(x, u, params)
+        return x_next, x_next
+
+    _, states = jax.lax.scan(body, x0, controls)
+    return jnp.concatenate([x0[None], states], axis=0)
+
+
+def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array, jax.Array]:
+    """MPPI weights from sample costs, NaN-safe.
+
+    w_k = exp(-(S_k - min S) / lambda) / sum_j exp(-(S_j - min S) / lambda), with w_k = 0 for non-finite S_k.
+
+    Args:
+        costs: (N,) total cost per sample.
+        temperature: lambda.
+
+    Returns:
+        weights: (N,), sums to 1 unless every cost is non-finite (then all zeros).
+        finite: (N,) bool mask of the finite costs.
+    """
+    finite = jnp.isfinite(costs)
+    safe = jnp.where(finite, costs, jnp.inf)
+    baseline = jnp.min(safe)
+    baseline = jnp.where(jnp.isfinite(baseline), baseline, 0.0)
+    logits = jnp.where(finite, -(safe - baseline) / temperature, -jnp.inf)
+    any_finite = jnp.any(finite)
+    logits = jnp.where(any_finite, logits, 0.0)
+    weights = jax.nn.softmax(logits)
+    return jnp.where(any_finite, weights, 0.0), finite
+
+
+def make_mppi(
+    config: MPPIConfig,
+    dynamics: Callable,
+    running_cost: Callable,
+    terminal_cost: Callable | None = None,
+) -> Controller:
+    """Build a compiled MPPI controller for the given one-sample model and costs (see module docstring)."""
+    if not isinstance(config, MPPIConfig):
+        raise TypeError(f"config must be an MPPIConfig, got {type(config).__name__}")
+    N, T, K, m = config.num_samples, config.horizon, config.iterations, config.control_dim
+    sigma = jnp.asarray(config.noise_sigma, dtype=jnp.float32)
+    inv_sigma2 = jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
+    lo = None if config.u_min is None else jnp.asarray(config.u_min, jnp.float32)
+    hi = None if config.u_max is None else jnp.asarray(config.u_max, jnp.float32)
+    gamma = float(config.control_cost_weight)
+    lam = float(config.temperature)
+
+    def clip(u):
+        if lo is not None:
+            u = jnp.maximum(u, lo)
+        if hi is not None:
+            u = jnp.minimum(u, hi)
+        return u
+
+    cost_of = jax.vmap(
+        lambda x0, controls, params: rollout_cost(dynamics, running_cost, terminal_cost, x0, controls, params),
+        in_axes=(None, 0, None),
+    )
+
+    def iteration(carry, key_iter, x0, params):
+        plan, any_all_nonfinite = carry
+        noise = jax.random.normal(key_iter, (N, T, m), dtype=plan.dtype) * sigma  # (N, T, m)
+        if config.nominal_sample:
+            noise = noise.at[0].set(0.0)
+        controls = clip(plan[None] + noise)  # (N, T, m)
+        eps = controls - plan[None]  # the noise actually applied
+        costs = cost_of(x0, controls, params)  # (N,)
+        if gamma > 0:
+            costs = costs + gamma * jnp.einsum("tm,ntm,m->n", plan, eps, inv_sigma2)
+        weights, finite = importance_weights(costs, lam)
+        all_nonfinite = ~jnp.any(finite)
+        update = jnp.einsum("n,ntm->tm", weights, eps)
+        new_plan = jnp.where(all_nonfinite, plan, clip(plan + update))
+        finite_costs = jnp.where(finite, costs, 0.0)
+        num_finite = jnp.sum(finite)
+        stats = (
+            jnp.min(jnp.where(finite, costs, jnp.inf)),
+            jnp.sum(finite_costs) / jnp.maximum(num_finite, 1),
+            jnp.where(all_nonfinite, 0.0, 1.0 / jnp.sum(weights**2)),
+            N - num_finite,
+            costs,
+        )
+        return (new_plan, any_all_nonfinite | all_nonfinite), stats
+
+    def init(key, u_init) -> MPPIState:
+        u_init = _validate_u_init(u_init, T, m)
+        return MPPIState(plan=clip(jnp.broadcast_to(u_init, (T, m)).astype(jnp.float32)), key=key)
+
+    def step_pure(state: MPPIState, x0, params):
+        key, key_iters = jax.random.split(state.key)
+        keys = jax.random.split(key_iters, K)
+        (plan, all_nonfinite), stats = jax.lax.scan(
+            lambda c, k: iteration(c, k, x0, params), (state.plan, jnp.asarray(False)), keys
+        )
+        min_cost, mean_cost, ess, num_nonfinite, costs = jax.tree_util.tree_map(lambda s: s[-1], stats)
+        u0 = plan[0]
+        shifted = jnp.concatenate([plan[1:], plan[-1:]], axis=0)
+        info = MPPIInfo(
+            min_cost=min_cost,
+            mean_cost=mean_cost,
+            effective_sample_size=ess,
+            num_nonfinite=num_nonfinite,
+            all_nonfinite=all_nonfinite,
+            nominal_trajectory=rollout_states(dynamics, x0, plan, params),
+            costs=costs,
+        )
+        return u0, MPPIState(plan=shifted, key=key), info
+
+    step_jit = jax.jit(step_pure)
+    checked_state_shapes: set = set()
+
+    def step(state: MPPIState, x0, params):
+        if not isinstance(state, MPPIState):
+            raise TypeError(f"state must be the MPPIState returned by init/step, got {type(state).__name__}")
+        if tuple(state.plan.shape) != (T, m):
+            raise ValueError(f"state.plan must have shape ({T}, {m}) (horizon, control_dim), got {state.plan.shape}")
+        x0 = jnp.asarray(x0)
+        signature = (x0.shape, str(x0.dtype))
+        if signature not in checked_state_shapes:
+            _validate_x0(dynamics, x0, m, params)
+            checked_state_shapes.add(signature)
+        return step_jit(state, x0, params)
+
+    return Controller(init=init, step=step, step_pure=step_pure, config=config)
+
+
+def _validate_u_init(u_init, T: int, m: int) -> jax.Array:
+    u = jnp.asarray(u_init, dtype=jnp.float32)
+    if u.shape not in ((T, m), (m,)):
+        raise ValueError(f"u_init must have shape ({T}, {m}) (horizon, control_dim) or ({m},), got {u.shape}")
+    if not isinstance(u, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(u))):
+        raise ValueError("u_init must be finite")
+    return u
+
+
+def _validate_x0(dynamics: Callable, x0: jax.Array, m: int, params) -> None:
+    if x0.ndim != 1:
+        raise ValueError(f"x0 must be one state of shape (n,), got shape {x0.shape}")
+    try:
+        out = jax.eval_shape(lambda x, p: dynamics(x, jnp.zeros((m,), jnp.float32), p), x0, params)
+    except Exception as err:  # the dynamics could not even be traced with this x0
+        raise ValueError(f"x0 of shape {x0.shape} does not fit the dynamics: {err}") from err
+    if getattr(out, "shape", None) != x0.shape:
+        raise ValueError(
+            f"x0 has shape {x0.shape} but the dynamics map it to shape {getattr(out, 'shape', out)}; "
+            f"x0 must be the full state (n,) that dynamics(x, u, params) returns")

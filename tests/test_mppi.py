@@ -1,0 +1,238 @@
+"""Generic MPPI: behaviour on small problems, numerics, determinism, compilation, bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.control.mppi import MPPIConfig, importance_weights, make_mppi
+from pixelmpc_jax.dynamics import quadrotor as Q
+from pixelmpc_jax.sim.waypoint import fly_to_waypoint
+
+DT = 0.05
+
+
+def double_integrator(x, u, params):
+    pos, vel = x[:2], x[2:]
+    vel = vel + DT * u
+    return jnp.concatenate([pos + DT * vel, vel])
+
+
+def goal_cost(x, u, t, goal):
+    return jnp.sum((x[:2] - goal) ** 2) + 0.1 * jnp.sum(x[2:] ** 2) + 0.01 * jnp.sum(u**2)
+
+
+def closed_loop(ctrl, state, x, params, steps, plant):
+    def tick(carry, _):
+        x, state = carry
+        u, state, info = ctrl.step_pure(state, x, params)
+        return (plant(x, u, params), state), (x, u)
+
+    (x, state), (xs, us) = jax.jit(lambda c: jax.lax.scan(tick, c, None, length=steps))((x, state))
+    return x, state, xs, us
+
+
+def test_importance_weights_formula_and_nonfinite_exclusion():
+    costs = jnp.asarray([3.0, 1.0, jnp.nan, 2.0, jnp.inf])
+    w, finite = importance_weights(costs, 0.5)
+    expected = np.exp(-(np.array([3.0, 1.0, 2.0]) - 1.0) / 0.5)
+    expected /= expected.sum()
+    np.testing.assert_allclose(w[jnp.asarray([0, 1, 3])], expected, rtol=1e-6)
+    assert float(w[2]) == 0.0 and float(w[4]) == 0.0
+    assert finite.tolist() == [True, True, False, True, False]
+    w_all, _ = importance_weights(jnp.full(4, jnp.nan), 1.0)
+    assert float(jnp.sum(w_all)) == 0.0
+
+
+def test_double_integrator_reaches_goal():
+    cfg = MPPIConfig(num_samples=256, horizon=30, dt=DT, noise_sigma=(1.0, 1.0), temperature=1.0,
+                     u_min=(-3.0, -3.0), u_max=(3.0, 3.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    goal = jnp.asarray([2.0, -1.0])
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    x, _, _, us = closed_loop(ctrl, state, jnp.zeros(4), goal, 120, double_integrator)
+    assert float(jnp.linalg.norm(x[:2] - goal)) < 0.1
+    assert float(jnp.linalg.norm(x[2:])) < 0.2
+    assert float(jnp.max(jnp.abs(us))) <= 3.0 + 1e-6  # bounds respected
+
+
+def test_pendulum_swings_up_with_limited_torque():
+    def pendulum(x, u, params):
+        theta, omega = x[0], x[1]
+        omega = omega + DT * (-9.81 * jnp.sin(theta) - 0.1 * omega + u[0])
+        return jnp.stack([theta + DT * omega, omega])
+
+    def cost(x, u, t, params):
+        return 10.0 * (1.0 + jnp.cos(x[0])) + 0.1 * x[1] ** 2 + 0.001 * u[0] ** 2
+
+    # torque 4 < m g l = 9.81: the pendulum must pump energy to get up
+    cfg = MPPIConfig(num_samples=256, horizon=40, dt=DT, noise_sigma=(2.0,), temperature=0.5,
+                     u_min=(-4.0,), u_max=(4.0,))
+    ctrl = make_mppi(cfg, pendulum, cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(1))
+    _, _, xs, _ = closed_loop(ctrl, state, jnp.zeros(2), None, 200, pendulum)
+    upright = np.cos(np.asarray(xs[:, 0])) < -0.95
+    assert upright[-60:].all(), "the pendulum must be up and stay up for the last 3 s"
+
+
+def test_quadrotor_flies_to_waypoint_5m_away_and_holds_it():
+    start = Q.hover_state((0.0, 0.0, 2.0))
+    waypoint = jnp.asarray([5.0, 0.0, 2.0, 0.0])
+    flight = fly_to_waypoint(start, waypoint, num_ticks=200, seed=1)
+    error = np.linalg.norm(np.asarray(flight.states[:, :3]) - np.asarray(waypoint[:3]), axis=1)
+    assert error[0] == pytest.approx(5.0)
+    assert error[-80:].max() < 0.15, "holds within 15 cm over the last 2 s"
+    assert np.linalg.norm(np.asarray(flight.states[-1, 7:])) < 0.2
+
+
+def test_same_key_identical_results_different_key_differs():
+    cfg = MPPIConfig(num_samples=64, horizon=10, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    goal = jnp.asarray([1.0, 1.0])
+    outs = []
+    for seed in (0, 0, 1):
+        state = ctrl.init(jax.random.PRNGKey(seed), jnp.zeros(2))
+        u, state, info = ctrl.step(state, jnp.zeros(4), goal)
+        u2, _, _ = ctrl.step(state, jnp.ones(4), goal)
+        outs.append(np.concatenate([u, u2]))
+    np.testing.assert_array_equal(outs[0], outs[1])
+    assert not np.allclose(outs[0], outs[2])
+
+
+def test_key_is_split_every_step():
+    cfg = MPPIConfig(num_samples=16, horizon=5, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    _, state2, _ = ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
+    assert not np.array_equal(jax.random.key_data(state.key), jax.random.key_data(state2.key))
+
+
+def test_nonfinite_samples_are_ignored():
+    # Any sample whose first control in channel 0 is positive gets a NaN cost: the update must come
+    # only from the others, so the plan's first control must move negative.
+    def cost(x, u, t, goal):
+        poison = jnp.where((t == 0) & (u[0] > 0.0), jnp.nan, 0.0)
+        return goal_cost(x, u, t, goal) + poison
+
+    cfg = MPPIConfig(num_samples=128, horizon=10, dt=DT, noise_sigma=(1.0, 1.0), nominal_sample=False)
+    ctrl = make_mppi(cfg, double_integrator, cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    u0, state, info = ctrl.step(state, jnp.zeros(4), jnp.asarray([5.0, 0.0]))
+    assert 0 < int(info.num_nonfinite) < 128
+    assert not bool(info.all_nonfinite)
+    assert float(u0[0]) < 0.0
+    assert bool(jnp.all(jnp.isfinite(state.plan)))
+    assert np.isfinite(float(info.min_cost)) and np.isfinite(float(info.mean_cost))
+
+
+def test_all_nonfinite_keeps_the_plan_and_says_so():
+    def cost(x, u, t, params):
+        return jnp.nan * jnp.sum(x)
+
+    cfg = MPPIConfig(num_samples=32, horizon=6, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, cost)
+    plan = jnp.stack([jnp.arange(6.0), -jnp.arange(6.0)], axis=1)
+    state = ctrl.init(jax.random.PRNGKey(0), plan)
+    u0, new_state, info = ctrl.step(state, jnp.zeros(4), None)
+    assert bool(info.all_nonfinite) and int(info.num_nonfinite) == 32
+    np.testing.assert_array_equal(u0, plan[0])
+    np.testing.assert_array_equal(new_state.plan[:-1], plan[1:])  # kept, then shifted
+
+
+def test_update_uses_clipped_noise_and_stays_in_bounds():
+    cfg = MPPIConfig(num_samples=64, horizon=8, dt=DT, noise_sigma=(5.0, 5.0), u_min=(-1.0, -1.0),
+                     u_max=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.asarray([0.9, -0.9]))
+    for _ in range(5):
+        u0, state, _ = ctrl.step(state, jnp.zeros(4), jnp.asarray([100.0, -100.0]))
+        assert float(jnp.max(jnp.abs(state.plan))) <= 1.0 + 1e-6
+    np.testing.assert_allclose(u0, [1.0, -1.0], atol=0.05)
+
+
+def test_info_shapes_and_nominal_trajectory_follows_the_plan():
+    cfg = MPPIConfig(num_samples=32, horizon=7, dt=DT, noise_sigma=(0.5, 0.5), iterations=3)
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    x0 = jnp.asarray([0.1, 0.2, 0.0, 0.0])
+    u0, new_state, info = ctrl.step(state, x0, jnp.ones(2))
+    assert info.nominal_trajectory.shape == (8, 4)
+    assert info.costs.shape == (32,)
+    np.testing.assert_allclose(info.nominal_trajectory[0], x0)
+    np.testing.assert_allclose(info.nominal_trajectory[1], double_integrator(x0, u0, None), atol=1e-6)
+    assert 1.0 <= float(info.effective_sample_size) <= 32.0
+
+
+def test_gamma_control_cost_changes_the_result():
+    base = dict(num_samples=64, horizon=8, dt=DT, noise_sigma=(1.0, 1.0))
+    goal = jnp.asarray([1.0, 1.0])
+    results = []
+    for gamma in (0.0, 5.0):
+        ctrl = make_mppi(MPPIConfig(**base, control_cost_weight=gamma), double_integrator, goal_cost)
+        state = ctrl.init(jax.random.PRNGKey(0), jnp.ones(2))
+        results.append(ctrl.step(state, jnp.zeros(4), goal)[2].costs)
+    assert not np.allclose(results[0], results[1])
+    np.testing.assert_allclose(results[0][0], results[1][0], rtol=1e-6)  # nominal sample has eps = 0
+
+
+def test_no_recompilation_across_20_steps_with_new_params_and_state():
+    cfg = MPPIConfig(num_samples=32, horizon=10, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    x = jnp.zeros(4)
+    ctrl.step(state, x, jnp.zeros(2))  # compile once
+    with jax.log_compiles(True):
+        with pytest.MonkeyPatch.context():
+            compiled = []
+            import logging
+
+            class Catch(logging.Handler):
+                def emit(self, record):
+                    if "Compiling" in record.getMessage() or "compil" in record.getMessage().lower():
+                        compiled.append(record.getMessage())
+
+            handler = Catch()
+            logger = logging.getLogger("jax")
+            logger.addHandler(handler)
+            try:
+                for i in range(20):
+                    u, state, _ = ctrl.step(state, x, jnp.asarray([float(i), -float(i)]))
+                    x = double_integrator(x, u, None)
+            finally:
+                logger.removeHandler(handler)
+    assert compiled == []
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(temperature=0.0), "temperature"),
+        (dict(temperature=-1.0), "temperature"),
+        (dict(horizon=0), "horizon"),
+        (dict(num_samples=-5), "num_samples"),
+        (dict(iterations=0), "iterations"),
+        (dict(noise_sigma=((1.0, 2.0),)), "noise_sigma"),
+        (dict(noise_sigma=(1.0, -1.0)), "noise_sigma"),
+        (dict(u_min=(0.0, 1.0), u_max=(1.0, 0.0)), "u_min > u_max"),
+        (dict(u_min=(0.0,)), r"u_min must have shape \(2,\)"),
+    ],
+)
+def test_bad_config_is_rejected_with_a_clear_message(kwargs, match):
+    base = dict(num_samples=8, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
+    base.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        MPPIConfig(**base)
+
+
+def test_bad_u_init_and_x0_are_rejected_before_tracing():
+    cfg = MPPIConfig(num_samples=8, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    with pytest.raises(ValueError, match=r"u_init must have shape \(4, 2\)"):
+        ctrl.init(jax.random.PRNGKey(0), jnp.zeros((3, 2)))
+    with pytest.raises(ValueError, match="u_init must be finite"):
+        ctrl.init(jax.random.PRNGKey(0), jnp.asarray([jnp.nan, 0.0]))
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"x0 must be one state of shape \(n,\)"):
+        ctrl.step(state, jnp.zeros((2, 4)), jnp.zeros(2))
+    with pytest.raises(ValueError, match="x0"):
+        ctrl.step(state, jnp.zeros(3), jnp.zeros(2))
