@@ -76,6 +76,42 @@ def _cmd_demo(args) -> int:
     return 0 if error[-1] < 0.5 else 1
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from err
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from err
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _cmd_race(args) -> int:
+    from pixelmpc_jax.sim import metrics, race
+
+    print(f"{args.controller} racing the AlphaPilot course at {args.speed:g} m/s: {args.laps} lap(s), "
+          f"seeds {args.seed}..{args.seed + args.laps - 1}, output {args.out}")
+    results = race.run_laps(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
+                            out=args.out, batch_size=args.batch, perturb=args.perturb,
+                            max_time_s=args.max_time, temperature=args.temperature)
+    if not results["laps"]:
+        print("no lap finished")
+        return 1
+    print(metrics.format_table(results["laps"], results["aggregate"]))
+    print(f"wrote {args.out / 'metrics.json'} and {args.out / 'trajectories.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pixelmpc",
@@ -93,6 +129,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=_writable_dir, default=None, help="write demo.json and demo.png here")
     p.set_defaults(func=_cmd_demo)
+
+    from pixelmpc_jax.sim.race import CONTROLLERS
+
+    p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
+    p.add_argument("--controller", choices=CONTROLLERS, default="mppi", help="controller (default mppi)")
+    p.add_argument("--speed", type=_positive_float, default=14.0, help="target speed, m/s (default 14)")
+    p.add_argument("--laps", type=_positive_int, default=1, help="number of laps (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first lap; lap i uses seed + i")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/race"), help="output directory")
+    p.add_argument("--batch", type=_positive_int, default=1,
+                   help="laps per batched (vmapped) call; raise it on a GPU (default 1)")
+    p.add_argument("--perturb", action="store_true", help="perturb the gates per lap within the AlphaPilot bounds")
+    p.add_argument("--max-time", type=_positive_float, default=60.0, help="timeout per lap, s (default 60)")
+    p.add_argument("--temperature", type=_positive_float, default=None, help="MPPI lambda (default: tuned)")
+    p.set_defaults(func=_cmd_race)
     return parser
 
 

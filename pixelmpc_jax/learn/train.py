@@ -1,0 +1,655 @@
+"""Self-supervised DOF training, the paper's Algorithm 1, and its evaluation.
+
+Data: per frame ``f`` the orientation ``q[f]`` (4,), the control ``u[f]`` (4,) and the dense optical
+flow ``flow[f]`` (H, W, 2) to the next frame, in PIXELS PER FRAME (``flow[y, x] = (du, dv)``, frames
+``dt = 1/40`` s apart). Every pixel of every frame is a training row: pixel (i, j) has
+``uv = ((i + 0.5) / W, (j + 0.5) / H)`` and target ``u_dot = du / W / dt``, ``v_dot = dv / H / dt``,
+``l = hypot(u_dot, v_dot)``, ``theta = atan2(v_dot, u_dot)``. Rows are never materialised: each step
+draws ``batch_size`` random (frame, x, y) triples with ``jax.random`` inside the compiled step and
+gathers from the device-resident arrays (float16 flow is fine: 14,000 frames at 204 x 153 is 1.7 GB).
+
+Loss (an MSE on (l, theta) in spirit, Algorithm 1 line 12)::
+
+    L = mean[ (l_hat - l)^2 + l^2 * 2 (1 - cos(theta_hat - theta)) ] / s^2,   s = rms(l) on the data
+
+* ``2 (1 - cos d) = (2 sin(d / 2))^2 = d^2 + O(d^4)`` is the squared angle error with the wrap-around
+  handled: it is periodic and smooth, so theta = pi - e and theta = -pi + e are close, as they should be
+  (the paper's plain MSE would call them 2 pi apart). Unlike ``atan2(sin d, cos d)^2`` its gradient has
+  no jump at d = +-pi.
+* The weight ``l^2`` (of the target, no gradient) measures the angle error as a chord at the flow's own
+  radius, i.e. in the same units as ``l``: the direction of a near-zero flow (Farneback noise in
+  textureless regions) counts for nothing, and a large flow's direction counts as much as its length.
+  The two terms sum to the squared endpoint error up to ``l_hat ~ l``:
+  ``|v_hat - v|^2 = (l_hat - l)^2 + 2 l_hat l (1 - cos d)``, so training and the AEE metric agree.
+* ``s`` makes the loss dimensionless (order 1 at a zero prediction).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import shlex
+import sys
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization, struct
+from tqdm.auto import tqdm
+
+from pixelmpc_jax.dynamics import dof, quadrotor
+
+PAPER_WIDTH = 204
+PAPER_HEIGHT = 153
+PAPER_DT = 1.0 / 40.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Configuration, data, state.
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Static training configuration (hashable; JSON-recorded in every checkpoint).
+
+    Attributes:
+        steps: total optimizer steps (a resumed run continues up to this number).
+        batch_size: random (frame, pixel) rows per step.
+        learning_rate: Adam step size (the peak of the schedule).
+        schedule: ``"constant"`` or ``"cosine"`` (decay to ``learning_rate * final_lr_fraction``).
+        final_lr_fraction: end of the cosine schedule, relative to ``learning_rate``.
+        seed: the one PRNG seed (initial weights, batches, dropout, probe batch).
+        log_every: steps between history records and progress-bar updates.
+        checkpoint_every: steps between checkpoints (0: only at the end and on interrupt).
+        checkpoint_path: where checkpoints go (``None``: never written).
+        width, height: image size in pixels; must match the flow arrays.
+        dt: seconds between the two frames of a flow (the flow is in pixels per ``dt``).
+        probe_size: rows of the fixed, seeded probe batch whose deterministic loss is logged.
+        eval_chunk_pixels: rows per compiled chunk in :func:`evaluate_aee` (bounds memory).
+        progress: show the tqdm progress bar.
+    """
+
+    steps: int = 20_000
+    batch_size: int = 4096
+    learning_rate: float = 1e-3
+    schedule: str = "cosine"
+    final_lr_fraction: float = 0.05
+    seed: int = 0
+    log_every: int = 100
+    checkpoint_every: int = 1000
+    checkpoint_path: str | None = None
+    width: int = PAPER_WIDTH
+    height: int = PAPER_HEIGHT
+    dt: float = PAPER_DT
+    probe_size: int = 8192
+    eval_chunk_pixels: int = 1 << 18
+    progress: bool = True
+
+    def __post_init__(self):
+        for name in (
+            "steps",
+            "batch_size",
+            "log_every",
+            "width",
+            "height",
+            "probe_size",
+            "eval_chunk_pixels",
+        ):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.checkpoint_every < 0:
+            raise ValueError(f"TrainConfig.checkpoint_every must be >= 0, got {self.checkpoint_every}")
+        if self.schedule not in ("constant", "cosine"):
+            raise ValueError(f"TrainConfig.schedule must be 'constant' or 'cosine', got {self.schedule!r}")
+        if not (self.learning_rate > 0 and self.dt > 0 and 0 <= self.final_lr_fraction <= 1):
+            raise ValueError("TrainConfig needs learning_rate > 0, dt > 0, 0 <= final_lr_fraction <= 1")
+
+
+class FlowData(NamedTuple):
+    """Training or test frames. q: (F, 4); u: (F, 4); flow: (F, H, W, 2) pixels per frame."""
+
+    q: Any
+    u: Any
+    flow: Any
+
+
+class Batch(NamedTuple):
+    """Training rows. features: (B, 10) ``[q, uv, u]``; l, theta: (B,) targets (normalised units / s)."""
+
+    features: jax.Array
+    l: jax.Array
+    theta: jax.Array
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a step changes. ``key`` is split with purpose names each step, never reused."""
+
+    step: jax.Array  # () int32
+    dof_params: dof.DOFParams
+    opt_state: Any
+    key: jax.Array
+
+
+def as_flow_data(data, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT) -> FlowData:
+    """Coerce ``(q, u, flow)`` given as a FlowData, mapping or any object with those attributes, and
+    check shapes early (outside jit), naming what was expected."""
+    if isinstance(data, Mapping):
+        q, u, flow = data["q"], data["u"], data["flow"]
+    elif isinstance(data, tuple) and not hasattr(data, "q"):
+        q, u, flow = data
+    else:
+        q, u, flow = data.q, data.u, data.flow
+    q, u, flow = np.asarray(q), np.asarray(u), np.asarray(flow)
+    n = q.shape[0] if q.ndim else -1
+    if q.shape != (n, 4) or n < 1:
+        raise ValueError(f"q must have shape (F, 4) with F >= 1, got {q.shape}")
+    if u.shape != (n, 4):
+        raise ValueError(f"u must have shape (F, 4) = ({n}, 4), got {u.shape}")
+    if flow.shape != (n, height, width, 2):
+        raise ValueError(f"flow must have shape (F, H, W, 2) = ({n}, {height}, {width}, 2), got {flow.shape}")
+    if not np.issubdtype(flow.dtype, np.floating):
+        raise ValueError(f"flow must be float16 or float32 pixels per frame, got {flow.dtype}")
+    for name, arr in (("q", q), ("u", u)):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(
+                f"{name} contains non-finite values in frames {np.nonzero(~np.isfinite(arr))[0][:10]}"
+            )
+    return FlowData(q, u, flow)
+
+
+# --------------------------------------------------------------------------------------------------
+# Targets, normalisation, loss.
+# --------------------------------------------------------------------------------------------------
+
+
+def flow_to_polar(flow_px: jax.Array, width: int, height: int, dt: float) -> tuple[jax.Array, jax.Array]:
+    """Pixels per frame (..., 2) -> (l, theta), each (...), l in normalised units per second."""
+    flow_px = flow_px.astype(jnp.float32)
+    u_dot = flow_px[..., 0] / (width * dt)
+    v_dot = flow_px[..., 1] / (height * dt)
+    return jnp.hypot(u_dot, v_dot), jnp.arctan2(v_dot, u_dot)
+
+
+def polar_to_flow(l: jax.Array, theta: jax.Array, width: int, height: int, dt: float) -> jax.Array:
+    """(l, theta) -> pixels per frame (..., 2); the inverse of :func:`flow_to_polar`."""
+    uv_dot = dof.polar_to_euler(l, theta)
+    scale = jnp.asarray([width * dt, height * dt], dtype=uv_dot.dtype)
+    return uv_dot * jnp.reshape(scale, (1,) * (uv_dot.ndim - 1) + (2,))
+
+
+def pixel_uv(i: jax.Array, j: jax.Array, width: int, height: int) -> jax.Array:
+    """Pixel column ``i``, row ``j`` -> normalised centre ``((i + 0.5) / W, (j + 0.5) / H)``, (..., 2)."""
+    return jnp.stack([(i + 0.5) / width, (j + 0.5) / height], axis=-1).astype(jnp.float32)
+
+
+def normalisation_constants(
+    data: FlowData, width: int, height: int, dt: float, chunk_frames: int = 256
+) -> dict[str, np.ndarray]:
+    """Input mean/std per feature and output scale, from all pixels of all training frames.
+
+    q and u are per frame (every frame has the same number of pixels, so frame statistics are row
+    statistics); uv is the exact pixel-grid statistic; the l statistics are exact, in float64 chunks.
+    theta is periodic and learned under a periodic loss: its offset is the direction of the mean flow
+    and its scale 1 rad. A constant feature gets std 1 (instead of a division by zero).
+    """
+    q = data.q.astype(np.float64)
+    u = data.u.astype(np.float64)
+    gi = (np.arange(width) + 0.5) / width
+    gj = (np.arange(height) + 0.5) / height
+    feat_mean = np.concatenate([q.mean(0), [gi.mean(), gj.mean()], u.mean(0)])
+    feat_std = np.concatenate([q.std(0), [gi.std(), gj.std()], u.std(0)])
+    feat_std = np.where(feat_std > 1e-6, feat_std, 1.0)
+
+    s1 = s2 = su = sv = 0.0
+    for start in range(0, data.flow.shape[0], chunk_frames):
+        chunk = data.flow[start : start + chunk_frames].astype(np.float32)
+        u_dot = chunk[..., 0] / (width * dt)
+        v_dot = chunk[..., 1] / (height * dt)
+        l = np.hypot(u_dot, v_dot)
+        s1 += float(l.sum(dtype=np.float64))
+        s2 += float(np.square(l, dtype=np.float64).sum())
+        su += float(u_dot.sum(dtype=np.float64))
+        sv += float(v_dot.sum(dtype=np.float64))
+    if not np.isfinite(s2):
+        raise ValueError("flow contains non-finite values; drop or repair those frames before training")
+    n = data.flow.shape[0] * height * width
+    l_mean = s1 / n
+    l_std = float(np.sqrt(max(s2 / n - l_mean**2, 0.0)))
+    l_std = l_std if l_std > 1e-6 else max(l_mean, 1.0)
+    theta_mean = float(np.arctan2(sv, su)) if (su or sv) else 0.0
+    return {
+        "input_mean": feat_mean.astype(np.float32),
+        "input_std": feat_std.astype(np.float32),
+        "output_mean": np.asarray([l_mean, theta_mean], np.float32),
+        "output_std": np.asarray([l_std, 1.0], np.float32),
+    }
+
+
+def _loss_scale(dof_params: dof.DOFParams) -> jax.Array:
+    """rms(l) of the training data, from the stored output constants (mean^2 + std^2)."""
+    return jnp.sqrt(dof_params.output_mean[0] ** 2 + dof_params.output_std[0] ** 2)
+
+
+def dof_loss(
+    weights, dof_params: dof.DOFParams, batch: Batch, dropout_key: jax.Array | None
+) -> tuple[jax.Array, dict]:
+    """The module docstring's loss on one batch; returns (loss, parts)."""
+    pred = dof.dof_forward(dof_params.replace(weights=weights), batch.features, dropout_key=dropout_key)
+    l_hat, theta_hat = pred[:, 0], pred[:, 1]
+    inv_s2 = 1.0 / jnp.square(_loss_scale(dof_params))
+    loss_l = jnp.mean(jnp.square(l_hat - batch.l)) * inv_s2
+    chord2 = 2.0 * (1.0 - jnp.cos(theta_hat - batch.theta))
+    loss_theta = jnp.mean(jnp.square(batch.l) * chord2) * inv_s2
+    return loss_l + loss_theta, {"loss_l": loss_l, "loss_theta": loss_theta}
+
+
+# --------------------------------------------------------------------------------------------------
+# Compiled steps.
+# --------------------------------------------------------------------------------------------------
+
+
+def make_optimizer(config: TrainConfig) -> tuple[optax.GradientTransformation, Callable]:
+    """Adam (Algorithm 1) with the configured schedule; returns (optimizer, schedule)."""
+    if config.schedule == "cosine":
+        schedule = optax.cosine_decay_schedule(config.learning_rate, config.steps, config.final_lr_fraction)
+    else:
+        schedule = optax.constant_schedule(config.learning_rate)
+    return optax.adam(schedule), schedule
+
+
+def sample_batch(data: FlowData, key: jax.Array, batch_size: int, config: TrainConfig) -> Batch:
+    """``batch_size`` uniform (frame, x, y) rows gathered from device arrays (no row materialisation)."""
+    key_frame, key_x, key_y = jax.random.split(key, 3)
+    n_frames = data.q.shape[0]
+    f = jax.random.randint(key_frame, (batch_size,), 0, n_frames)
+    i = jax.random.randint(key_x, (batch_size,), 0, config.width)
+    j = jax.random.randint(key_y, (batch_size,), 0, config.height)
+    uv = pixel_uv(i, j, config.width, config.height)
+    features = dof.dof_features(data.q[f].astype(jnp.float32), uv, data.u[f].astype(jnp.float32))
+    l, theta = flow_to_polar(data.flow[f, j, i], config.width, config.height, config.dt)  # (B,), (B,)
+    return Batch(features, l, theta)
+
+
+def make_train_step(config: TrainConfig) -> Callable:
+    """``train_step(state, batch, key) -> (state, metrics)``, jitted: one Adam step on ``batch`` with
+    dropout drawn from ``key``."""
+    optimizer, schedule = make_optimizer(config)
+
+    def train_step(state: TrainState, batch: Batch, key: jax.Array) -> tuple[TrainState, dict]:
+        grad_fn = jax.value_and_grad(dof_loss, has_aux=True)
+        (loss, parts), grads = grad_fn(state.dof_params.weights, state.dof_params, batch, key)
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.dof_params.weights)
+        weights = optax.apply_updates(state.dof_params.weights, updates)
+        metrics = {
+            "loss": loss,
+            **parts,
+            "learning_rate": schedule(state.step),
+            "grad_norm": optax.tree.norm(grads),
+        }
+        new_state = state.replace(
+            step=state.step + 1,
+            dof_params=state.dof_params.replace(weights=weights),
+            opt_state=opt_state,
+        )
+        return new_state, metrics
+
+    return jax.jit(train_step)
+
+
+def _compile_key(config: TrainConfig) -> TrainConfig:
+    """``config`` with the fields that do not reach the compiled step set to fixed values."""
+    return dataclasses.replace(
+        config,
+        steps=config.steps if config.schedule == "cosine" else 1,
+        seed=0,
+        log_every=1,
+        checkpoint_every=0,
+        checkpoint_path=None,
+        probe_size=1,
+        eval_chunk_pixels=1,
+        progress=False,
+    )
+
+
+def _make_iteration(config: TrainConfig) -> Callable:
+    """The loop's compiled step; runs differing only in seed, logging or paths share one compilation."""
+    return _cached_iteration(_compile_key(config))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_iteration(config: TrainConfig) -> Callable:
+    """The loop's single compiled call: sample a batch on device, then one train step.
+
+    Not donated: the state is ~0.4 MB, and keeping the last completed state valid is what lets a
+    KeyboardInterrupt save it.
+    """
+    train_step = make_train_step(config)
+
+    @jax.jit
+    def iteration(state: TrainState, data: FlowData) -> tuple[TrainState, dict]:
+        key, key_batch, key_dropout = jax.random.split(state.key, 3)
+        batch = sample_batch(data, key_batch, config.batch_size, config)
+        return train_step(state.replace(key=key), batch, key_dropout)
+
+    return iteration
+
+
+def init_train_state(config: TrainConfig, train_data: FlowData) -> TrainState:
+    """Fresh weights with normalisation constants from ``train_data``, Adam state, step 0."""
+    key_init, key_train = jax.random.split(jax.random.key(config.seed))
+    constants = normalisation_constants(train_data, config.width, config.height, config.dt)
+    dof_params = dof.init_dof_params(key_init, **constants)
+    optimizer, _ = make_optimizer(config)
+    return TrainState(
+        step=jnp.asarray(0, jnp.int32),
+        dof_params=dof_params,
+        opt_state=optimizer.init(dof_params.weights),
+        key=key_train,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints with optimizer state.
+# --------------------------------------------------------------------------------------------------
+
+
+def _run_record(config: TrainConfig, data: FlowData) -> dict:
+    return {
+        "train_config": dataclasses.asdict(config),
+        "command": shlex.join(sys.argv),
+        "data": {"frames": int(data.q.shape[0]), "height": config.height, "width": config.width},
+        "versions": {"jax": jax.__version__, "optax": optax.__version__},
+    }
+
+
+def save_train_checkpoint(path, state: TrainState, record: dict, history: dict) -> None:
+    """Weights + normalisation + config, and what resuming needs: step, Adam state, key, history."""
+    extra = {
+        "train": {
+            "step": np.asarray(state.step),
+            "opt_state": serialization.to_state_dict(state.opt_state),
+            "key": np.asarray(jax.random.key_data(state.key)),
+            "history": json.dumps(history),
+        }
+    }
+    record = {**record, "step": int(state.step)}
+    dof.save_checkpoint(path, state.dof_params, record, extra=extra)
+
+
+def load_train_state(path, config: TrainConfig) -> tuple[TrainState, dict]:
+    """Restore a TrainState and its history from :func:`save_train_checkpoint`'s file."""
+    checkpoint = dof.read_checkpoint(path)
+    saved = checkpoint.extra.get("train")
+    if saved is None:
+        raise ValueError(f"{path}: weights-only DOF checkpoint, no optimizer state to resume from")
+    optimizer, _ = make_optimizer(config)
+    template = optimizer.init(checkpoint.dof_params.weights)
+    try:
+        opt_state = serialization.from_state_dict(template, saved["opt_state"])
+        state = TrainState(
+            step=jnp.asarray(saved["step"], jnp.int32),
+            dof_params=checkpoint.dof_params,
+            opt_state=jax.tree_util.tree_map(jnp.asarray, opt_state),
+            key=jax.random.wrap_key_data(jnp.asarray(saved["key"])),
+        )
+        history = json.loads(saved["history"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: training state is damaged or from another optimizer: {err!r}") from err
+    return state, history
+
+
+# --------------------------------------------------------------------------------------------------
+# The loop.
+# --------------------------------------------------------------------------------------------------
+
+
+@jax.jit
+def _deterministic_loss(dof_params: dof.DOFParams, batch: Batch) -> jax.Array:
+    return dof_loss(dof_params.weights, dof_params, batch, None)[0]
+
+
+def _probe_loss_fn(config: TrainConfig, data: FlowData) -> Callable:
+    """Deterministic (no dropout) loss on a fixed seeded batch: a noise-free progress measure."""
+    probe = sample_batch(data, jax.random.key(config.seed + 1), config.probe_size, config)
+    return functools.partial(_deterministic_loss, batch=probe)
+
+
+def train(
+    config: TrainConfig,
+    train_data,
+    test_data=None,
+    resume_from=None,
+) -> tuple[dof.DOFParams, dict]:
+    """Train the DOF network (Algorithm 1) and return ``(dof_params, history)``.
+
+    Args:
+        config: static settings.
+        train_data, test_data: ``(q, u, flow)`` as :class:`FlowData`, a mapping or a tuple.
+        resume_from: a checkpoint written by this function; training continues at its step with its
+            Adam state, key and normalisation (``config.steps`` is the total to reach).
+
+    Returns:
+        dof_params: the trained parameters (with their normalisation constants).
+        history: lists, one entry per ``log_every`` steps: ``step``; ``loss``, ``loss_l``,
+        ``loss_theta``, ``learning_rate``, ``grad_norm`` of that step; ``loss_window`` (mean training
+        loss since the previous entry, the progress bar's running loss); ``wall_s``; ``probe_loss``
+        (deterministic loss on a fixed batch, at ``probe_step``, step 0 included). Also
+        ``interrupted`` (bool) and, with ``test_data``, ``test_aee_px`` and ``test_zero_flow_aee_px``.
+    """
+    host_data = as_flow_data(train_data, config.width, config.height)
+    if resume_from is not None:
+        state, history = load_train_state(resume_from, config)
+    else:
+        state = init_train_state(config, host_data)
+        history = {}
+    for name in (
+        "step",
+        "loss",
+        "loss_window",
+        "loss_l",
+        "loss_theta",
+        "learning_rate",
+        "grad_norm",
+        "wall_s",
+    ):
+        history.setdefault(name, [])
+    history.setdefault("probe_step", [])
+    history.setdefault("probe_loss", [])
+    history["interrupted"] = False
+
+    data = FlowData(
+        jnp.asarray(host_data.q, jnp.float32),
+        jnp.asarray(host_data.u, jnp.float32),
+        jnp.asarray(host_data.flow),
+    )
+    record = _run_record(config, host_data)
+    iteration = _make_iteration(config)
+    probe_loss = _probe_loss_fn(config, data)
+    start = int(state.step)
+    if start == 0:
+        history["probe_step"].append(0)
+        history["probe_loss"].append(float(probe_loss(state.dof_params)))
+    checkpoint_path = Path(config.checkpoint_path) if config.checkpoint_path else None
+
+    t0 = time.perf_counter()
+    window = []  # this log window's per-step losses, still on device
+    bar = tqdm(total=config.steps, initial=start, disable=not config.progress, desc="DOF", dynamic_ncols=True)
+    try:
+        for step in range(start + 1, config.steps + 1):
+            state, metrics = iteration(state, data)
+            window.append(metrics["loss"])
+            bar.update(1)
+            if step % config.log_every == 0 or step == config.steps:
+                host = jax.device_get(metrics)
+                history["step"].append(step)
+                for name, value in host.items():
+                    history[name].append(float(value))
+                history["loss_window"].append(float(jnp.mean(jnp.stack(window))))
+                window = []
+                history["wall_s"].append(time.perf_counter() - t0)
+                history["probe_step"].append(step)
+                history["probe_loss"].append(float(probe_loss(state.dof_params)))
+                bar.set_postfix(
+                    loss=f"{history['loss_window'][-1]:.4f}", probe=f"{history['probe_loss'][-1]:.4f}"
+                )
+            if checkpoint_path and config.checkpoint_every and step % config.checkpoint_every == 0:
+                save_train_checkpoint(checkpoint_path, state, record, history)
+    except KeyboardInterrupt:
+        history["interrupted"] = True
+    finally:
+        bar.close()
+    if checkpoint_path:
+        save_train_checkpoint(checkpoint_path, state, record, history)
+
+    if test_data is not None and not history["interrupted"]:
+        test = as_flow_data(test_data, config.width, config.height)
+        history["test_aee_px"] = evaluate_aee(
+            state.dof_params,
+            test.q,
+            test.u,
+            test.flow,
+            config.width,
+            config.height,
+            config.dt,
+            chunk_pixels=config.eval_chunk_pixels,
+        )
+        history["test_zero_flow_aee_px"] = zero_flow_aee(test.q, test.u, test.flow)
+    return state.dof_params, history
+
+
+# --------------------------------------------------------------------------------------------------
+# Evaluation and baselines (AEE in pixels per frame).
+# --------------------------------------------------------------------------------------------------
+
+
+def _epe_sum_chunk(dof_params, q, u, flow, frame_mask, width: int, height: int, dt: float):
+    """Sum of endpoint errors over a chunk of frames. q, u: (C, 4); flow: (C, H, W, 2); mask: (C,)."""
+    jj, ii = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
+    uv = pixel_uv(ii, jj, width, height)  # (H, W, 2)
+
+    def frame_epe(qf, uf, flow_f):
+        feats = dof.dof_features(
+            jnp.broadcast_to(qf, (height, width, 4)), uv, jnp.broadcast_to(uf, (height, width, 4))
+        )
+        pred = dof.dof_forward(dof_params, feats)  # (H, W, 2)
+        pred_px = polar_to_flow(pred[..., 0], pred[..., 1], width, height, dt)
+        err = pred_px - flow_f.astype(jnp.float32)
+        return jnp.sum(jnp.hypot(err[..., 0], err[..., 1]))
+
+    per_frame = jax.vmap(frame_epe)(q, u, flow)  # (C,)
+    return jnp.sum(jnp.where(frame_mask, per_frame, 0.0))
+
+
+_epe_sum_chunk_jit = jax.jit(_epe_sum_chunk, static_argnames=("width", "height", "dt"))
+
+
+def evaluate_aee(
+    dof_params: dof.DOFParams,
+    q,
+    u,
+    flow,
+    width: int = PAPER_WIDTH,
+    height: int = PAPER_HEIGHT,
+    dt: float = PAPER_DT,
+    *,
+    chunk_pixels: int = 1 << 18,
+) -> float:
+    """Average endpoint error, pixels per frame, of the DOF prediction over every pixel of every frame.
+
+    The prediction (l, theta) is converted back to pixels per frame; frames go through one compiled
+    chunk function (``~chunk_pixels`` rows at a time, the last chunk padded and masked).
+    """
+    data = as_flow_data((q, u, flow), width, height)
+    n = data.q.shape[0]
+    chunk = max(1, min(n, chunk_pixels // (width * height)))
+    total = 0.0
+    for start in range(0, n, chunk):
+        stop = min(start + chunk, n)
+        pad = chunk - (stop - start)
+        qc, uc, fc = (np.concatenate([a[start:stop], np.zeros((pad, *a.shape[1:]), a.dtype)]) for a in data)
+        mask = np.arange(chunk) < (stop - start)
+        total += float(
+            _epe_sum_chunk_jit(dof_params, qc, uc, fc, mask, width=width, height=height, dt=float(dt))
+        )
+    return total / (n * width * height)
+
+
+def zero_flow_aee(q, u, flow, chunk_frames: int = 256) -> float:
+    """AEE (pixels per frame) of predicting no motion: the mean flow magnitude. q, u unused (every
+    evaluator takes the same arrays)."""
+    flow = np.asarray(flow)
+    total = 0.0
+    for start in range(0, flow.shape[0], chunk_frames):
+        chunk = flow[start : start + chunk_frames].astype(np.float32)
+        total += float(np.hypot(chunk[..., 0], chunk[..., 1]).sum(dtype=np.float64))
+    return total / (flow.shape[0] * flow.shape[1] * flow.shape[2])
+
+
+@dataclasses.dataclass(frozen=True)
+class OrientationBinBaseline:
+    """Mean flow field per (roll, pitch, yaw) bin.
+
+    Attributes:
+        edges: (3, bins + 1) quantile bin edges of roll, pitch, yaw (rad) on the fitting frames.
+        mean_flow: (bins^3, H, W, 2) per-bin mean flow, pixels per frame (empty bins: the global mean).
+        counts: (bins^3,) fitting frames per bin.
+    """
+
+    edges: np.ndarray
+    mean_flow: np.ndarray
+    counts: np.ndarray
+
+
+def _euler(q) -> np.ndarray:
+    q = np.asarray(q, np.float32)
+    return np.asarray(jax.vmap(quadrotor.euler_angles)(jnp.asarray(quadrotor.normalize_quat(q))))  # (F, 3)
+
+
+def _bin_index(edges: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    bins = edges.shape[1] - 1
+    idx = np.stack(
+        [np.clip(np.searchsorted(edges[k, 1:-1], angles[:, k], side="right"), 0, bins - 1) for k in range(3)],
+        axis=1,
+    )
+    return (idx[:, 0] * bins + idx[:, 1]) * bins + idx[:, 2]
+
+
+def fit_orientation_bin_baseline(q, u, flow, bins_per_angle: int = 4) -> OrientationBinBaseline:
+    """Bin frames by roll, pitch and yaw quantiles and average the flow field per bin. u unused."""
+    flow = np.asarray(flow)
+    angles = _euler(q)
+    edges = np.quantile(angles, np.linspace(0.0, 1.0, bins_per_angle + 1), axis=0).T  # (3, bins + 1)
+    idx = _bin_index(edges, angles)
+    n_bins = bins_per_angle**3
+    sums = np.zeros((n_bins, *flow.shape[1:]), np.float64)
+    for start in range(0, flow.shape[0], 256):  # bounded memory: one chunk of frames at a time
+        chunk, chunk_idx = flow[start : start + 256].astype(np.float64), idx[start : start + 256]
+        for b in np.unique(chunk_idx):
+            sums[b] += chunk[chunk_idx == b].sum(0)
+    counts = np.bincount(idx, minlength=n_bins)
+    global_mean = sums.sum(0) / flow.shape[0]
+    mean_flow = np.where(
+        counts[:, None, None, None] > 0, sums / np.maximum(counts, 1)[:, None, None, None], global_mean
+    )
+    return OrientationBinBaseline(edges=edges, mean_flow=mean_flow.astype(np.float32), counts=counts)
+
+
+def orientation_bin_aee(baseline: OrientationBinBaseline, q, u, flow, chunk_frames: int = 256) -> float:
+    """AEE (pixels per frame) of predicting each frame's orientation-bin mean flow. u unused."""
+    flow = np.asarray(flow)
+    idx = _bin_index(baseline.edges, _euler(q))
+    total = 0.0
+    for start in range(0, flow.shape[0], chunk_frames):
+        err = baseline.mean_flow[idx[start : start + chunk_frames]] - flow[
+            start : start + chunk_frames
+        ].astype(np.float32)
+        total += float(np.hypot(err[..., 0], err[..., 1]).sum(dtype=np.float64))
+    return total / (flow.shape[0] * flow.shape[1] * flow.shape[2])

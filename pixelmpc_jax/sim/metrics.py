@@ -1,0 +1,137 @@
+"""Per-lap metrics of closed-loop episodes and their aggregate (mean and two sigma), as the paper reports.
+
+Works on host numpy arrays of one :class:`~pixelmpc_jax.sim.episode.EpisodeLog` (or a batch of them).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.sim.episode import CONTROL_DT, END_NAMES, EpisodeLog
+
+LAP_KEYS = (
+    "success", "gates_passed", "lap_time_s", "crash", "time_vis_below_50_s", "time_vis_zero_s",
+    "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
+    "mean_angular_acc", "mean_speed", "flight_time_s",
+)
+
+
+def _euler(quaternions: np.ndarray) -> np.ndarray:
+    """(S, 4) -> (S, 3) roll, pitch, yaw (numpy mirror of quadrotor.euler_angles)."""
+    qw, qx, qy, qz = quaternions.T
+    roll = np.arctan2(2 * (qw * qx + qy * qz), 1 - 2 * (qx**2 + qy**2))
+    pitch = np.arcsin(np.clip(2 * (qw * qy - qz * qx), -1.0, 1.0))
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy**2 + qz**2))
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
+def total_variation(angles: np.ndarray) -> float:
+    """sum_t |a_{t+1} - a_t| of an angle sequence (rad), wrapped so a crossing of +-pi counts its true size."""
+    steps = np.diff(angles)
+    steps = (steps + np.pi) % (2 * np.pi) - np.pi
+    return float(np.sum(np.abs(steps)))
+
+
+def visibility_loss_times(visibility: np.ndarray, target: np.ndarray, dt: float = CONTROL_DT) -> tuple[float, float]:
+    """Time (s) with the target's visibility below 50 % and at 0 %, counted per target gate only after it
+    was first seen (visibility > 0) while being the target, as the paper counts a 'loss'.
+
+    Args:
+        visibility: (S,) visibility of the current target at each tick.
+        target: (S,) index of the target gate at each tick.
+    """
+    below_50 = zero = 0.0
+    for gate in np.unique(target):
+        ticks = np.nonzero(target == gate)[0]
+        vis = visibility[ticks]
+        seen = np.nonzero(vis > 0.0)[0]
+        if seen.size == 0:
+            continue
+        after = vis[seen[0]:]
+        below_50 += float(np.sum(after < 0.5)) * dt
+        zero += float(np.sum(after <= 0.0)) * dt
+    return below_50, zero
+
+
+def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT) -> dict:
+    """The metrics of one episode (host arrays or device arrays of an unbatched log)."""
+    n = int(log.num_ticks)
+    states = np.asarray(log.states)[: n + 1]
+    rates = np.asarray(log.body_rates)[: n + 1]
+    visibility = np.asarray(log.visibility)[: n + 1]
+    target = np.asarray(log.target)[: n + 1]
+    finished = bool(log.finished)
+    cause = int(log.end_cause)
+    euler = _euler(states[:, quadrotor.QUAT])
+    velocity = states[:, quadrotor.VEL]
+    linear_acc = np.linalg.norm(np.diff(velocity, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
+    angular_acc = np.linalg.norm(np.diff(rates, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
+    below_50, zero = visibility_loss_times(visibility, target, dt)
+    return {
+        "success": finished,
+        "gates_passed": int(log.gates_passed),
+        "lap_time_s": n * dt if finished else None,
+        "crash": None if finished else END_NAMES.get(cause, str(cause)),
+        "time_vis_below_50_s": below_50,
+        "time_vis_zero_s": zero,
+        "total_variation_roll": total_variation(euler[:, 0]),
+        "total_variation_pitch": total_variation(euler[:, 1]),
+        "total_variation_yaw": total_variation(euler[:, 2]),
+        "mean_linear_acc": float(np.mean(linear_acc)),
+        "mean_angular_acc": float(np.mean(angular_acc)),
+        "mean_speed": float(np.mean(np.linalg.norm(velocity, axis=1))),
+        "flight_time_s": n * dt,
+    }
+
+
+def unbatch(log: EpisodeLog) -> list[EpisodeLog]:
+    """Split a batched log (leading axis B) into B single logs on the host."""
+    host = EpisodeLog(*[np.asarray(field) for field in log])
+    if host.num_ticks.ndim == 0:
+        return [host]
+    return [EpisodeLog(*[field[i] for field in host]) for i in range(host.num_ticks.shape[0])]
+
+
+def aggregate(laps: list[dict]) -> dict:
+    """For each numeric key, ``{"mean", "two_sigma", "n"}`` over the laps where it is defined (lap time over
+    the completed laps only), plus ``success_rate`` and the number of laps."""
+    out: dict = {"num_laps": len(laps), "success_rate": (sum(bool(lap["success"]) for lap in laps) / len(laps))
+                 if laps else math.nan}
+    for key in LAP_KEYS:
+        if key in ("success", "crash"):
+            continue
+        values = [float(lap[key]) for lap in laps if lap.get(key) is not None]
+        if not values:
+            out[key] = {"mean": None, "two_sigma": None, "n": 0}
+            continue
+        arr = np.asarray(values)
+        out[key] = {"mean": float(arr.mean()), "two_sigma": float(2 * arr.std()), "n": len(values)}
+    return out
+
+
+def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:
+    """A fixed-width summary table of the laps for the terminal."""
+    header = f"{'lap':>4} {'ok':>3} {'gates':>5} {'lap [s]':>8} {'end':>12} {'vis<50 [s]':>10} {'vis=0 [s]':>9} " \
+             f"{'TV r/p/y [rad]':>20} {'lin acc':>8} {'ang acc':>8}"
+    rows = [header, "-" * len(header)]
+    for i, lap in enumerate(laps):
+        lap_time = f"{lap['lap_time_s']:.2f}" if lap["lap_time_s"] is not None else "-"
+        tv = f"{lap['total_variation_roll']:.1f}/{lap['total_variation_pitch']:.1f}/{lap['total_variation_yaw']:.1f}"
+        rows.append(f"{i:>4} {'yes' if lap['success'] else 'no':>3} {lap['gates_passed']:>5} {lap_time:>8} "
+                    f"{lap['crash'] or '-':>12} {lap['time_vis_below_50_s']:>10.2f} {lap['time_vis_zero_s']:>9.2f} "
+                    f"{tv:>20} {lap['mean_linear_acc']:>8.2f} {lap['mean_angular_acc']:>8.2f}")
+    if aggregate_row:
+        def fmt(key):
+            entry = aggregate_row.get(key) or {}
+            if entry.get("mean") is None:
+                return "-"
+            return f"{entry['mean']:.2f}+-{entry['two_sigma']:.2f}"
+
+        rows.append("-" * len(header))
+        rows.append(f"success rate {aggregate_row['success_rate'] * 100:.0f}% of {aggregate_row['num_laps']}; "
+                    f"lap time {fmt('lap_time_s')} s; vis<50 {fmt('time_vis_below_50_s')} s; "
+                    f"vis=0 {fmt('time_vis_zero_s')} s (mean +- 2 sigma)")
+    return "\n".join(rows)

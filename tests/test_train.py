@@ -1,0 +1,247 @@
+"""DOF training (Algorithm 1): targets, loss, a seeded run that learns, determinism, checkpoints, resume,
+and the AEE evaluation and baselines."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.learn import train as train_mod
+from pixelmpc_jax.learn.train import Batch, FlowData, TrainConfig
+
+W, H, DT = 32, 24, 1.0 / 40.0
+
+
+def rotational_flow_data(n_frames: int, seed: int) -> FlowData:
+    """Frames of an analytic flow field driven by the body rates, the pixel and the roll angle.
+
+    In normalised units per second: u_dot = -1.2 wz + 2 wx (v - 0.5) + 0.5 roll,
+    v_dot = -1.2 wy - 2 wx (u - 0.5); stored as float16 pixels per frame, like the real data.
+    """
+    rng = np.random.default_rng(seed)
+    eul = rng.uniform(-0.5, 0.5, (n_frames, 3))
+    q = np.asarray(jax.vmap(quadrotor.quat_from_euler)(eul[:, 0], eul[:, 1], eul[:, 2]), np.float32)
+    u = np.concatenate([rng.uniform(-2, 2, (n_frames, 3)), rng.uniform(5, 15, (n_frames, 1))], 1)
+    jj, ii = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
+    x, y = (ii + 0.5) / W - 0.5, (jj + 0.5) / H - 0.5
+    wx, wy, wz = (u[:, k, None, None] for k in range(3))
+    u_dot = -1.2 * wz + 2.0 * wx * y + 0.5 * eul[:, 0, None, None]
+    v_dot = -1.2 * wy - 2.0 * wx * x
+    flow = np.stack([u_dot * W * DT, v_dot * H * DT], -1).astype(np.float16)
+    return FlowData(q, u.astype(np.float32), flow)
+
+
+@pytest.fixture(scope="module")
+def train_data():
+    return rotational_flow_data(64, seed=0)
+
+
+@pytest.fixture(scope="module")
+def test_data():
+    return rotational_flow_data(16, seed=1)
+
+
+def small_config(**overrides) -> TrainConfig:
+    base = dict(
+        steps=300,
+        batch_size=512,
+        learning_rate=3e-3,
+        schedule="constant",
+        log_every=50,
+        checkpoint_every=0,
+        width=W,
+        height=H,
+        dt=DT,
+        probe_size=2048,
+        eval_chunk_pixels=4096,
+        progress=False,
+    )
+    base.update(overrides)
+    return TrainConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def trained(train_data, test_data):
+    return train_mod.train(small_config(), train_data, test_data)
+
+
+# --------------------------------------------------------------------------------------------------
+# Equations.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_flow_to_polar_hand_cases():
+    # one image width per second to the right; two image heights per second upwards (v down).
+    flow = jnp.asarray([[W * DT, 0.0], [0.0, -2 * H * DT]])
+    l, theta = train_mod.flow_to_polar(flow, W, H, DT)
+    np.testing.assert_allclose(l, [1.0, 2.0], rtol=1e-6)
+    np.testing.assert_allclose(theta, [0.0, -np.pi / 2], atol=1e-6)
+    np.testing.assert_allclose(train_mod.polar_to_flow(l, theta, W, H, DT), flow, atol=1e-5)
+
+
+def test_pixel_uv_centres():
+    uv = train_mod.pixel_uv(jnp.asarray([0, W - 1]), jnp.asarray([0, H - 1]), W, H)
+    np.testing.assert_allclose(uv, [[0.5 / W, 0.5 / H], [1 - 0.5 / W, 1 - 0.5 / H]], rtol=1e-6)
+
+
+def _batch_with_prediction(params, l_hat, theta_hat, l, theta):
+    """A one-row batch and params whose network output is exactly (l_hat, theta_hat)."""
+    zero = jax.tree_util.tree_map(jnp.zeros_like, params.weights)
+    params = params.replace(weights=zero, output_mean=jnp.asarray([l_hat, theta_hat], jnp.float32))
+    batch = Batch(jnp.zeros((1, 10)), jnp.asarray([l], jnp.float32), jnp.asarray([theta], jnp.float32))
+    return params, batch
+
+
+def test_loss_wraps_the_angle_and_ignores_direction_of_zero_flow():
+    params = dof.init_dof_params(jax.random.key(0), output_std=[1.0, 1.0])
+    # The loss scale is rms(l)^2 = output_mean[0]^2 + output_std[0]^2 = l_hat^2 + 1 here.
+    s2 = 2.0
+    # pi - 0.01 vs -pi + 0.01: 0.02 rad apart, not 2 pi - 0.02.
+    p, b = _batch_with_prediction(params, 1.0, np.pi - 0.01, 1.0, -np.pi + 0.01)
+    loss, parts = train_mod.dof_loss(p.weights, p, b, None)
+    np.testing.assert_allclose(loss, 2 * (1 - np.cos(0.02)) / s2, rtol=1e-3)
+    assert float(loss) < 1e-3
+    # The angle of a zero flow costs nothing; its magnitude still does.
+    p, b = _batch_with_prediction(params, 0.5, 2.0, 0.0, 0.0)
+    loss, parts = train_mod.dof_loss(p.weights, p, b, None)
+    assert float(parts["loss_theta"]) == 0.0
+    np.testing.assert_allclose(parts["loss_l"], 0.25 / 1.25, rtol=1e-6)
+    # Small errors: the loss is the squared endpoint error / rms(l)^2.
+    p, b = _batch_with_prediction(params, 1.0, 0.01, 1.0, 0.0)
+    loss, _ = train_mod.dof_loss(p.weights, p, b, None)
+    np.testing.assert_allclose(loss, (2 * np.sin(0.005)) ** 2 / s2, rtol=1e-3)
+
+
+def test_normalisation_constants(train_data):
+    c = train_mod.normalisation_constants(train_data, W, H, DT, chunk_frames=5)
+    np.testing.assert_allclose(c["input_mean"][:4], train_data.q.mean(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(c["input_mean"][4:6], [0.5, 0.5], atol=1e-6)
+    np.testing.assert_allclose(c["input_std"][4], np.sqrt((W**2 - 1) / 12) / W, rtol=1e-5)
+    l, _ = train_mod.flow_to_polar(jnp.asarray(train_data.flow), W, H, DT)
+    np.testing.assert_allclose(c["output_mean"][0], np.mean(l), rtol=1e-4)
+    np.testing.assert_allclose(c["output_std"][0], np.std(l), rtol=1e-3)
+
+
+def test_bad_data_shapes_raise(train_data):
+    with pytest.raises(ValueError, match=r"flow must have shape \(F, H, W, 2\) = \(64, 153, 204, 2\)"):
+        train_mod.as_flow_data(train_data)  # 32 x 24 frames, paper size expected
+    with pytest.raises(ValueError, match=r"u must have shape \(F, 4\)"):
+        train_mod.as_flow_data((train_data.q, train_data.u[:3], train_data.flow), W, H)
+    with pytest.raises(ValueError, match="schedule"):
+        small_config(schedule="linear")
+    bad_flow = train_data.flow.copy()
+    bad_flow[3, 2, 1, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        train_mod.train(small_config(steps=1), (train_data.q, train_data.u, bad_flow))
+
+
+# --------------------------------------------------------------------------------------------------
+# Behaviour.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_training_learns_and_beats_zero_flow(trained, test_data):
+    params, history = trained
+    assert history["probe_loss"][-1] < 0.5 * history["probe_loss"][0]
+    assert history["probe_loss"][-1] < 0.1
+    assert history["step"] == [50, 100, 150, 200, 250, 300]
+    assert not history["interrupted"]
+    zero = train_mod.zero_flow_aee(*test_data)
+    assert history["test_zero_flow_aee_px"] == pytest.approx(zero)
+    assert history["test_aee_px"] < 0.6 * zero
+    np.testing.assert_allclose(
+        train_mod.evaluate_aee(params, *test_data, W, H, DT), history["test_aee_px"], rtol=1e-5
+    )
+
+
+def test_same_seed_same_params(train_data):
+    config = small_config(steps=20, log_every=10)
+    a, _ = train_mod.train(config, train_data)
+    b, _ = train_mod.train(config, train_data)
+    c, _ = train_mod.train(dataclasses.replace(config, seed=1), train_data)
+    leaves = jax.tree_util.tree_leaves
+    assert all(np.array_equal(x, y) for x, y in zip(leaves(a), leaves(b), strict=True))
+    assert not all(np.array_equal(x, y) for x, y in zip(leaves(a), leaves(c), strict=True))
+
+
+def test_resume_continues_from_saved_step(train_data, tmp_path):
+    """20 steps, checkpoint, resume to 40 == 40 uninterrupted steps, bit for bit."""
+    path = tmp_path / "run.msgpack"
+    full, _ = train_mod.train(small_config(steps=40, log_every=10), train_data)
+    train_mod.train(small_config(steps=20, log_every=10, checkpoint_path=str(path)), train_data)
+    _, config = dof.load_checkpoint(path)
+    assert config["step"] == 20 and config["train_config"]["steps"] == 20 and "command" in config
+    resumed, history = train_mod.train(small_config(steps=40, log_every=10), train_data, resume_from=path)
+    assert history["step"] == [10, 20, 30, 40]
+    leaves = jax.tree_util.tree_leaves
+    assert all(np.array_equal(x, y) for x, y in zip(leaves(full), leaves(resumed), strict=True))
+
+
+def test_keyboard_interrupt_saves_and_returns(train_data, tmp_path, monkeypatch):
+    config = small_config(steps=40, log_every=10, checkpoint_path=str(tmp_path / "run.msgpack"))
+    real = train_mod._make_iteration(config)
+    calls = []
+
+    def interrupted_after_seven(cfg):
+        def iteration(state, data):
+            if len(calls) == 7:
+                raise KeyboardInterrupt
+            calls.append(1)
+            return real(state, data)
+
+        return iteration
+
+    monkeypatch.setattr(train_mod, "_make_iteration", interrupted_after_seven)
+    params, history = train_mod.train(config, train_data)
+    assert history["interrupted"]
+    saved, record = dof.load_checkpoint(config.checkpoint_path)
+    assert record["step"] == 7
+    leaves = jax.tree_util.tree_leaves
+    assert all(np.array_equal(x, y) for x, y in zip(leaves(params), leaves(saved), strict=True))
+    monkeypatch.undo()
+    _, history = train_mod.train(config, train_data, resume_from=config.checkpoint_path)
+    assert history["step"] == [10, 20, 30, 40] and not history["interrupted"]
+
+
+def test_weights_only_checkpoint_cannot_resume(train_data, tmp_path):
+    path = tmp_path / "weights.msgpack"
+    dof.save_checkpoint(path, dof.init_dof_params(jax.random.key(0)), {})
+    with pytest.raises(ValueError, match="no optimizer state"):
+        train_mod.train(small_config(steps=5), train_data, resume_from=path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Evaluation and baselines.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_evaluate_aee_matches_numpy_and_is_chunk_invariant(test_data):
+    """Zero weights predict the constant (l, theta) = output_mean: a flow we can compute by hand."""
+    params = dof.init_dof_params(jax.random.key(0), output_mean=[0.8, 0.7])
+    params = params.replace(weights=jax.tree_util.tree_map(jnp.zeros_like, params.weights))
+    pred_px = np.asarray([0.8 * np.cos(0.7) * W * DT, 0.8 * np.sin(0.7) * H * DT])
+    flow = test_data.flow.astype(np.float64)
+    expected = np.mean(np.hypot(pred_px[0] - flow[..., 0], pred_px[1] - flow[..., 1]))
+    for chunk_pixels in (1, 3 * W * H, 1 << 20):  # 1 frame, 3 frames with a padded tail, all at once
+        got = train_mod.evaluate_aee(params, *test_data, W, H, DT, chunk_pixels=chunk_pixels)
+        np.testing.assert_allclose(got, expected, rtol=1e-5)
+
+
+def test_zero_flow_and_orientation_bin_baselines(train_data):
+    q, u, flow = train_data
+    expected = np.mean(np.hypot(flow[..., 0].astype(np.float64), flow[..., 1].astype(np.float64)))
+    np.testing.assert_allclose(train_mod.zero_flow_aee(q, u, flow, chunk_frames=7), expected, rtol=1e-6)
+    # A flow field that depends on the orientation bin only is predicted exactly.
+    baseline = train_mod.fit_orientation_bin_baseline(q, u, flow, bins_per_angle=2)
+    idx = train_mod._bin_index(baseline.edges, train_mod._euler(q))
+    assert baseline.counts.sum() == len(q) and baseline.mean_flow.shape == (8, H, W, 2)
+    binned_flow = np.asarray(flow[:8][idx % 8], np.float32)
+    exact = train_mod.fit_orientation_bin_baseline(q, u, binned_flow, bins_per_angle=2)
+    assert train_mod.orientation_bin_aee(exact, q, u, binned_flow) < 1e-6
+    # On the rotational data (driven by u, not q) it is no better than predicting the mean flow.
+    assert train_mod.orientation_bin_aee(baseline, q, u, flow) > 0.5 * expected
