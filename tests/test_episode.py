@@ -1,0 +1,130 @@
+"""The closed loop: a short straight course is flown, batches equal single runs, metrics are right."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.control import costs
+from pixelmpc_jax.sim import episode as E
+from pixelmpc_jax.sim import metrics as M
+from pixelmpc_jax.world import track as T
+
+SMALL = E.paper_mppi_config(num_samples=128, horizon=40, temperature=200.0)
+
+
+@pytest.fixture(scope="module")
+def straight():
+    return T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+
+
+@pytest.fixture(scope="module")
+def small_runner():
+    return E.make_runner(E.nominal_mppi_policy(SMALL), E.EpisodeConfig(max_time_s=8.0))
+
+
+def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
+    world = E.make_world(straight, target_speed=10.0)
+    log = small_runner.single(world, jax.random.PRNGKey(0))
+    lap = M.lap_metrics(log)
+    assert lap["success"], lap
+    assert lap["gates_passed"] == 3
+    # 42 m to the last gate at up to 10 m/s, from rest: at least 4.2 s, and it must not dawdle
+    assert 4.2 < lap["lap_time_s"] < 7.0
+    assert lap["crash"] is None
+
+
+def test_batch_equals_single_runs(straight, small_runner):
+    config = E.EpisodeConfig(max_time_s=1.5)
+    runner = E.make_runner(E.nominal_mppi_policy(E.paper_mppi_config(num_samples=64, horizon=20,
+                                                                      temperature=200.0)), config)
+    seeds = list(range(8))
+    speeds = [8.0 + s for s in seeds]
+    worlds = [E.make_world(straight, target_speed=v) for v in speeds]
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
+    batch = M.unbatch(runner.batch(E.stack_worlds(worlds), keys))
+    for seed, world, batched in zip(seeds, worlds, batch):
+        single = runner.single(world, jax.random.PRNGKey(seed))
+        assert int(single.num_ticks) == int(batched.num_ticks)
+        assert int(single.end_cause) == int(batched.end_cause)
+        np.testing.assert_allclose(np.asarray(single.states), batched.states, atol=2e-3)
+        a, b = M.lap_metrics(single), M.lap_metrics(batched)
+        assert a["gates_passed"] == b["gates_passed"] and a["success"] == b["success"]
+        assert a["mean_speed"] == pytest.approx(b["mean_speed"], abs=1e-3)
+
+
+def test_ground_crash_ends_the_episode(straight):
+    # A "controller" that cuts the thrust: the drone falls from 3 m and must end on the ground.
+    def init(key):
+        return jnp.zeros(())
+
+    def act(state, obs, world):
+        return jnp.zeros(4), state, jnp.zeros((1, 10))
+
+    runner = E.make_runner(E.Policy(init, act, "off"), E.EpisodeConfig(max_time_s=3.0))
+    log = runner.single(E.make_world(straight), jax.random.PRNGKey(0))
+    lap = M.lap_metrics(log)
+    assert lap["crash"] == "ground" and not lap["success"]
+    # free fall from 3 m (minus the 0.1 m radius) takes ~0.77 s
+    assert 0.7 <= lap["flight_time_s"] <= 0.9
+
+
+def test_racing_cost_terms():
+    track = T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+    cfg = costs.RacingCostConfig()
+    params = costs.racing_params(track, jnp.asarray(0.0), 10.0, cfg)
+    on_path = track.start.at[7].set(10.0)  # at the start, on the path, level, facing +x, at speed
+    assert float(costs.racing_cost(on_path, params, cfg)) == pytest.approx(0.0, abs=1e-2)
+    offset = on_path.at[1].add(1.0)  # 1 m off the path: h = 0.5
+    assert float(costs.racing_cost(offset, params, cfg)) == pytest.approx(400 * 0.25, rel=1e-3)
+    slow = track.start  # at rest: c3 * 10^2
+    assert float(costs.racing_cost(slow, params, cfg)) == pytest.approx(800.0, rel=1e-4)
+    gate = track.gate(0)
+    in_frame = on_path.at[:3].set(gate.centre + gate.up * (0.5 * gate.height + 0.15))
+    assert float(costs.racing_cost(in_frame, params, cfg)) > 400 * 1000.0**2 * 0.99
+    in_opening = on_path.at[:3].set(gate.centre)
+    assert float(costs.racing_cost(in_opening, params, cfg)) < 1e3
+    ground = on_path.at[2].set(0.05)
+    assert float(costs.racing_cost(ground, params, cfg)) > 4e8 * 0.99
+    flipped = on_path.at[3:7].set(-on_path[3:7])  # -q is the same attitude
+    assert float(costs.racing_cost(flipped, params, cfg)) == pytest.approx(0.0, abs=1e-2)
+
+
+def test_total_variation_wraps_angles():
+    angles = np.array([3.1, -3.1, 3.1])  # two small steps across +-pi
+    assert M.total_variation(angles) == pytest.approx(2 * (2 * np.pi - 6.2), abs=1e-9)
+    assert M.total_variation(np.array([0.0, 0.5, -0.5])) == pytest.approx(1.5)
+
+
+def test_visibility_loss_counts_only_after_first_seen():
+    dt = 0.025
+    visibility = np.array([0.0, 0.0, 0.3, 0.6, 0.0, 1.0, 0.0, 0.0, 0.2, 0.8])
+    target = np.array([0, 0, 0, 0, 0, 0, 1, 1, 1, 1])
+    below, zero = M.visibility_loss_times(visibility, target, dt)
+    # gate 0 seen at tick 2: below 50 at ticks 2, 4 -> 2 ticks; zero at tick 4 -> 1 tick
+    # gate 1 seen at tick 8: below 50 at tick 8 -> 1 tick; zero none
+    assert below == pytest.approx(3 * dt) and zero == pytest.approx(1 * dt)
+
+
+def test_aggregate_mean_two_sigma_and_success_rate():
+    laps = [
+        {"success": True, "lap_time_s": 20.0, "gates_passed": 11, "crash": None},
+        {"success": True, "lap_time_s": 22.0, "gates_passed": 11, "crash": None},
+        {"success": False, "lap_time_s": None, "gates_passed": 4, "crash": "gate"},
+    ]
+    for lap in laps:
+        for key in M.LAP_KEYS:
+            lap.setdefault(key, 1.0)
+    agg = M.aggregate(laps)
+    assert agg["success_rate"] == pytest.approx(2 / 3)
+    assert agg["lap_time_s"] == {"mean": 21.0, "two_sigma": 2.0, "n": 2}
+    assert agg["gates_passed"]["mean"] == pytest.approx(26 / 3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("speed", [14.0, 16.0])
+def test_nominal_mppi_completes_alphapilot_laps(speed):
+    from pixelmpc_jax.sim.race import run_laps
+
+    results = run_laps("mppi", speed=speed, laps=10, seed=0, progress=False)
+    assert results["aggregate"]["success_rate"] >= 0.9
