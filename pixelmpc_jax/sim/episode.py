@@ -109,19 +109,31 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
         return quadrotor.step(x, u, dt, quad_params)
 
     def running_cost(x, u, t, p):
-        return costs.racing_cost(x, p, cost_config)
+        return costs.racing_cost(x, t, p, cost_config)
 
     ctrl = make_mppi(mppi_config, dynamics, running_cost)
+    horizon = mppi_config.horizon
 
     def init(key):
-        return ctrl.init(key, quadrotor.hover_control(quad_params))
+        return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
+                                 jnp.full((horizon,), jnp.nan, jnp.float32))
 
-    def act(state, obs: Observation, world: World):
-        params = costs.racing_params(world.track, obs.progress_s, world.target_speed, cost_config)
-        u, state, info = ctrl.step_pure(state, obs.x_est, params)
-        return u, state, info.nominal_trajectory
+    def act(state: RacingPolicyState, obs: Observation, world: World):
+        # First tick: no previous plan, every step's window starts at the current progress.
+        step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
+        params = costs.racing_params(world.track, step_progress, world.target_speed, cost_config)
+        u, mppi_state, info = ctrl.step_pure(state.mppi, obs.x_est, params)
+        next_progress = costs.plan_progress(world.track, info.nominal_trajectory, obs.progress_s, horizon)
+        return u, RacingPolicyState(mppi_state, next_progress), info.nominal_trajectory
 
     return Policy(init=init, act=act, name="mppi")
+
+
+class RacingPolicyState(NamedTuple):
+    """MPPI's state and, per horizon step, the path progress (m) its last plan predicted (T,)."""
+
+    mppi: Any
+    step_progress: jax.Array
 
 
 class EpisodeLog(NamedTuple):

@@ -1,0 +1,319 @@
+"""Gate detectors: colour segmentation of rendered images (OpenCV) and projection of the true gate (JAX).
+
+Both return a :class:`Detection` in normalised image coordinates (``uv = px / (W, H)``, DESIGN.md). The
+target pixel the controller tracks is ``Detection.centre``, the image of the gate's 3-D centre. From an
+image it is the intersection of the diagonals of the four inner-opening corners: a perspective map keeps
+lines and incidences, so the diagonals' crossing is exactly the image of the rectangle's centre.
+"""
+
+from __future__ import annotations
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import render as render_lib
+
+_CORNER_ANGLES = np.radians([-135.0, -45.0, 45.0, 135.0])  # image-frame directions of TL, TR, BR, BL
+
+
+@struct.dataclass
+class Detection:
+    """One gate detection (single; leading axes when batched).
+
+    Attributes:
+        found: () bool, the gate is detected.
+        centre: (2,) normalised uv of the gate centre's image.
+        bbox: (4,) ``[u_min, v_min, u_max, v_max]`` normalised, the visible frame's box (clipped to the image).
+        corners: (4, 2) normalised uv of the inner-opening corners, top-left, top-right, bottom-right,
+            bottom-left as seen along the gate normal (zeros where not visible in an image detection).
+        corners_visible: (4,) bool, the corner is in view (and, from an image, was found).
+        gate_id: () int32, the gate's index in the track (-1 unknown).
+    """
+
+    found: jax.Array
+    centre: jax.Array
+    bbox: jax.Array
+    corners: jax.Array
+    corners_visible: jax.Array
+    gate_id: jax.Array
+
+
+def _not_found(gate_id: int) -> Detection:
+    return Detection(
+        found=np.bool_(False),
+        centre=np.full(2, 0.5, np.float32),
+        bbox=np.zeros(4, np.float32),
+        corners=np.zeros((4, 2), np.float32),
+        corners_visible=np.zeros(4, bool),
+        gate_id=np.int32(gate_id),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# From geometry (JAX: jit, vmap).
+# --------------------------------------------------------------------------------------------------
+
+
+def _quad_overlaps_unit_square(quad: jax.Array) -> jax.Array:
+    """() bool, the convex quadrilateral (4, 2) meets [0, 1]^2 (separating-axis test)."""
+    square = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], quad.dtype)
+    edges = jnp.roll(quad, -1, axis=0) - quad
+    axes = jnp.concatenate([jnp.eye(2, dtype=quad.dtype), jnp.stack([-edges[:, 1], edges[:, 0]], -1)])
+    pq, ps = quad @ axes.T, square @ axes.T  # (4, 6)
+    separated = (pq.max(0) < ps.min(0)) | (ps.max(0) < pq.min(0))
+    return ~jnp.any(separated)
+
+
+@jax.jit
+def detect_from_geometry(
+    gate,
+    x_robot: jax.Array,
+    camera: camera_lib.Camera,
+    key: jax.Array | None = None,
+    pixel_noise_px: float | jax.Array = 0.0,
+    dropout: float | jax.Array = 0.0,
+    gate_id: int | jax.Array = -1,
+) -> Detection:
+    """The detection an ideal detector makes of ``gate`` (a single ``Gate``) from robot state ``x_robot``.
+
+    Corners and centre are projected; with a ``key``, each gets independent Gaussian noise of
+    ``pixel_noise_px`` pixels (std, per axis) and the whole detection is dropped with probability
+    ``dropout``. ``found`` requires every outer frame corner in front of the camera and the projected
+    frame to overlap the image (partly in view); occlusion is not modelled. Pure: jit- and vmap-able.
+    """
+    corners_w = gate.corners()  # (4, 3)
+    outer_w = gate.outer_corners()
+    uv, _, in_front = camera_lib.project(corners_w, x_robot, camera)  # (4, 2)
+    uv_out, _, out_front = camera_lib.project(outer_w, x_robot, camera)
+    centre, _, centre_front = camera_lib.project(gate.centre, x_robot, camera)
+    scale = jnp.asarray([camera.width, camera.height], uv.dtype)
+    found = jnp.all(out_front) & jnp.all(in_front) & centre_front & _quad_overlaps_unit_square(uv_out)
+    if key is not None:
+        key_corners, key_centre, key_dropout = jax.random.split(key, 3)
+        sigma = jnp.asarray(pixel_noise_px, uv.dtype) / scale
+        uv = uv + sigma * jax.random.normal(key_corners, uv.shape, uv.dtype)
+        centre = centre + sigma * jax.random.normal(key_centre, centre.shape, uv.dtype)
+        found = found & (jax.random.uniform(key_dropout, (), uv.dtype) >= dropout)
+    bbox = jnp.concatenate([jnp.clip(uv_out.min(0), 0.0, 1.0), jnp.clip(uv_out.max(0), 0.0, 1.0)])
+    visible = in_front & camera_lib.in_image(uv) & found
+    return Detection(
+        found=found,
+        centre=centre,
+        bbox=bbox,
+        corners=uv,
+        corners_visible=visible,
+        gate_id=jnp.asarray(gate_id, jnp.int32),
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# From an image (numpy + OpenCV, not jit).
+# --------------------------------------------------------------------------------------------------
+
+
+def gate_mask(
+    rgb: np.ndarray, gate_id: int, hue_tol_deg: float = 10.0, min_saturation: int = 110, min_value: int = 40
+) -> np.ndarray:
+    """(H, W) uint8 {0, 255}: pixels within +-``hue_tol_deg`` of gate ``gate_id``'s hue
+    (``render.gate_hue``; paints are 30 deg apart), saturated and bright enough (OpenCV uint8 HSV)."""
+    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)  # H in [0, 180)
+    hue = render_lib.gate_hue(gate_id) * 180.0
+    dh = np.abs(hsv[..., 0].astype(np.float32) - hue)
+    dh = np.minimum(dh, 180.0 - dh)
+    mask = (dh <= hue_tol_deg / 2.0) & (hsv[..., 1] >= min_saturation) & (hsv[..., 2] >= min_value)
+    return mask.astype(np.uint8) * 255
+
+
+def _check_rgb(image, shape: tuple[int, int]) -> np.ndarray:
+    rgb = np.asarray(image)
+    expected = f"uint8 RGB image of shape {(*shape, 3)}"
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"the detector expects a {expected}; got dtype {rgb.dtype}")
+    if rgb.shape != (*shape, 3):
+        raise ValueError(f"the detector expects a {expected}; got shape {rgb.shape}")
+    return np.ascontiguousarray(rgb)
+
+
+def _label_corners(points: np.ndarray, reference: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Assign corner slots (0 TL, 1 TR, 2 BR, 3 BL) by direction from ``reference``; one point per slot."""
+    best: dict[int, tuple[float, np.ndarray]] = {}
+    for p in points:
+        angle = np.arctan2(p[1] - reference[1], p[0] - reference[0])
+        diff = np.abs((angle - _CORNER_ANGLES + np.pi) % (2 * np.pi) - np.pi)
+        slot = int(np.argmin(diff))
+        if diff[slot] < np.radians(60) and (slot not in best or diff[slot] < best[slot][0]):
+            best[slot] = (float(diff[slot]), p)
+    return [(slot, best[slot][1]) for slot in sorted(best)]
+
+
+def _refine_quad(contour: np.ndarray, quad: np.ndarray, outward: float = 0.5) -> np.ndarray:
+    """Corners (4, 2) from straight lines fitted to the contour points of each side of ``quad`` (4, 2).
+
+    The contour runs through the centres of the opening's boundary pixels, half a pixel inside the edge,
+    so every line is moved ``outward`` pixels away from the quad's centroid. Falls back to ``quad``
+    where a side has too few points.
+    """
+    centroid = quad.mean(0)
+    lines = []
+    for k in range(4):
+        a, b = quad[k], quad[(k + 1) % 4]
+        ab = b - a
+        length = float(np.hypot(*ab))
+        if length < 3.0:
+            return quad
+        t = (contour - a) @ ab / length**2
+        dist = np.abs((contour - a) @ np.array([-ab[1], ab[0]])) / length
+        margin = min(1.5 / length, 0.2)
+        near = (t > margin) & (t < 1 - margin) & (dist < 1.5)
+        if near.sum() < 3:
+            return quad
+        vx, vy, x0, y0 = cv2.fitLine(contour[near].astype(np.float32), cv2.DIST_L2, 0, 0.01, 0.01).ravel()
+        n = np.array([-vy, vx])
+        point = np.array([x0, y0])
+        if (point - centroid) @ n < 0:
+            n = -n
+        lines.append((point + outward * n, np.array([vx, vy])))
+    corners = []
+    for k in range(4):
+        (p1, d1), (p2, d2) = lines[k - 1], lines[k]
+        A = np.stack([d1, -d2], axis=1)
+        if abs(np.linalg.det(A)) < 1e-6:
+            return quad
+        s = np.linalg.solve(A, p2 - p1)
+        corners.append(p1 + s[0] * d1)
+    corners = np.asarray(corners)
+    if np.max(np.abs(corners - quad)) > 3.0:  # a bad fit; keep the polygon's vertices
+        return quad
+    return corners
+
+
+def _diagonal_intersection(corners: np.ndarray) -> np.ndarray | None:
+    """Crossing of TL-BR and TR-BL, (2,), or None if they are parallel."""
+    tl, tr, br, bl = corners
+    d1, d2 = br - tl, bl - tr
+    A = np.stack([d1, -d2], axis=1)
+    if abs(np.linalg.det(A)) < 1e-9:
+        return None
+    s = np.linalg.solve(A, tr - tl)
+    return tl + s[0] * d1
+
+
+def detect_from_image(
+    rgb_or_frame,
+    gate_id: int,
+    camera: camera_lib.Camera | None = None,
+    min_pixels: int = 6,
+    hue_tol_deg: float = 10.0,
+) -> Detection:
+    """Find gate ``gate_id`` in a rendered RGB image by its paint colour.
+
+    Segments the gate's hue, keeps the largest frame component, and takes the opening as the largest
+    hole of the frame (or, when the opening runs off the image, the part of the frame's convex hull not
+    covered by the frame). Opening corners come from lines fitted to its sides; a corner counts as
+    visible if it lies 2 px or more inside the image and the frame surrounds it on the outside.
+
+    Centre: all 4 corners -> the diagonals' intersection (the exact image of the gate centre); a
+    diagonal's two ends only -> its midpoint; otherwise the centre of the frame's box.
+
+    Args:
+        rgb_or_frame: (H, W, 3) uint8 RGB, or a ``render.Frame`` (its ``rgb``).
+        gate_id: the gate's index in the track (its paint colour).
+        camera: sets the expected (H, W); default the paper's 204 x 153 camera.
+
+    Raises:
+        ValueError: the image is not uint8 (H, W, 3) of the camera's size.
+    """
+    camera = camera or camera_lib.default_camera()
+    H, W = camera.height, camera.width
+    image = rgb_or_frame.rgb if isinstance(rgb_or_frame, render_lib.Frame) else rgb_or_frame
+    rgb = _check_rgb(image, (H, W))
+    mask = gate_mask(rgb, gate_id, hue_tol_deg)
+    if int(np.count_nonzero(mask)) < min_pixels:
+        return _not_found(gate_id)
+    contours, hierarchy = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    hierarchy = hierarchy[0]
+    outers = [i for i in range(len(contours)) if hierarchy[i][3] < 0]
+    areas = [cv2.contourArea(contours[i]) + len(contours[i]) for i in outers]
+    main = outers[int(np.argmax(areas))]
+    # The frame: every sizeable component (occlusion can split it), for the box.
+    keep = np.zeros_like(mask)
+    for i in outers:
+        if cv2.contourArea(contours[i]) + len(contours[i]) >= 0.1 * max(areas):
+            cv2.drawContours(keep, contours, i, 255, thickness=cv2.FILLED)
+    frame = cv2.bitwise_and(keep, mask)
+    ys, xs = np.nonzero(frame)
+    if len(xs) < min_pixels:
+        return _not_found(gate_id)
+    bbox_px = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
+
+    # The opening: the main component's largest hole, else its convex hull minus the frame.
+    holes = [i for i in range(len(contours)) if hierarchy[i][3] == main]
+    opening = np.zeros_like(mask)
+    if holes:
+        hole = max(holes, key=lambda i: cv2.contourArea(contours[i]))
+        cv2.drawContours(opening, contours, hole, 255, thickness=cv2.FILLED)
+    else:
+        hull = cv2.convexHull(contours[main])
+        cv2.drawContours(opening, [hull], 0, 255, thickness=cv2.FILLED)
+    opening = cv2.bitwise_and(opening, cv2.bitwise_not(mask))
+    corners = np.zeros((4, 2))
+    visible = np.zeros(4, bool)
+    open_contours, _ = cv2.findContours(opening, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if open_contours:
+        contour_int = max(open_contours, key=cv2.contourArea)
+        if cv2.contourArea(contour_int) >= 4:
+            contour = contour_int.reshape(-1, 2).astype(np.float64) + 0.5  # pixel centres
+            quad = cv2.approxPolyN(contour_int, 4, ensure_convex=True).reshape(-1, 2).astype(np.float64) + 0.5
+            if len(quad) == 4:
+                quad = _refine_quad(contour, _cyclic_from_top_left(quad))
+                reference = contour.mean(0)
+                for slot, point in _label_corners(quad, reference):
+                    if _is_true_corner(point, reference, mask, W, H):
+                        corners[slot], visible[slot] = point, True
+
+    if visible.all():
+        centre = _diagonal_intersection(corners)
+    elif visible[0] and visible[2]:
+        centre = 0.5 * (corners[0] + corners[2])
+    elif visible[1] and visible[3]:
+        centre = 0.5 * (corners[1] + corners[3])
+    else:
+        centre = None
+    if centre is None:
+        centre = 0.5 * (bbox_px[:2] + bbox_px[2:])
+    scale = np.array([W, H], np.float64)
+    return Detection(
+        found=np.bool_(True),
+        centre=(centre / scale).astype(np.float32),
+        bbox=(bbox_px / np.tile(scale, 2)).astype(np.float32),
+        corners=np.where(visible[:, None], corners / scale, 0.0).astype(np.float32),
+        corners_visible=visible,
+        gate_id=np.int32(gate_id),
+    )
+
+
+def _cyclic_from_top_left(quad: np.ndarray) -> np.ndarray:
+    """The 4 vertices in clockwise image order (u right, v down) starting nearest the top-left direction."""
+    c = quad.mean(0)
+    angle = np.arctan2(quad[:, 1] - c[1], quad[:, 0] - c[0])
+    quad = quad[np.argsort(angle)]  # increasing angle = clockwise on screen
+    angle = np.sort(angle)
+    start = int(np.argmin(np.abs((angle - _CORNER_ANGLES[0] + np.pi) % (2 * np.pi) - np.pi)))
+    return np.roll(quad, -start, axis=0)
+
+
+def _is_true_corner(point, reference, mask, width, height, margin: float = 2.0, probe: float = 2.5) -> bool:
+    """The corner is inside the image by ``margin`` px and frame paint lies just outside it."""
+    x, y = point
+    if not (margin <= x <= width - margin and margin <= y <= height - margin):
+        return False
+    outward = point - reference
+    outward = outward / max(np.hypot(*outward), 1e-9)
+    px, py = (point + probe * outward).astype(int)
+    if not (0 <= px < width and 0 <= py < height):
+        return False
+    return bool(mask[py, px])

@@ -1,0 +1,149 @@
+"""Gate detectors: projection of the true gate, colour segmentation of rendered frames, and their agreement."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import detector as D
+from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import render as R
+from pixelmpc_jax.world import track as T
+
+PX = np.array([204.0, 153.0])
+# (gate index, distance, lateral, height, yaw offset, roll): fully visible gates on the AlphaPilot course.
+VISIBLE = (
+    (0, 8.0, 0.0, 0.0, 0.0, 0.0),
+    (2, 6.0, 0.5, 0.3, 0.0, 0.0),
+    (5, 10.0, -0.5, 0.0, 0.0, 0.0),
+    (8, 7.0, 0.0, 0.0, 0.0, 0.0),
+    (3, 12.0, -1.5, 0.5, -0.2, 0.0),
+    (4, 4.0, 0.0, 0.0, 0.0, 0.4),
+    (6, 5.0, 1.5, -0.3, 0.25, -0.3),
+)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return C.default_camera()
+
+
+@pytest.fixture(scope="module")
+def course():
+    return T.load_course()
+
+
+@pytest.fixture(scope="module")
+def rendered(course, camera):
+    poses = jnp.stack([R.pose_before_gate(course.gate(g), *rest) for g, *rest in VISIBLE])
+    partial = R.pose_before_gate(course.gate(1), 5.0, 1.0, -0.4, 0.3)  # gate cut by the right image edge
+    frames = R.render_batch(course, jnp.concatenate([poses, partial[None]]), camera)
+    return poses, partial, frames
+
+
+# --------------------------------------------------------------------------------------------------
+# From geometry.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_geometry_straight_ahead(camera):
+    course = T.straight_course(num_gates=1, height=3.0, first_gate_x=20.0)
+    gate = course.gate(0)
+    x = quadrotor.hover_state((14.0, 0.0, 3.0))
+    det = D.detect_from_geometry(gate, x, camera, gate_id=0)
+    assert bool(det.found) and int(det.gate_id) == 0
+    np.testing.assert_allclose(det.centre, [camera.cx / camera.width, camera.cy / camera.height], atol=1e-6)
+    tl, tr, br, bl = np.asarray(det.corners)
+    assert tl[0] < tr[0] and bl[0] < br[0] and tl[1] < bl[1] and tr[1] < br[1]
+    assert bool(det.corners_visible.all())
+    half_w = 0.5 * float(gate.width + 2 * gate.border) * camera.fx / 6.0 / camera.width
+    np.testing.assert_allclose(np.asarray(det.bbox)[[0, 2]], [0.5 - half_w, 0.5 + half_w], atol=1e-5)
+    # Behind the camera: not found. Turned away 90 deg: out of view, not found.
+    behind = quadrotor.hover_state((26.0, 0.0, 3.0))
+    assert not bool(D.detect_from_geometry(gate, behind, camera).found)
+    aside = quadrotor.hover_state((14.0, 0.0, 3.0), yaw=np.pi / 2)
+    assert not bool(D.detect_from_geometry(gate, aside, camera).found)
+    # Turned so the gate is partly in view: found, some corners not visible.
+    edge = quadrotor.hover_state((14.0, 0.0, 3.0), yaw=0.75)
+    det = D.detect_from_geometry(gate, edge, camera)
+    assert bool(det.found) and 0 < int(det.corners_visible.sum()) < 4
+
+
+def test_geometry_noise_dropout_and_vmap(camera, course):
+    gate = course.gate(2)
+    x = R.pose_before_gate(gate, 6.0)
+    clean = D.detect_from_geometry(gate, x, camera)
+    keys = jax.random.split(jax.random.key(0), 4000)
+    detect = jax.jit(jax.vmap(lambda k: D.detect_from_geometry(gate, x, camera, k, 1.5, 0.25)))
+    noisy = detect(keys)
+    err_px = (np.asarray(noisy.corners) - np.asarray(clean.corners)) * PX
+    np.testing.assert_allclose(err_px.std(axis=0), 1.5, rtol=0.08)
+    np.testing.assert_allclose(err_px.mean(axis=0), 0.0, atol=0.15)
+    centre_px = (np.asarray(noisy.centre) - np.asarray(clean.centre)) * PX
+    np.testing.assert_allclose(centre_px.std(axis=0), 1.5, rtol=0.08)
+    assert abs(float(noisy.found.mean()) - 0.75) < 0.03
+    none = D.detect_from_geometry(gate, x, camera, keys[0], 0.0, 1.0)
+    assert not bool(none.found)
+    # vmap == one call
+    single = D.detect_from_geometry(gate, x, camera, keys[1], 1.5, 0.25)
+    np.testing.assert_allclose(single.corners, noisy.corners[1], atol=1e-6)
+    assert bool(single.found) == bool(noisy.found[1])
+
+
+# --------------------------------------------------------------------------------------------------
+# From an image.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_image_and_geometry_centres_agree(rendered, course, camera):
+    poses, _, frames = rendered
+    errors = []
+    for k, (g, *_) in enumerate(VISIBLE):
+        geometric = D.detect_from_geometry(course.gate(g), poses[k], camera, gate_id=g)
+        assert bool(geometric.found) and bool(geometric.corners_visible.all())
+        seen = D.detect_from_image(np.asarray(frames.rgb[k]), g, camera)
+        assert bool(seen.found) and int(seen.gate_id) == g
+        assert bool(np.all(seen.corners_visible)), g
+        errors.append(np.hypot(*((seen.centre - np.asarray(geometric.centre)) * PX)))
+        corner_err = np.hypot(*((seen.corners - np.asarray(geometric.corners)) * PX).T)
+        assert corner_err.max() < 2.0, (g, corner_err)
+        box_err = np.abs((seen.bbox - np.asarray(geometric.bbox)) * np.tile(PX, 2))
+        assert box_err.max() < 2.0, (g, box_err)
+    print("\ncentre disagreement image vs geometry (px):", np.round(errors, 2))
+    assert max(errors) < 2.0
+
+
+def test_partly_visible_gate(rendered, course, camera):
+    _, partial, frames = rendered
+    geometric = D.detect_from_geometry(course.gate(1), partial, camera, gate_id=1)
+    seen = D.detect_from_image(np.asarray(frames.rgb[-1]), 1, camera)
+    assert bool(seen.found) and bool(geometric.found)
+    assert not seen.corners_visible.all()
+    # Every corner the image detector reports is a real corner, seen by the geometry too.
+    vis = np.asarray(seen.corners_visible)
+    assert vis.any() and np.all(np.asarray(geometric.corners_visible)[vis])
+    err = np.hypot(*((seen.corners[vis] - np.asarray(geometric.corners)[vis]) * PX).T)
+    assert err.max() < 2.0
+
+
+def test_image_detector_takes_a_frame_and_misses_absent_gates(rendered, camera):
+    _, _, frames = rendered
+    frame = jax.tree_util.tree_map(lambda a: a[0], frames)
+    seen = D.detect_from_image(frame, VISIBLE[0][0], camera)
+    assert bool(seen.found)
+    blank = np.full((153, 204, 3), 128, np.uint8)
+    assert not bool(D.detect_from_image(blank, 0, camera).found)
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.zeros((153, 204, 3), np.float32), "uint8"),
+        (np.zeros((153, 204), np.uint8), r"\(153, 204, 3\)"),
+        (np.zeros((204, 153, 3), np.uint8), r"\(153, 204, 3\)"),
+    ],
+)
+def test_image_detector_rejects_bad_images(bad, match, camera):
+    with pytest.raises(ValueError, match=match):
+        D.detect_from_image(bad, 0, camera)
