@@ -72,22 +72,47 @@ def test_ground_crash_ends_the_episode(straight):
 def test_racing_cost_terms():
     track = T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
     cfg = costs.RacingCostConfig()
-    params = costs.racing_params(track, jnp.asarray(0.0), 10.0, cfg)
+    params = costs.racing_params(track, jnp.asarray([0.0, 12.0]), 10.0, cfg)  # two horizon steps
+
+    def cost(x, t=0):
+        return float(costs.racing_cost(x, t, params, cfg))
+
     on_path = track.start.at[7].set(10.0)  # at the start, on the path, level, facing +x, at speed
-    assert float(costs.racing_cost(on_path, params, cfg)) == pytest.approx(0.0, abs=1e-2)
+    assert cost(on_path) == pytest.approx(0.0, abs=1e-2)
     offset = on_path.at[1].add(1.0)  # 1 m off the path: h = 0.5
-    assert float(costs.racing_cost(offset, params, cfg)) == pytest.approx(400 * 0.25, rel=1e-3)
+    assert cost(offset) == pytest.approx(400 * 0.25, rel=1e-3)
     slow = track.start  # at rest: c3 * 10^2
-    assert float(costs.racing_cost(slow, params, cfg)) == pytest.approx(800.0, rel=1e-4)
+    assert cost(slow) == pytest.approx(800.0, rel=1e-4)
     gate = track.gate(0)
     in_frame = on_path.at[:3].set(gate.centre + gate.up * (0.5 * gate.height + 0.15))
-    assert float(costs.racing_cost(in_frame, params, cfg)) > 400 * 1000.0**2 * 0.99
+    assert cost(in_frame, 1) > 400 * 1000.0**2 * 0.99
     in_opening = on_path.at[:3].set(gate.centre)
-    assert float(costs.racing_cost(in_opening, params, cfg)) < 1e3
+    assert cost(in_opening, 1) < 1e3
+    # step 1's window starts 4 m before s = 12 m: the start (s = 0) lies 8 m behind it
+    assert cost(on_path, 1) == pytest.approx(400.0, rel=1e-3)
     ground = on_path.at[2].set(0.05)
-    assert float(costs.racing_cost(ground, params, cfg)) > 4e8 * 0.99
+    assert cost(ground) > 4e8 * 0.99
     flipped = on_path.at[3:7].set(-on_path[3:7])  # -q is the same attitude
-    assert float(costs.racing_cost(flipped, params, cfg)) == pytest.approx(0.0, abs=1e-2)
+    assert cost(flipped) == pytest.approx(0.0, abs=1e-2)
+
+
+def test_speed_cap_follows_the_path_curvature():
+    track = T.load_course()
+    cfg = costs.RacingCostConfig(max_lateral_acc=20.0, curvature_lookaround_m=0.0)
+    cap = np.asarray(costs.speed_cap(track, cfg))
+    points = np.asarray(track.path_points)
+    # radius of the circle through three path samples 1 m apart, independent of the tangents
+    a, b, c = points[:-8], points[4:-4], points[8:]
+    ab, bc, ca = (np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1))
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    radius = ab * bc * ca / np.maximum(2 * area2, 1e-9)
+    tight = np.argmin(radius)
+    assert radius[tight] < 5.0  # the AlphaPilot path has a tight turn
+    assert cap[tight + 4] == pytest.approx(np.sqrt(20.0 * radius[tight]), rel=0.1)
+    straight = T.straight_course(num_gates=3)
+    assert float(jnp.min(costs.speed_cap(straight, cfg))) > 100.0
+    off = costs.RacingCostConfig(max_lateral_acc=None)
+    assert bool(jnp.all(jnp.isinf(costs.speed_cap(track, off))))
 
 
 def test_total_variation_wraps_angles():

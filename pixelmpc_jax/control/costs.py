@@ -70,6 +70,13 @@ class RacingCostConfig:
             horizon's path for every state (the hot spot of the step: 13 segments instead of ~50).
         path_stride: take every ``path_stride``-th sample of the track's path (0.25 m) for the cost; the
             distance is to the polyline, so 1 m chords of the smooth path cost a few centimetres at most.
+        max_lateral_acc: m/s^2. The desired speed is ``min(target_speed, sqrt(max_lateral_acc * R(s)))``
+            with R the path's radius of curvature: a constant target speed is not flyable on the AlphaPilot
+            path (turn radii down to 2.8 m; at 16 m/s that needs 90 m/s^2 sideways, while thrust leaves
+            about 24 m/s^2 after gravity and drag). The paper gives v_d only as "the target speed"; this
+            caps it where the vehicle cannot follow it and leaves it untouched elsewhere. None disables it.
+        curvature_lookaround_m: the cap at s uses the tightest radius within this distance of s, so a
+            turn is entered slow, not only its apex.
     """
 
     c1: float = 400.0
@@ -82,6 +89,8 @@ class RacingCostConfig:
     window_behind_m: float = 4.0
     window_ahead_m: float = 8.0
     path_stride: int = 4
+    max_lateral_acc: float | None = 20.0
+    curvature_lookaround_m: float = 3.0
 
     def window_length(self, path_spacing: float = 0.25) -> int:
         """Number of path samples in each step's window (static)."""
@@ -95,7 +104,7 @@ class RacingParams:
     Attributes:
         path_xyz: (T, 3, L) per horizon step, the window of the desired path (coordinates first, so the
             distance computation runs on contiguous (L,) rows).
-        tangent_xyz: (T, 3, L) unit path tangents at those points.
+        tangent_xyz: (T, 4, L) unit path tangents at those points and, in row 3, the speed cap (m/s).
         gates: the course's gates (leading axis G), for the crash term.
         hall_min, hall_max: (3,) the hall's box.
         target_speed: () desired speed along the path, m/s.
@@ -124,6 +133,8 @@ def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed
     points = track.path_points[::stride]
     tangents = track.path_tangents[::stride]
     spacing = track.path_spacing * stride
+    cap = speed_cap(track, config)[::stride]
+    tangents = jnp.concatenate([tangents, cap[:, None]], axis=1)  # (P', 4)
     length = min(config.window_length(float(track_lib.PATH_SPACING)), points.shape[0])
     step_progress = jnp.atleast_1d(jnp.asarray(step_progress, jnp.float32))
     first = jnp.floor((step_progress - config.window_behind_m) / spacing).astype(jnp.int32)
@@ -144,17 +155,35 @@ def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed
     )
 
 
+def speed_cap(track: track_lib.Track, config: RacingCostConfig) -> jax.Array:
+    """(P,) the highest desired speed (m/s) at each path sample: sqrt(max_lateral_acc * R), R the tightest
+    radius of curvature within ``curvature_lookaround_m``; +inf everywhere when the cap is disabled."""
+    num_points = track.num_path_points
+    if config.max_lateral_acc is None:
+        return jnp.full((num_points,), jnp.inf, jnp.float32)
+    tangents = track.path_tangents
+    spacing = track.path_spacing
+    padded = jnp.concatenate([tangents[:1], tangents, tangents[-1:]], axis=0)
+    curvature = jnp.linalg.norm(padded[2:] - padded[:-2], axis=1) / (2.0 * spacing)  # (P,)
+    half = max(int(round(config.curvature_lookaround_m / float(track_lib.PATH_SPACING))), 0)
+    if half > 0:
+        shifted = [jnp.roll(curvature, k) for k in range(-half, half + 1)]
+        curvature = jnp.max(jnp.stack(shifted), axis=0)  # the path is open: wrap-around only touches its ends
+    return jnp.sqrt(config.max_lateral_acc / jnp.maximum(curvature, 1e-6))
+
+
 def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Array):
-    """Distance from p (3,) to a polyline and the interpolated unit tangent at the closest point.
+    """Distance from p (3,) to a polyline and the interpolated attributes (unit tangent, ...) there.
 
     Args:
         path_xyz: (3, L) polyline vertices, coordinates first.
-        tangent_xyz: (3, L) unit tangents at the vertices.
+        tangent_xyz: (C, L) per-vertex attributes; rows 0-2 are the unit tangent (renormalised after
+            interpolation), further rows are interpolated linearly.
         p: (3,) the point.
 
     Returns:
-        distance: (); tangent: (3,). The closest segment is selected with a min-mask reduction rather than
-        an argmin and gather, which vectorises across samples.
+        distance: (); attributes: (C,). The closest segment is selected with a min-mask reduction rather
+        than an argmin and gather, which vectorises across samples.
     """
     a = path_xyz[:, :-1]  # (3, L-1)
     ab = path_xyz[:, 1:] - a
@@ -166,10 +195,10 @@ def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Arra
     m = jnp.min(d2)
     select = (d2 <= m).astype(p.dtype)
     select = select / jnp.sum(select)
-    tangents = tangent_xyz[:, :-1] + t * (tangent_xyz[:, 1:] - tangent_xyz[:, :-1])  # (3, L-1)
-    tangent = jnp.sum(tangents * select, axis=1)
-    tangent = tangent / jnp.maximum(jnp.sqrt(jnp.sum(tangent * tangent)), 1e-6)
-    return jnp.sqrt(m), tangent
+    attributes = tangent_xyz[:, :-1] + t * (tangent_xyz[:, 1:] - tangent_xyz[:, :-1])  # (C, L-1)
+    attributes = jnp.sum(attributes * select, axis=1)
+    tangent = attributes[:3] / jnp.maximum(jnp.sqrt(jnp.sum(attributes[:3] ** 2)), 1e-6)
+    return jnp.sqrt(m), jnp.concatenate([tangent, attributes[3:]])
 
 
 def crashed(p: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
@@ -197,15 +226,17 @@ def racing_cost(x: jax.Array, t: jax.Array, params: RacingParams, config: Racing
 
     h = min(d / corridor_halfwidth, 1) with d the distance to the desired path, or ``crash_value`` on a
     crash; q_d is level and faces along the path tangent (the sign of q is chosen to make the distance
-    smallest, since q and -q are one attitude); v_d = target_speed * tangent.
+    smallest, since q and -q are one attitude); v_d = min(target_speed, speed cap at the closest point) *
+    tangent (see ``RacingCostConfig.max_lateral_acc``).
     """
     p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
-    distance, tangent = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p)
+    distance, attributes = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p)
+    tangent, cap = attributes[:3], attributes[3]
     h = jnp.minimum(distance / config.corridor_halfwidth, 1.0)
     h = jnp.where(crashed(p, params, config), config.crash_value, h)
     q_d = desired_attitude(tangent)
     attitude_error = jnp.minimum(jnp.sum((q_d - q) ** 2), jnp.sum((q_d + q) ** 2))
-    velocity_error = jnp.sum((params.target_speed * tangent - v) ** 2)
+    velocity_error = jnp.sum((jnp.minimum(params.target_speed, cap) * tangent - v) ** 2)
     return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
 
 

@@ -147,12 +147,39 @@ class Controller(NamedTuple):
         step_pure: the same step, unjitted and unvalidated, to compose inside a larger jitted function
             (a closed-loop episode scanned over time).
         config: the MPPIConfig it was built with.
+        num_compilations: ``() -> int``, how many versions of the jitted step exist (one per distinct
+            input signature); a control loop must keep it at 1.
     """
 
     init: Callable[..., MPPIState]
     step: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
     step_pure: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
     config: MPPIConfig
+    num_compilations: Callable[[], int]
+
+
+class Prefix(NamedTuple):
+    """The first ``steps`` steps of the horizon with their own one-sample model and cost.
+
+    The rest of the horizon uses the controller's main ``dynamics`` and ``running_cost``. Both parts see
+    the same state shape. Use it to confine a costly part of the model (a network that only feeds a cost
+    counted early in the horizon) to where it matters; each part is its own ``lax.scan``.
+    """
+
+    steps: int
+    dynamics: Callable
+    running_cost: Callable
+
+
+def _segments(dynamics, running_cost, prefix: Prefix | None, horizon: int):
+    """[(first step, number of steps, dynamics, running_cost)] covering the horizon."""
+    if prefix is None or prefix.steps <= 0:
+        return [(0, horizon, dynamics, running_cost)]
+    steps = min(int(prefix.steps), horizon)
+    parts = [(0, steps, prefix.dynamics, prefix.running_cost)]
+    if steps < horizon:
+        parts.append((steps, horizon - steps, dynamics, running_cost))
+    return parts
 
 
 def rollout_cost(
@@ -162,31 +189,40 @@ def rollout_cost(
     x0: jax.Array,
     controls: jax.Array,
     params: Any,
+    prefix: Prefix | None = None,
 ) -> jax.Array:
     """Total cost of one control sequence from x0. controls: (T, m) -> scalar."""
+    x = x0
+    total = jnp.zeros((), controls.dtype)
+    for first, steps, dyn, cost in _segments(dynamics, running_cost, prefix, controls.shape[0]):
 
-    def body(x, inputs):
-        t, u = inputs
-        x_next = dynamics(x, u, params)
-        return x_next, running_cost(x_next, u, t, params)
+        def body(x, inputs, dyn=dyn, cost=cost):
+            t, u = inputs
+            x_next = dyn(x, u, params)
+            return x_next, cost(x_next, u, t, params)
 
-    horizon = controls.shape[0]
-    x_final, stage_costs = jax.lax.scan(body, x0, (jnp.arange(horizon), controls))
-    total = jnp.sum(stage_costs)
+        ts = jnp.arange(first, first + steps)
+        x, stage_costs = jax.lax.scan(body, x, (ts, controls[first:first + steps]))
+        total = total + jnp.sum(stage_costs)
     if terminal_cost is not None:
-        total = total + terminal_cost(x_final, params)
+        total = total + terminal_cost(x, params)
     return total
 
 
-def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, params: Any) -> jax.Array:
+def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, params: Any,
+                   prefix: Prefix | None = None) -> jax.Array:
     """States visited by one control sequence, x0 included. controls: (T, m) -> (T+1, n)."""
+    x = x0
+    trajectory = [x0[None]]
+    for first, steps, dyn, _ in _segments(dynamics, None, prefix, controls.shape[0]):
 
-    def body(x, u):
-        x_next = dynamics(x, u, params)
-        return x_next, x_next
+        def body(x, u, dyn=dyn):
+            x_next = dyn(x, u, params)
+            return x_next, x_next
 
-    _, states = jax.lax.scan(body, x0, controls)
-    return jnp.concatenate([x0[None], states], axis=0)
+        x, states = jax.lax.scan(body, x, controls[first:first + steps])
+        trajectory.append(states)
+    return jnp.concatenate(trajectory, axis=0)
 
 
 def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array, jax.Array]:
@@ -218,10 +254,16 @@ def make_mppi(
     dynamics: Callable,
     running_cost: Callable,
     terminal_cost: Callable | None = None,
+    prefix: Prefix | None = None,
 ) -> Controller:
-    """Build a compiled MPPI controller for the given one-sample model and costs (see module docstring)."""
+    """Build a compiled MPPI controller for the given one-sample model and costs (see module docstring).
+
+    ``prefix`` optionally gives the first steps of the horizon their own model and cost (see Prefix).
+    """
     if not isinstance(config, MPPIConfig):
         raise TypeError(f"config must be an MPPIConfig, got {type(config).__name__}")
+    if prefix is not None and not (isinstance(prefix.steps, int) and 0 <= prefix.steps <= config.horizon):
+        raise ValueError(f"prefix.steps must be an integer in [0, horizon={config.horizon}], got {prefix.steps!r}")
     N, T, K, m = config.num_samples, config.horizon, config.iterations, config.control_dim
     sigma = jnp.asarray(config.noise_sigma, dtype=jnp.float32)
     inv_sigma2 = jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
@@ -238,7 +280,8 @@ def make_mppi(
         return u
 
     cost_of = jax.vmap(
-        lambda x0, controls, params: rollout_cost(dynamics, running_cost, terminal_cost, x0, controls, params),
+        lambda x0, controls, params: rollout_cost(dynamics, running_cost, terminal_cost, x0, controls, params,
+                                                  prefix),
         in_axes=(None, 0, None),
     )
 
@@ -286,7 +329,7 @@ def make_mppi(
             effective_sample_size=ess,
             num_nonfinite=num_nonfinite,
             all_nonfinite=all_nonfinite,
-            nominal_trajectory=rollout_states(dynamics, x0, plan, params),
+            nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix),
             costs=costs,
         )
         return u0, MPPIState(plan=shifted, key=key), info
@@ -306,7 +349,8 @@ def make_mppi(
             checked_state_shapes.add(signature)
         return step_jit(state, x0, params)
 
-    return Controller(init=init, step=step, step_pure=step_pure, config=config)
+    return Controller(init=init, step=step, step_pure=step_pure, config=config,
+                      num_compilations=step_jit._cache_size)
 
 
 def _validate_u_init(u_init, T: int, m: int) -> jax.Array:
@@ -322,7 +366,7 @@ def _validate_x0(dynamics: Callable, x0: jax.Array, m: int, params) -> None:
     if x0.ndim != 1:
         raise ValueError(f"x0 must be one state of shape (n,), got shape {x0.shape}")
     try:
-        out = jax.eval_shape(lambda x, p: dynamics(x, jnp.zeros((m,), jnp.float32), p), x0, params)
+        out = jax.eval_shape(lambda x, p: dynamics(x, jnp.zeros((m,), jnp.float32), p), x0, params)  # noqa: B023
     except Exception as err:  # the dynamics could not even be traced with this x0
         raise ValueError(f"x0 of shape {x0.shape} does not fit the dynamics: {err}") from err
     if getattr(out, "shape", None) != x0.shape:

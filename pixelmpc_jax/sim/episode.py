@@ -18,8 +18,11 @@ import jax.numpy as jnp
 from flax import struct
 
 from pixelmpc_jax.control import costs
+from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.pixelmpc import paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import track as track_lib
@@ -31,19 +34,6 @@ END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TI
 
 CONTROL_DT = 0.025
 SUBSTEPS = 24
-
-
-def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: float = 20.0,
-                      rate_max: float = 6.0) -> MPPIConfig:
-    """The paper's MPPI settings: dt 0.025 s, T 80, N 512, K 1, sigma (0.2, 0.2, 0.3, 2.2).
-
-    The temperature (lambda) and the control bounds are not given in the paper; lambda is chosen for
-    our cost scale (see the README), the bounds are the vehicle's thrust range and a body-rate limit.
-    """
-    params = quadrotor.QuadParams(rate_max=(rate_max,) * 3)
-    lo, hi = params.control_bounds()
-    return MPPIConfig(num_samples=num_samples, horizon=horizon, dt=CONTROL_DT, noise_sigma=(0.2, 0.2, 0.3, 2.2),
-                      temperature=temperature, iterations=1, u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,12 +59,14 @@ class EpisodeConfig:
 
 class Observation(NamedTuple):
     """What a controller sees at a tick. x_est: (10,); target_gate: () int32; progress_s: () m;
-    target_visibility: () fraction of the target gate's outline in view, at the estimate."""
+    target_visibility: () fraction of the target gate's outline in view, at the estimate;
+    detection: the detector's view of the target gate from the true pose."""
 
     x_est: jax.Array
     target_gate: jax.Array
     progress_s: jax.Array
     target_visibility: jax.Array
+    detection: detector_lib.Detection
 
 
 class Policy(NamedTuple):
@@ -88,17 +80,72 @@ class Policy(NamedTuple):
 
 @struct.dataclass
 class World:
-    """Everything dynamic an episode runs in (a pytree: new values never recompile)."""
+    """Everything dynamic an episode runs in (a pytree: new values never recompile).
+
+    Attributes:
+        track: the course.
+        target_speed: () m/s.
+        plant_params: the vehicle.
+        camera: the onboard camera.
+        dof: DOF network weights for PixelMPC (None for controllers without a pixel model).
+        detector_noise_px: () std of the geometric detector's pixel noise.
+        detector_dropout: () probability that a detection is missed.
+    """
 
     track: track_lib.Track
     target_speed: jax.Array
     plant_params: plant_lib.PlantParams
     camera: camera_lib.Camera
+    dof: Any = None
+    detector_noise_px: jax.Array = 0.0
+    detector_dropout: jax.Array = 0.0
+
+
+def rate_feedforward(u0: jax.Array, u1: jax.Array, gain: float, u_min, u_max) -> jax.Array:
+    """The command sent to the plant: ``u0`` with its body rates led by ``gain * (u1 - u0)``.
+
+    The model assumes the rates follow the command at once; the plant's rate loop lags it with a time
+    constant of about 1 / P = 0.11 s. Leading the planned rate change (u1 is the plan's next control)
+    lets the plant's rates follow the plan the model optimised. Thrust is passed through. Clipped.
+    """
+    rates = u0[:3] + gain * (u1[:3] - u0[:3])
+    u = jnp.concatenate([rates, u0[3:]])
+    return jnp.clip(u, jnp.asarray(u_min), jnp.asarray(u_max))
+
+
+DEFAULT_FEEDFORWARD_GAIN = 2.0
+
+
+def _racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
+                   quad_params: quadrotor.QuadParams, feedforward_gain: float) -> Policy:
+    """A Policy around an MPPI racing controller. ``build(obs, world, racing_params) -> (x0, params)``
+    makes the controller's state and params from an observation; the nominal trajectory's first 10
+    columns must be the robot state."""
+    horizon = mppi_config.horizon
+
+    def init(key):
+        return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
+                                 jnp.full((horizon,), jnp.nan, jnp.float32))
+
+    def act(state: RacingPolicyState, obs: Observation, world: World):
+        # First tick: no previous plan, every step's path window starts at the current progress.
+        step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
+        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config)
+        x0, params = build(obs, world, racing)
+        u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
+        robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
+        next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
+        if feedforward_gain:
+            u = rate_feedforward(u, mppi_state.plan[0], feedforward_gain, mppi_config.u_min, mppi_config.u_max)
+        return u, RacingPolicyState(mppi_state, next_progress), info.nominal_trajectory
+
+    return Policy(init=init, act=act, name=name)
 
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
                         cost_config: costs.RacingCostConfig | None = None,
-                        quad_params: quadrotor.QuadParams | None = None) -> Policy:
+                        quad_params: quadrotor.QuadParams | None = None,
+                        feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
     """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
@@ -112,21 +159,33 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
         return costs.racing_cost(x, t, p, cost_config)
 
     ctrl = make_mppi(mppi_config, dynamics, running_cost)
-    horizon = mppi_config.horizon
 
-    def init(key):
-        return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
-                                 jnp.full((horizon,), jnp.nan, jnp.float32))
+    def build(obs, world, racing):
+        return obs.x_est, racing
 
-    def act(state: RacingPolicyState, obs: Observation, world: World):
-        # First tick: no previous plan, every step's window starts at the current progress.
-        step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
-        params = costs.racing_params(world.track, step_progress, world.target_speed, cost_config)
-        u, mppi_state, info = ctrl.step_pure(state.mppi, obs.x_est, params)
-        next_progress = costs.plan_progress(world.track, info.nominal_trajectory, obs.progress_s, horizon)
-        return u, RacingPolicyState(mppi_state, next_progress), info.nominal_trajectory
+    return _racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, feedforward_gain)
 
-    return Policy(init=init, act=act, name="mppi")
+
+def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
+                    quad_params: quadrotor.QuadParams | None = None,
+                    feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
+    """PixelMPC in the loop: the target pixel is the detector's, the pixel cost is active while it
+    detects the target; the DOF weights come from ``world.dof``."""
+    config = config or pixelmpc_lib.PixelMPCConfig()
+    quad_params = quad_params or quadrotor.QuadParams()
+    ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
+
+    def build(obs, world, racing):
+        detection = obs.detection
+        uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
+        params = pixelmpc_lib.PixelMPCParams(
+            racing=racing, dof=world.dof, target_active=detection.found,
+            target_centre=world.track.gates.centre[obs.target_gate], camera=world.camera,
+        )
+        return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
+
+    return _racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
+                          quad_params, feedforward_gain)
 
 
 class RacingPolicyState(NamedTuple):
@@ -211,12 +270,15 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
         )
 
         def body(c: _Carry) -> _Carry:
-            key, key_plant = jax.random.split(c.key)
+            key, key_plant, key_detect = jax.random.split(c.key, 3)
             x = c.plant.x
             target_gate = track.gate(c.target)
+            detection = detector_lib.detect_from_geometry(
+                target_gate, x, world.camera, key_detect, world.detector_noise_px, world.detector_dropout,
+                c.target)
             obs = Observation(
                 x_est=x, target_gate=c.target, progress_s=c.progress,
-                target_visibility=camera_lib.gate_visibility(target_gate, x, world.camera),
+                target_visibility=camera_lib.gate_visibility(target_gate, x, world.camera), detection=detection,
             )
             u, policy_state, _ = policy.act(c.policy_state, obs, world)
             plant_state, _, _ = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
@@ -275,7 +337,8 @@ def stack_worlds(worlds: list[World]) -> World:
 
 def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                plant_params: plant_lib.PlantParams | None = None,
-               camera: camera_lib.Camera | None = None) -> World:
+               camera: camera_lib.Camera | None = None, dof=None, detector_noise_px: float = 0.0,
+               detector_dropout: float = 0.0) -> World:
     """A World with defaults: the AlphaPilot course, the reference vehicle, the paper's camera."""
     if not (isinstance(target_speed, (int, float)) and target_speed > 0):
         raise ValueError(f"target_speed must be a positive number of m/s, got {target_speed!r}")
@@ -286,4 +349,5 @@ def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                                     if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else jnp.asarray(a),
                                     (plant_params, camera))
     return World(track=track, target_speed=jnp.asarray(target_speed, jnp.float32), plant_params=leaves[0],
-                 camera=leaves[1])
+                 camera=leaves[1], dof=dof, detector_noise_px=jnp.asarray(detector_noise_px, jnp.float32),
+                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32))

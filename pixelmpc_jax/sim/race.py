@@ -18,7 +18,7 @@ from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.world import track as track_lib
 
-CONTROLLERS = ("mppi",)
+CONTROLLERS = ("mppi", "pixelmpc")
 
 
 def write_json_atomic(path: Path, data) -> None:
@@ -34,14 +34,21 @@ def write_json_atomic(path: Path, data) -> None:
         raise
 
 
-def make_policy(controller: str, temperature: float | None = None, num_samples: int = 512):
-    """The named controller as an episode Policy."""
+def make_policy(controller: str, temperature: float | None = None, num_samples: int = 512,
+                pixel_model: str = "dof", t_f: float = 1.0, c_pixel: float = 9e6):
+    """The named controller as an episode Policy ("mppi": nominal MPPI; "pixelmpc": PixelMPC)."""
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}; choose one of {', '.join(CONTROLLERS)}")
     kwargs = {"num_samples": num_samples}
     if temperature is not None:
         kwargs["temperature"] = temperature
-    return episode_lib.nominal_mppi_policy(episode_lib.paper_mppi_config(**kwargs))
+    mppi_config = episode_lib.paper_mppi_config(**kwargs)
+    if controller == "mppi":
+        return episode_lib.nominal_mppi_policy(mppi_config)
+    from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+
+    config = PixelMPCConfig(mppi=mppi_config, t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
+    return episode_lib.pixelmpc_policy(config)
 
 
 def lap_worlds(base: episode_lib.World, seeds: list[int], perturb: bool) -> episode_lib.World:

@@ -1,0 +1,123 @@
+"""PixelMPC: one compiled step over robot + pixel; the t_f prefix equals the full-horizon computation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.control import costs
+from pixelmpc_jax.control import pixelmpc as PM
+from pixelmpc_jax.control.mppi import make_mppi
+from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.dynamics import quadrotor as Q
+from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import track as T
+
+SMALL = PM.paper_mppi_config(num_samples=64, horizon=24)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    track = T.load_course()
+    dof_params = dof.init_dof_params(jax.random.PRNGKey(7))
+    return track, dof_params
+
+
+def make_params(track, dof_params, config, active=True, target=0, speed=14.0):
+    racing = costs.racing_params(track, jnp.linspace(0.0, 20.0, config.mppi.horizon), speed, config.racing)
+    return PM.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(active),
+                             target_centre=track.gates.centre[target], camera=C.default_camera())
+
+
+def state(track, uv=(0.55, 0.45)):
+    x = track.start.at[7:].set(track.path_tangents[0] * 5.0)
+    return jnp.concatenate([x, jnp.asarray(uv)])
+
+
+def test_prefix_equals_full_horizon_computation(setup):
+    track, dof_params = setup
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6)  # n_f = 10 of 24 steps
+    assert config.pixel_steps == 10
+    fast = PM.make_pixelmpc(config)
+    dt = SMALL.dt
+
+    # The reference: the DOF runs over the WHOLE horizon; the pixel cost is masked after n_f steps.
+    def full_dynamics(X, u, p):
+        x_next = Q.step(X[:10], u, dt, Q.QuadParams())
+        uv = X[10:] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:], u)
+        return jnp.concatenate([x_next, uv])
+
+    def full_cost(X, u, t, p):
+        racing = costs.racing_cost(X[:10], t, p.racing, config.racing)
+        pixel = jnp.where(t < config.pixel_steps, PM.pixel_cost(X[10:], config), 0.0)
+        return racing + p.target_active * pixel
+
+    full = make_mppi(SMALL, full_dynamics, full_cost)
+    params = make_params(track, dof_params, config)
+    key = jax.random.PRNGKey(3)
+    u_init = Q.hover_control(Q.QuadParams())
+    u_a, s_a, info_a = fast.step(fast.init(key, u_init), state(track), params)
+    u_b, s_b, info_b = full.step(full.init(key, u_init), state(track), params)
+    np.testing.assert_allclose(info_a.costs, info_b.costs, rtol=2e-5)
+    np.testing.assert_allclose(u_a, u_b, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(s_a.plan, s_b.plan, rtol=1e-5, atol=1e-5)
+    # the predicted pixel agrees where it is modelled; afterwards the fast version holds it still
+    n_f = config.pixel_steps
+    np.testing.assert_allclose(info_a.nominal_trajectory[: n_f + 1], info_b.nominal_trajectory[: n_f + 1],
+                               atol=1e-5)
+    np.testing.assert_allclose(info_a.nominal_trajectory[n_f:, 10:], np.broadcast_to(
+        info_a.nominal_trajectory[n_f, 10:], (SMALL.horizon + 1 - n_f, 2)))
+
+
+def test_pixel_cost_counts_only_while_the_target_is_detected(setup):
+    track, dof_params = setup
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, c_pixel=9e6)
+    ctrl = PM.make_pixelmpc(config)
+    key = jax.random.PRNGKey(0)
+    u_init = Q.hover_control(Q.QuadParams())
+    off_centre = state(track, uv=(0.9, 0.1))
+    _, _, on = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=True))
+    _, _, off = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=False))
+    nominal = PM.make_pixelmpc(PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, c_pixel=0.0))
+    _, _, zero = nominal.step(nominal.init(key, u_init), off_centre, make_params(track, dof_params, config))
+    np.testing.assert_allclose(off.costs, zero.costs, rtol=1e-6)
+    # L1 of (0.9, 0.1) from the centre is 0.8: at least n_f steps of a large pixel cost in every sample
+    assert float(jnp.min(on.costs - off.costs)) > 0.5 * 20 * 9e6 * config.pixel_cost_scale * 0.8
+
+
+def test_projection_model_predicts_the_projected_target(setup):
+    track, dof_params = setup
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, pixel_model="projection")
+    ctrl = PM.make_pixelmpc(config)
+    params = make_params(track, dof_params, config)
+    _, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams())), state(track), params)
+    traj = info.nominal_trajectory
+    for t in (1, 5, config.pixel_steps):
+        uv, _, in_front = C.project(track.gates.centre[0], traj[t, :10], C.default_camera())
+        assert bool(in_front)
+        np.testing.assert_allclose(traj[t, 10:], uv, atol=1e-6)
+
+
+def test_no_recompilation_for_new_pixel_gates_or_weights(setup):
+    track, dof_params = setup
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25)
+    ctrl = PM.make_pixelmpc(config)
+    s = ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams()))
+    params = make_params(track, dof_params, config)
+    _, s, _ = ctrl.step(s, state(track), params)  # compiles once
+    perturbed = T.perturb_course(track, jax.random.PRNGKey(5))
+    other_weights = dof.init_dof_params(jax.random.PRNGKey(99))
+    for i in range(6):
+        p = make_params(perturbed if i % 2 else track, other_weights if i % 3 else dof_params, config,
+                        active=bool(i % 2), target=i % 3, speed=10.0 + i)
+        _, s, _ = ctrl.step(s, state(track, uv=(0.3 + 0.05 * i, 0.6)), p)
+    assert ctrl.num_compilations() == 1
+
+
+def test_bad_config_is_rejected():
+    with pytest.raises(ValueError, match="pixel_model"):
+        PM.PixelMPCConfig(pixel_model="flow")
+    with pytest.raises(ValueError, match="t_f"):
+        PM.PixelMPCConfig(t_f=-1.0)
+    with pytest.raises(ValueError, match="c_pixel"):
+        PM.PixelMPCConfig(c_pixel=-5.0)
