@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -10,31 +9,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-
-def device_description() -> dict:
-    """The device JAX runs on, the CPU model and the library versions."""
-    device = jax.devices()[0]
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import jaxlib
-
-    return {
-        "platform": device.platform,
-        "device_kind": getattr(device, "device_kind", str(device)),
-        "num_devices": jax.device_count(),
-        "cpu_model": cpu,
-        "cpu_count": __import__("os").cpu_count(),
-        "jax": jax.__version__,
-        "jaxlib": jaxlib.__version__,
-        "python": platform.python_version(),
-    }
+from pixelmpc_jax.platform_info import device_description, device_line  # noqa: F401 (re-exported)
 
 
 def time_call(fn: Callable[[], object], repeats: int = 30, warmup: int = 3) -> dict:

@@ -103,7 +103,9 @@ def _cmd_race(args) -> int:
           f"seeds {args.seed}..{args.seed + args.laps - 1}, output {args.out}")
     results = race.run_laps(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
                             out=args.out, batch_size=args.batch, perturb=args.perturb,
-                            max_time_s=args.max_time, temperature=args.temperature)
+                            max_time_s=args.max_time, temperature=args.temperature,
+                            pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
+                            c_pixel=args.c_pixel)
     if not results["laps"]:
         print("no lap finished")
         return 1
@@ -147,7 +149,14 @@ def build_parser() -> argparse.ArgumentParser:
     from pixelmpc_jax.sim.race import CONTROLLERS
 
     p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
-    p.add_argument("--controller", choices=CONTROLLERS, default="mppi", help="controller (default mppi)")
+    p.add_argument("--controller", choices=CONTROLLERS, default="pixelmpc",
+                   help="pixelmpc (default) or mppi, the paper's nominal baseline")
+    p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
+                   help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
+    p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
+                   help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
+    p.add_argument("--t-f", type=float, default=1.0, help="PixelMPC pixel-cost horizon t_f, s (default 1)")
+    p.add_argument("--c-pixel", type=float, default=9e6, help="PixelMPC pixel-cost weight (default 9e6)")
     p.add_argument("--speed", type=_positive_float, default=14.0, help="target speed, m/s (default 14)")
     p.add_argument("--laps", type=_positive_int, default=1, help="number of laps (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first lap; lap i uses seed + i")

@@ -7,6 +7,7 @@ speeds) come in ``params``, so changing them never recompiles.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -77,6 +78,16 @@ class RacingCostConfig:
             caps it where the vehicle cannot follow it and leaves it untouched elsewhere. None disables it.
         curvature_lookaround_m: the cap at s uses the tightest radius within this distance of s, so a
             turn is entered slow, not only its apex.
+        progress_weight: 1/m^2. The closest point of a window is the one minimising
+            ``d^2 + progress_weight * (s - s_expected)^2``, s_expected the progress the previous plan
+            predicts for that step. Where the path doubles back (a U-turn through consecutive gates), a
+            window holds both legs; pure nearest-point projection then flips between legs whose tangents
+            point opposite ways, and hovering between them minimises the velocity term (a trap seen in
+            closed loop). The returned distance is still the true distance to the chosen segment.
+        max_tilt_deg: a predicted attitude whose body z axis is tilted further than this from world up
+            counts as a crash (h = crash_value). Beyond acos(m g / f_max) = 74.6 deg no thrust holds the
+            altitude, and the laps that failed in our closed loop all flipped past 90 deg first; the paper's
+            cost has no such term. None disables it.
     """
 
     c1: float = 400.0
@@ -91,6 +102,8 @@ class RacingCostConfig:
     path_stride: int = 4
     max_lateral_acc: float | None = 20.0
     curvature_lookaround_m: float = 3.0
+    max_tilt_deg: float | None = 75.0
+    progress_weight: float = 0.25
 
     def window_length(self, path_spacing: float = 0.25) -> int:
         """Number of path samples in each step's window (static)."""
@@ -104,6 +117,8 @@ class RacingParams:
     Attributes:
         path_xyz: (T, 3, L) per horizon step, the window of the desired path (coordinates first, so the
             distance computation runs on contiguous (L,) rows).
+        path_s: (T, L) arc length of the window's points, m.
+        expected_s: (T,) the progress the previous plan predicts for each step, m.
         tangent_xyz: (T, 4, L) unit path tangents at those points and, in row 3, the speed cap (m/s).
         gates: the course's gates (leading axis G), for the crash term.
         hall_min, hall_max: (3,) the hall's box.
@@ -111,6 +126,8 @@ class RacingParams:
     """
 
     path_xyz: jax.Array
+    path_s: jax.Array
+    expected_s: jax.Array
     tangent_xyz: jax.Array
     gates: track_lib.Gate
     hall_min: jax.Array
@@ -140,13 +157,18 @@ def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed
     first = jnp.floor((step_progress - config.window_behind_m) / spacing).astype(jnp.int32)
     starts = jnp.clip(first, 0, points.shape[0] - length)  # (T,)
 
+    arc = track.path_s[::stride]
+
     def window(start):
         return (jax.lax.dynamic_slice_in_dim(points, start, length).T,
+                jax.lax.dynamic_slice_in_dim(arc, start, length),
                 jax.lax.dynamic_slice_in_dim(tangents, start, length).T)
 
-    path_xyz, tangent_xyz = jax.vmap(window)(starts)
+    path_xyz, path_s, tangent_xyz = jax.vmap(window)(starts)
     return RacingParams(
         path_xyz=path_xyz,
+        path_s=path_s,
+        expected_s=jnp.broadcast_to(step_progress, starts.shape),
         tangent_xyz=tangent_xyz,
         gates=track.gates,
         hall_min=track.hall_min,
@@ -172,7 +194,9 @@ def speed_cap(track: track_lib.Track, config: RacingCostConfig) -> jax.Array:
     return jnp.sqrt(config.max_lateral_acc / jnp.maximum(curvature, 1e-6))
 
 
-def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Array):
+def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Array,
+                        path_s: jax.Array | None = None, expected_s: jax.Array | None = None,
+                        progress_weight: float = 0.0):
     """Distance from p (3,) to a polyline and the interpolated attributes (unit tangent, ...) there.
 
     Args:
@@ -180,10 +204,12 @@ def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Arra
         tangent_xyz: (C, L) per-vertex attributes; rows 0-2 are the unit tangent (renormalised after
             interpolation), further rows are interpolated linearly.
         p: (3,) the point.
+        path_s, expected_s, progress_weight: optionally, (L,) arc lengths of the vertices and the expected
+            progress: the segment chosen minimises ``d^2 + progress_weight * (s - expected_s)^2``.
 
     Returns:
-        distance: (); attributes: (C,). The closest segment is selected with a min-mask reduction rather
-        than an argmin and gather, which vectorises across samples.
+        distance: () to the chosen segment; attributes: (C,). The segment is selected with a min-mask
+        reduction rather than an argmin and gather, which vectorises across samples.
     """
     a = path_xyz[:, :-1]  # (3, L-1)
     ab = path_xyz[:, 1:] - a
@@ -192,9 +218,13 @@ def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Arra
     t = jnp.clip(jnp.sum(r * ab, axis=0) / len2, 0.0, 1.0)  # (L-1,)
     e = r - t * ab
     d2 = jnp.sum(e * e, axis=0)
-    m = jnp.min(d2)
-    select = (d2 <= m).astype(p.dtype)
+    metric = d2
+    if path_s is not None and progress_weight > 0.0:
+        s = path_s[:-1] + t * (path_s[1:] - path_s[:-1])
+        metric = d2 + progress_weight * (s - expected_s) ** 2
+    select = (metric <= jnp.min(metric)).astype(p.dtype)
     select = select / jnp.sum(select)
+    m = jnp.sum(d2 * select)
     attributes = tangent_xyz[:, :-1] + t * (tangent_xyz[:, 1:] - tangent_xyz[:, :-1])  # (C, L-1)
     attributes = jnp.sum(attributes * select, axis=1)
     tangent = attributes[:3] / jnp.maximum(jnp.sqrt(jnp.sum(attributes[:3] ** 2)), 1e-6)
@@ -225,15 +255,21 @@ def racing_cost(x: jax.Array, t: jax.Array, params: RacingParams, config: Racing
     """Eq. (19) for one state at horizon step t: c1 h^2 + c2 |q_d - q|^2 + c3 |v_d - v|^2.
 
     h = min(d / corridor_halfwidth, 1) with d the distance to the desired path, or ``crash_value`` on a
-    crash; q_d is level and faces along the path tangent (the sign of q is chosen to make the distance
-    smallest, since q and -q are one attitude); v_d = min(target_speed, speed cap at the closest point) *
+    crash (a gate frame, the floor, the walls, or a tilt beyond ``max_tilt_deg``); q_d is level and faces
+    along the path tangent (the sign of q is chosen to make the distance smallest, since q and -q are one
+    attitude); v_d = min(target_speed, speed cap at the closest point) *
     tangent (see ``RacingCostConfig.max_lateral_acc``).
     """
     p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
-    distance, attributes = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p)
+    distance, attributes = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p, params.path_s[t],
+                                               params.expected_s[t], config.progress_weight)
     tangent, cap = attributes[:3], attributes[3]
     h = jnp.minimum(distance / config.corridor_halfwidth, 1.0)
-    h = jnp.where(crashed(p, params, config), config.crash_value, h)
+    crash = crashed(p, params, config)
+    if config.max_tilt_deg is not None:
+        cos_tilt = 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2)  # R_33: body z against world z
+        crash = crash | (cos_tilt < math.cos(math.radians(config.max_tilt_deg)))
+    h = jnp.where(crash, config.crash_value, h)
     q_d = desired_attitude(tangent)
     attitude_error = jnp.minimum(jnp.sum((q_d - q) ** 2), jnp.sum((q_d + q) ** 2))
     velocity_error = jnp.sum((jnp.minimum(params.target_speed, cap) * tangent - v) ** 2)

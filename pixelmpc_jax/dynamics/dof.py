@@ -351,3 +351,14 @@ def load_checkpoint(path) -> tuple[DOFParams, dict]:
     restored parameters are bit-identical to the saved ones."""
     checkpoint = read_checkpoint(path)
     return checkpoint.dof_params, checkpoint.config
+
+
+PACKAGED_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "dof_weights.msgpack"
+
+
+def load_packaged_dof() -> DOFParams:
+    """The DOF weights shipped inside the package (``pixelmpc_jax/data/dof_weights.msgpack``)."""
+    if not PACKAGED_WEIGHTS.exists():
+        raise FileNotFoundError(f"{PACKAGED_WEIGHTS}: the package ships no DOF weights; reinstall it, or train "
+                                f"your own with `pixelmpc train` and pass them explicitly")
+    return load_checkpoint(PACKAGED_WEIGHTS)[0]

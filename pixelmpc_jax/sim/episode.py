@@ -34,6 +34,28 @@ END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TI
 
 CONTROL_DT = 0.025
 SUBSTEPS = 24
+DETECTORS = ("geometry", "image")
+
+
+def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
+                     ) -> detector_lib.Detection:
+    """Render the onboard frame and detect the target gate in it with OpenCV (a host callback)."""
+    from pixelmpc_jax.world import render as render_lib
+
+    frame = render_lib.render(track, x, camera, supersample=1)
+
+    def host_detect(rgb, gate_id):
+        import numpy as np
+
+        det = detector_lib.detect_from_image(np.asarray(rgb), int(gate_id), camera=camera)
+        return jax.tree_util.tree_map(np.asarray, det)
+
+    template = detector_lib.Detection(
+        found=jax.ShapeDtypeStruct((), jnp.bool_), centre=jax.ShapeDtypeStruct((2,), jnp.float32),
+        bbox=jax.ShapeDtypeStruct((4,), jnp.float32), corners=jax.ShapeDtypeStruct((4, 2), jnp.float32),
+        corners_visible=jax.ShapeDtypeStruct((4,), jnp.bool_), gate_id=jax.ShapeDtypeStruct((), jnp.int32))
+    det = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
+    return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), det, template)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,6 +64,11 @@ class EpisodeConfig:
 
     Attributes:
         max_time_s: the episode ends as a timeout after this much simulated time.
+        detector: "geometry" (projection of the true gate, with the World's noise and dropout; fast and
+            batched) or "image" (each tick renders the onboard frame in JAX and runs the OpenCV colour
+            detector on the host through ``jax.pure_callback``; slower, one frame per tick).
+        logged_prediction_steps: how many steps of the controller's predicted target pixel to log per
+            tick (for the onboard video); controllers without a pixel state log zeros.
         progress_window_m: arc length searched around the last progress when tracking the robot along
             the desired path (the path may pass near itself elsewhere).
         missed_gate_margin_m: the episode ends as ``missed_gate`` when the robot's progress is this far
@@ -51,6 +78,14 @@ class EpisodeConfig:
     max_time_s: float = 60.0
     progress_window_m: float = 30.0
     missed_gate_margin_m: float = 6.0
+    detector: str = "geometry"
+    logged_prediction_steps: int = 41
+
+    def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
+        if not self.max_time_s > 0:
+            raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
 
     @property
     def max_ticks(self) -> int:
@@ -204,6 +239,9 @@ class EpisodeLog(NamedTuple):
         body_rates: (M+1, 3) true body rates.
         visibility: (M+1,) target-gate visibility at each tick.
         target: (M+1,) target gate index at each tick.
+        detected: (M,) the detector reported the target at each tick.
+        detection_uv: (M, 2) the detected target pixel (normalised).
+        predicted_uv: (M, P, 2) the controller's predicted target pixel for the next P-1 steps.
         num_ticks: () ticks flown.
         gates_passed: () gates passed in order.
         end_cause: () int32, 0 finished or still flying, else a key of END_NAMES.
@@ -215,6 +253,9 @@ class EpisodeLog(NamedTuple):
     body_rates: jax.Array
     visibility: jax.Array
     target: jax.Array
+    detected: jax.Array
+    detection_uv: jax.Array
+    predicted_uv: jax.Array
     num_ticks: jax.Array
     gates_passed: jax.Array
     end_cause: jax.Array
@@ -244,6 +285,13 @@ def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array
 def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Callable:
     """The pure episode ``run(world, key) -> EpisodeLog`` (jit and vmap it; see :func:`make_runner`)."""
     M = config.max_ticks
+    P = config.logged_prediction_steps
+
+    def predicted_pixels(prediction: jax.Array) -> jax.Array:
+        if prediction.shape[-1] < quadrotor.STATE_DIM + 2:
+            return jnp.zeros((P, 2), jnp.float32)
+        uv = prediction[:P, quadrotor.STATE_DIM:quadrotor.STATE_DIM + 2].astype(jnp.float32)
+        return jnp.pad(uv, ((0, P - uv.shape[0]), (0, 0)), mode="edge")
 
     def run(world: World, key: jax.Array) -> EpisodeLog:
         track = world.track
@@ -258,6 +306,9 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             body_rates=jnp.zeros((M + 1, 3), x0.dtype),
             visibility=jnp.zeros((M + 1,), jnp.float32).at[0].set(visibility0),
             target=jnp.zeros((M + 1,), jnp.int32),
+            detected=jnp.zeros((M,), jnp.bool_),
+            detection_uv=jnp.zeros((M, 2), jnp.float32),
+            predicted_uv=jnp.zeros((M, P, 2), jnp.float32),
             num_ticks=jnp.asarray(0, jnp.int32),
             gates_passed=jnp.asarray(0, jnp.int32),
             end_cause=jnp.asarray(0, jnp.int32),
@@ -273,14 +324,17 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             key, key_plant, key_detect = jax.random.split(c.key, 3)
             x = c.plant.x
             target_gate = track.gate(c.target)
-            detection = detector_lib.detect_from_geometry(
-                target_gate, x, world.camera, key_detect, world.detector_noise_px, world.detector_dropout,
-                c.target)
+            if config.detector == "image":
+                detection = _image_detection(track, x, world.camera, c.target)
+            else:
+                detection = detector_lib.detect_from_geometry(
+                    target_gate, x, world.camera, key_detect, world.detector_noise_px, world.detector_dropout,
+                    c.target)
             obs = Observation(
                 x_est=x, target_gate=c.target, progress_s=c.progress,
                 target_visibility=camera_lib.gate_visibility(target_gate, x, world.camera), detection=detection,
             )
-            u, policy_state, _ = policy.act(c.policy_state, obs, world)
+            u, policy_state, prediction = policy.act(c.policy_state, obs, world)
             plant_state, _, _ = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
             p0, p1 = x[quadrotor.POS], plant_state.x[quadrotor.POS]
             passed = track_lib.gate_passed(target_gate, p0, p1)
@@ -303,6 +357,9 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
                 body_rates=c.log.body_rates.at[tick].set(plant_state.rates),
                 visibility=c.log.visibility.at[tick].set(jnp.where(finished, 1.0, new_visibility)),
                 target=c.log.target.at[tick].set(jnp.minimum(target, num_gates - 1)),
+                detected=c.log.detected.at[c.tick].set(detection.found),
+                detection_uv=c.log.detection_uv.at[c.tick].set(detection.centre.astype(jnp.float32)),
+                predicted_uv=c.log.predicted_uv.at[c.tick].set(predicted_pixels(prediction)),
                 num_ticks=tick,
                 gates_passed=jnp.minimum(target, num_gates),
                 end_cause=end_cause.astype(jnp.int32),

@@ -74,6 +74,11 @@ def run_laps(
     progress: bool = True,
     temperature: float | None = None,
     num_samples: int = 512,
+    pixel_model: str = "dof",
+    detector: str = "geometry",
+    t_f: float = 1.0,
+    c_pixel: float = 9e6,
+    dof_params=None,
 ) -> dict:
     """Fly ``laps`` laps (seeds ``seed .. seed + laps - 1``) and return ``{"laps": [...], "aggregate": {...}}``.
 
@@ -86,11 +91,17 @@ def run_laps(
         raise ValueError(f"laps must be a positive integer, got {laps!r}")
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-    policy = make_policy(controller, temperature, num_samples)
-    runner = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s))
-    base = episode_lib.make_world(target_speed=float(speed))
-    results: dict = {"controller": controller, "speed": speed, "seed": seed, "perturb": perturb, "laps": [],
-                     "aggregate": {}}
+    policy = make_policy(controller, temperature, num_samples, pixel_model, t_f, c_pixel)
+    runner = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s, detector=detector))
+    if controller == "pixelmpc" and pixel_model == "dof" and dof_params is None:
+        from pixelmpc_jax.dynamics import dof
+
+        dof_params = dof.load_packaged_dof()
+    base = episode_lib.make_world(target_speed=float(speed), dof=dof_params)
+    results: dict = {"controller": policy.name, "speed": speed, "seed": seed, "perturb": perturb,
+                     "detector": detector, "laps": [], "aggregate": {}}
+    if controller == "pixelmpc":
+        results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
     trajectories: list[np.ndarray] = []
     seeds = list(range(seed, seed + laps))
     bar = None

@@ -1,0 +1,69 @@
+"""Experiment grids: named cells of laps, run batched, resumable, reported beside the paper's figures.
+
+A grid is a list of :class:`Cell` (a controller and its settings); each cell flies ``laps`` races
+(seeds ``seed .. seed + laps - 1``, batched with ``vmap``). After every cell the results file is
+rewritten atomically, and a cell already in the file is not recomputed, so an interrupted run resumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pixelmpc_jax.sim import race
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """One cell of an experiment grid."""
+
+    name: str
+    controller: str = "mppi"
+    t_f: float = 1.0
+    c_pixel: float = 9e6
+    pixel_model: str = "dof"
+    speed: float = 14.0
+
+    def key(self) -> str:
+        return self.name
+
+
+def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
+             max_time_s: float = 60.0, progress: bool = True, dof_params=None) -> dict:
+    """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "results.json"
+    results: dict = json.loads(path.read_text()) if path.exists() else {}
+    batch_size = batch_size or laps
+    for cell in cells:
+        done = results.get(cell.key())
+        if done and len(done.get("laps", [])) >= laps and done.get("config") == dataclasses.asdict(cell):
+            if progress:
+                print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
+            continue
+        start = time.perf_counter()
+        res = race.run_laps(controller=cell.controller, speed=cell.speed, laps=laps, seed=seed, out=None,
+                            batch_size=batch_size, max_time_s=max_time_s, progress=progress,
+                            pixel_model=cell.pixel_model, t_f=cell.t_f, c_pixel=cell.c_pixel,
+                            dof_params=dof_params)
+        trajectories = res.pop("trajectories")
+        if len(res["laps"]) < laps:  # interrupted inside the cell: keep what is finished, stop here
+            break
+        res["config"] = dataclasses.asdict(cell)
+        res["wall_time_s"] = time.perf_counter() - start
+        results[cell.key()] = res
+        race.write_json_atomic(path, results)
+        np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
+    return results
+
+
+def fmt(entry: dict | None, digits: int = 1) -> str:
+    """'mean +- 2sigma' of an aggregate entry."""
+    if not entry or entry.get("mean") is None:
+        return "-"
+    return f"{entry['mean']:.{digits}f} ± {entry['two_sigma']:.{digits}f}"
