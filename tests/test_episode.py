@@ -153,3 +153,27 @@ def test_nominal_mppi_completes_alphapilot_laps(speed):
 
     results = run_laps("mppi", speed=speed, laps=10, seed=0, progress=False)
     assert results["aggregate"]["success_rate"] >= 0.9
+
+
+def test_particle_filter_in_the_loop_tracks_the_true_state(straight):
+    from pixelmpc_jax.perception.particle_filter import PFConfig
+
+    config = E.EpisodeConfig(max_time_s=1.5, estimator="pf",
+                             pf=PFConfig(num_particles=512, position_noise_per_second=True))
+    policy = E.nominal_mppi_policy(E.paper_mppi_config(num_samples=64, horizon=20))
+    log = E.make_runner(policy, config).single(E.make_world(straight, target_speed=6.0), jax.random.PRNGKey(0))
+    n = int(log.num_ticks)
+    assert n == 60
+    error = np.linalg.norm(np.asarray(log.estimates[:n, :3]) - np.asarray(log.states[:n, :3]), axis=1)
+    assert np.all(np.isfinite(error)) and error.mean() < 0.5
+    cov = np.asarray(log.position_cov_trace[:n])
+    assert np.all(cov > 0.0) and np.all(np.isfinite(cov))
+    # the controller acted on the estimate, not the truth
+    assert not np.allclose(np.asarray(log.estimates[:n]), np.asarray(log.states[:n]))
+
+
+def test_bad_episode_config_is_rejected():
+    with pytest.raises(ValueError, match="estimator"):
+        E.EpisodeConfig(estimator="ekf")
+    with pytest.raises(ValueError, match="detector"):
+        E.EpisodeConfig(detector="yolo")

@@ -23,6 +23,7 @@ from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.pixelmpc import paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import track as track_lib
@@ -35,6 +36,7 @@ END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TI
 CONTROL_DT = 0.025
 SUBSTEPS = 24
 DETECTORS = ("geometry", "image")
+ESTIMATORS = ("truth", "pf")
 
 
 def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
@@ -69,6 +71,11 @@ class EpisodeConfig:
             detector on the host through ``jax.pure_callback``; slower, one frame per tick).
         logged_prediction_steps: how many steps of the controller's predicted target pixel to log per
             tick (for the onboard video); controllers without a pixel state log zeros.
+        estimator: "truth" (the controller sees the true state) or "pf" (the particle filter of Section
+            V-D, fed each tick with the previous tick's mean IMU sample and the target gate's detection;
+            the controller sees its mean).
+        pf: the particle filter's settings; pf_initial_spread: its initial spread (position m, attitude
+            rad, velocity m/s) around the true start.
         progress_window_m: arc length searched around the last progress when tracking the robot along
             the desired path (the path may pass near itself elsewhere).
         missed_gate_margin_m: the episode ends as ``missed_gate`` when the robot's progress is this far
@@ -80,10 +87,15 @@ class EpisodeConfig:
     missed_gate_margin_m: float = 6.0
     detector: str = "geometry"
     logged_prediction_steps: int = 41
+    estimator: str = "truth"
+    pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
+    pf_initial_spread: tuple = (0.3, 0.03, 0.2)
 
     def __post_init__(self):
         if self.detector not in DETECTORS:
             raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
         if not self.max_time_s > 0:
             raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
 
@@ -148,7 +160,7 @@ def rate_feedforward(u0: jax.Array, u1: jax.Array, gain: float, u_min, u_max) ->
     return jnp.clip(u, jnp.asarray(u_min), jnp.asarray(u_max))
 
 
-DEFAULT_FEEDFORWARD_GAIN = 2.0
+DEFAULT_FEEDFORWARD_GAIN = 0.0
 
 
 def _racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
@@ -242,6 +254,8 @@ class EpisodeLog(NamedTuple):
         detected: (M,) the detector reported the target at each tick.
         detection_uv: (M, 2) the detected target pixel (normalised).
         predicted_uv: (M, P, 2) the controller's predicted target pixel for the next P-1 steps.
+        estimates: (M, 10) the state the controller acted on (the truth, or the filter's mean).
+        position_cov_trace: (M,) trace of the estimator's position covariance (0 for the truth), m^2.
         num_ticks: () ticks flown.
         gates_passed: () gates passed in order.
         end_cause: () int32, 0 finished or still flying, else a key of END_NAMES.
@@ -256,6 +270,8 @@ class EpisodeLog(NamedTuple):
     detected: jax.Array
     detection_uv: jax.Array
     predicted_uv: jax.Array
+    estimates: jax.Array
+    position_cov_trace: jax.Array
     num_ticks: jax.Array
     gates_passed: jax.Array
     end_cause: jax.Array
@@ -269,6 +285,9 @@ class _Carry(NamedTuple):
     policy_state: Any
     target: jax.Array
     progress: jax.Array
+    progress_est: jax.Array
+    filter: Any
+    imu_prev: plant_lib.IMU
     end_cause: jax.Array
     key: jax.Array
     log: EpisodeLog
@@ -296,7 +315,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
     def run(world: World, key: jax.Array) -> EpisodeLog:
         track = world.track
         num_gates = track.num_gates
-        key, key_policy = jax.random.split(key)
+        key, key_policy, key_filter = jax.random.split(key, 3)
         x0 = track.start
         plant_state = plant_lib.init_plant(x0, world.plant_params)
         visibility0 = camera_lib.gate_visibility(track.gate(0), x0, world.camera)
@@ -309,6 +328,8 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             detected=jnp.zeros((M,), jnp.bool_),
             detection_uv=jnp.zeros((M, 2), jnp.float32),
             predicted_uv=jnp.zeros((M, P, 2), jnp.float32),
+            estimates=jnp.zeros((M, quadrotor.STATE_DIM), x0.dtype),
+            position_cov_trace=jnp.zeros((M,), jnp.float32),
             num_ticks=jnp.asarray(0, jnp.int32),
             gates_passed=jnp.asarray(0, jnp.int32),
             end_cause=jnp.asarray(0, jnp.int32),
@@ -317,7 +338,11 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
         carry = _Carry(
             tick=jnp.asarray(0, jnp.int32), done=jnp.asarray(False), plant=plant_state,
             policy_state=policy.init(key_policy), target=jnp.asarray(0, jnp.int32),
-            progress=jnp.asarray(0.0, jnp.float32), end_cause=jnp.asarray(0, jnp.int32), key=key, log=log,
+            progress=jnp.asarray(0.0, jnp.float32), progress_est=jnp.asarray(0.0, jnp.float32),
+            filter=(pf_lib.pf_init(key_filter, x0, config.pf, config.pf_initial_spread)
+                    if config.estimator == "pf" else jnp.zeros(())),
+            imu_prev=plant_lib.IMU(accel=jnp.asarray([0.0, 0.0, 9.81], x0.dtype), gyro=jnp.zeros(3, x0.dtype)),
+            end_cause=jnp.asarray(0, jnp.int32), key=key, log=log,
         )
 
         def body(c: _Carry) -> _Carry:
@@ -330,12 +355,19 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
                 detection = detector_lib.detect_from_geometry(
                     target_gate, x, world.camera, key_detect, world.detector_noise_px, world.detector_dropout,
                     c.target)
+            if config.estimator == "pf":
+                filter_state, estimate, filter_info = pf_lib.pf_step(
+                    c.filter, c.imu_prev, detection, track, world.camera, config.pf)
+                x_est, cov_trace = estimate.mean.astype(x.dtype), filter_info.position_cov_trace
+                progress_est = _progress(track, x_est[quadrotor.POS], c.progress_est, config.progress_window_m)
+            else:
+                filter_state, x_est, cov_trace, progress_est = c.filter, x, jnp.asarray(0.0), c.progress
             obs = Observation(
-                x_est=x, target_gate=c.target, progress_s=c.progress,
+                x_est=x_est, target_gate=c.target, progress_s=progress_est,
                 target_visibility=camera_lib.gate_visibility(target_gate, x, world.camera), detection=detection,
             )
             u, policy_state, prediction = policy.act(c.policy_state, obs, world)
-            plant_state, _, _ = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
+            plant_state, _, imu_mean = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
             p0, p1 = x[quadrotor.POS], plant_state.x[quadrotor.POS]
             passed = track_lib.gate_passed(target_gate, p0, p1)
             target = c.target + passed.astype(jnp.int32)
@@ -360,13 +392,16 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
                 detected=c.log.detected.at[c.tick].set(detection.found),
                 detection_uv=c.log.detection_uv.at[c.tick].set(detection.centre.astype(jnp.float32)),
                 predicted_uv=c.log.predicted_uv.at[c.tick].set(predicted_pixels(prediction)),
+                estimates=c.log.estimates.at[c.tick].set(x_est),
+                position_cov_trace=c.log.position_cov_trace.at[c.tick].set(cov_trace.astype(jnp.float32)),
                 num_ticks=tick,
                 gates_passed=jnp.minimum(target, num_gates),
                 end_cause=end_cause.astype(jnp.int32),
                 finished=finished & ~hit,
             )
             return _Carry(tick=tick, done=done, plant=plant_state, policy_state=policy_state, target=target,
-                          progress=progress, end_cause=end_cause.astype(jnp.int32), key=key, log=log)
+                          progress=progress, progress_est=progress_est, filter=filter_state, imu_prev=imu_mean,
+                          end_cause=end_cause.astype(jnp.int32), key=key, log=log)
 
         final = jax.lax.while_loop(lambda c: ~c.done, body, carry)
         return final.log

@@ -1,0 +1,573 @@
+"""Self-supervised DOF data, the first loop of the paper's Algorithm 1: fly, render, compute optical flow.
+
+Nominal MPPI laps (the racing cost only, ground-truth state) are flown on the AlphaPilot course at target
+speeds spread over 6-14 m/s across laps. Every 1/40 s tick of a lap is rendered (``render_batch``, one
+compiled chunk size), Farneback flow (the paper's parameters) is computed between consecutive grey
+frames, and each flow frame ``t`` is stored with the orientation ``q_t``, the control ``u_t`` applied
+between ``t`` and ``t + 1``, the full state and the target gate.
+
+On disk, one directory::
+
+    manifest.json          config, split, per-lap summary, versions (rewritten atomically after each lap)
+    lap_000.npz ...        one lap each, written atomically (temp file + os.replace):
+        flow         (F, H, W, 2) float16  Farneback flow t -> t+1, pixels per frame, flow[y, x] = (du, dv)
+        q, u         (F, 4) float32        orientation at t, control applied between t and t+1
+        states       (F + 1, 10) float32   true state at every rendered frame
+        target       (F + 1,) int32        target gate index at every rendered frame
+        exact_flow   (F, H, W, 2) float16  exact flow from depth + poses (test laps only by default)
+        exact_valid  (F, H, W) bool        where the exact flow is defined (in front, inside the image)
+
+The exact flow is stored for the test laps only (``CollectConfig.exact_flow = "test"``): training uses
+the Farneback flow alone (the paper's self-supervision), the exact flow only serves evaluation, and
+storing it for every lap would more than double the dataset for nothing. It is cheap to compute (one
+reprojection of the rendered depth), so ``"all"`` is there for experiments that want it.
+
+A lap file that exists is complete (atomic writes), so ``collect`` resumes: laps already on disk are
+skipped, and Ctrl-C loses at most the lap in progress.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import functools
+import os
+import shlex
+import sys
+import tempfile
+import time
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pixelmpc_jax.learn.train import FlowData
+from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.sim import metrics as metrics_lib
+from pixelmpc_jax.sim import race
+from pixelmpc_jax.world import render as render_lib
+from pixelmpc_jax.world import track as track_lib
+
+DATASET_FORMAT = "pixelmpc_jax.flow_dataset"
+DATASET_VERSION = 1
+MANIFEST = "manifest.json"
+LAP_KEYS = ("flow", "q", "u", "states", "target")
+EXACT_KEYS = ("exact_flow", "exact_valid")
+# End causes after which the last logged state lies past the impact (its frame pair is dropped).
+_COLLISION_CAUSES = (track_lib.CRASH_GATE, track_lib.CRASH_GROUND, track_lib.CRASH_WALL)
+
+
+@dataclasses.dataclass(frozen=True)
+class CollectConfig:
+    """What to collect. The default is laptop-sized (4 laps of at most 10 s, a few minutes on a CPU);
+    :meth:`paper` is the paper's size (10 rounds of ~30 s, 6-14 m/s).
+
+    Attributes:
+        laps: number of laps flown.
+        speed_min, speed_max: target speeds (m/s), spread linearly over the laps (one lap: their mean).
+        seed: lap ``i`` uses PRNG key ``seed + i`` (plant noise and controller).
+        test_every: without ``test_laps``, lap ``i`` is a test lap when ``i % test_every == test_every // 2``
+            (the middle of each block: interior speeds), or the last lap if that selects none of >= 2 laps.
+        test_laps: explicit test lap indices (overrides ``test_every``).
+        max_lap_time_s: a lap is cut off (a timeout) after this much flight.
+        supersample: renderer sub-samples per pixel side (1: none). 1 is the default: the texture is
+            band-limited to the pixel grid anyway, and on the course Farneback's error against the exact
+            flow is the same at 1 and 3 (0.53 vs 0.55 px, 30 frame pairs at 12 m/s), 5x cheaper.
+        render_batch: poses per compiled ``render_batch`` call (the last chunk is padded: one compile).
+        exact_flow: ``"test"`` (exact flow for test laps only) or ``"all"``.
+        num_samples: MPPI samples of the nominal controller (``race.make_policy("mppi", ...)``).
+    """
+
+    laps: int = 4
+    speed_min: float = 6.0
+    speed_max: float = 14.0
+    seed: int = 0
+    test_every: int = 5
+    test_laps: tuple[int, ...] | None = None
+    max_lap_time_s: float = 10.0
+    supersample: int = 1
+    render_batch: int = 32
+    exact_flow: str = "test"
+    num_samples: int = 512
+
+    def __post_init__(self):
+        if int(self.laps) < 1:
+            raise ValueError(f"CollectConfig.laps must be >= 1, got {self.laps}")
+        if not (0 < self.speed_min <= self.speed_max):
+            raise ValueError(f"CollectConfig needs 0 < speed_min <= speed_max, got {self.speed_min}, {self.speed_max}")
+        if int(self.test_every) < 1:
+            raise ValueError(f"CollectConfig.test_every must be >= 1, got {self.test_every}")
+        if self.test_laps is not None:
+            object.__setattr__(self, "test_laps", tuple(int(i) for i in self.test_laps))
+            bad = [i for i in self.test_laps if not 0 <= i < self.laps]
+            if bad:
+                raise ValueError(f"CollectConfig.test_laps must be lap indices in [0, {self.laps}), got {bad}")
+        if not self.max_lap_time_s > 0:
+            raise ValueError(f"CollectConfig.max_lap_time_s must be > 0, got {self.max_lap_time_s}")
+        if int(self.supersample) < 1 or int(self.supersample) % 2 == 0:
+            raise ValueError(f"CollectConfig.supersample must be odd and >= 1, got {self.supersample}")
+        if int(self.render_batch) < 1 or int(self.num_samples) < 1:
+            raise ValueError("CollectConfig.render_batch and num_samples must be >= 1")
+        if self.exact_flow not in ("test", "all"):
+            raise ValueError(f"CollectConfig.exact_flow must be 'test' or 'all', got {self.exact_flow!r}")
+
+    @classmethod
+    def paper(cls, **overrides) -> CollectConfig:
+        """The paper's data (Sec. V): 10 rounds of ~30 s of nominal MPPI flight, 6-14 m/s."""
+        return cls(**{"laps": 10, "max_lap_time_s": 30.0, **overrides})
+
+    def speeds(self) -> list[float]:
+        """Target speed of every lap (m/s)."""
+        if self.laps == 1:
+            return [0.5 * (self.speed_min + self.speed_max)]
+        return [float(s) for s in np.linspace(self.speed_min, self.speed_max, self.laps)]
+
+    def seeds(self) -> list[int]:
+        return [self.seed + i for i in range(self.laps)]
+
+    def test_indices(self) -> list[int]:
+        if self.test_laps is not None:
+            return sorted(set(self.test_laps))
+        chosen = [i for i in range(self.laps) if i % self.test_every == self.test_every // 2]
+        if not chosen and self.laps >= 2:
+            chosen = [self.laps - 1]
+        return chosen
+
+    def split_of(self, lap: int) -> str:
+        return "test" if lap in self.test_indices() else "train"
+
+    def to_json(self) -> dict:
+        data = dataclasses.asdict(self)
+        data["test_laps"] = None if self.test_laps is None else list(self.test_laps)
+        return data
+
+
+class Lap(NamedTuple):
+    """One stored lap (host arrays; ``None`` for fields not loaded or not stored). F flow frames.
+
+    Attributes:
+        flow: (F, H, W, 2) float16 Farneback flow, pixels per frame.
+        q, u: (F, 4) float32.
+        states: (F + 1, 10) float32, true state at each rendered frame.
+        target: (F + 1,) int32 target gate index.
+        exact_flow: (F, H, W, 2) float16 or None; exact_valid: (F, H, W) bool or None.
+        info: the lap's manifest entry (index, split, speed, seed, frames, end, ...).
+    """
+
+    flow: np.ndarray | None
+    q: np.ndarray
+    u: np.ndarray
+    states: np.ndarray
+    target: np.ndarray
+    exact_flow: np.ndarray | None
+    exact_valid: np.ndarray | None
+    info: dict
+
+
+# --------------------------------------------------------------------------------------------------
+# Collection.
+# --------------------------------------------------------------------------------------------------
+
+
+def lap_filename(index: int) -> str:
+    return f"lap_{index:03d}.npz"
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_runner(num_samples: int, max_time_s: float) -> episode_lib.Runner:
+    """The nominal MPPI episode runner (current ``race.make_policy`` defaults), compiled once per size."""
+    return episode_lib.make_runner(race.make_policy("mppi", num_samples=num_samples),
+                                   episode_lib.EpisodeConfig(max_time_s=max_time_s))
+
+
+def _versions() -> dict:
+    import cv2
+    import flax
+
+    return {"jax": jax.__version__, "flax": flax.__version__, "numpy": np.__version__, "opencv": cv2.__version__}
+
+
+def _controller_source() -> dict:
+    """sha256 (first 16 hex) of the controller's source files: the nominal MPPI's defaults change with them."""
+    import hashlib
+
+    from pixelmpc_jax.control import costs
+
+    return {Path(m.__file__).name: hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest()[:16]
+            for m in (episode_lib, costs, race)}
+
+
+def _save_npz_atomic(path: Path, arrays: dict) -> None:
+    """``np.savez_compressed`` through a temporary file in the same directory and ``os.replace``."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _lap_is_complete(path: Path) -> bool:
+    """The lap file exists and its archive lists every required array (a damaged file is re-collected)."""
+    if not path.exists():
+        return False
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = {Path(n).stem for n in archive.namelist()}
+            return set(LAP_KEYS) <= names
+    except (zipfile.BadZipFile, OSError):
+        return False
+
+
+def _lap_summary(path: Path) -> dict:
+    with np.load(path) as data:
+        return {k: data[k].item() for k in data.files if k.startswith("meta_")}
+
+
+def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> tuple[np.ndarray, np.ndarray,
+                                                                                    np.ndarray, dict]:
+    """Fly one lap; returns states (F + 1, 10), controls (F, 4), targets (F + 1,) and a summary.
+
+    After a collision the last state lies past the impact: that tick is dropped.
+    """
+    log = metrics_lib.unbatch(runner.single(world, jax.random.PRNGKey(seed)))[0]
+    n = int(log.num_ticks)
+    cause = int(log.end_cause)
+    frames = n - 1 if (cause in _COLLISION_CAUSES and not bool(log.finished)) else n
+    frames = max(frames, 0)
+    summary = {
+        "ticks_flown": n,
+        "frames": frames,
+        "flight_time_s": n * episode_lib.CONTROL_DT,
+        "end": "finished" if bool(log.finished) else episode_lib.END_NAMES.get(cause, str(cause)),
+        "gates_passed": int(log.gates_passed),
+        "finished": bool(log.finished),
+    }
+    return (np.asarray(log.states[: frames + 1], np.float32), np.asarray(log.controls[:frames], np.float32),
+            np.asarray(log.target[: frames + 1], np.int32), summary)
+
+
+def render_lap(world: episode_lib.World, states: np.ndarray, config: CollectConfig, with_depth: bool,
+               bar=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Grey frames (F + 1, H, W) uint8 and, with ``with_depth``, depth (F + 1, H, W) float32 of ``states``.
+
+    Poses go through ``render_batch`` in chunks of ``config.render_batch``; the last chunk is padded with
+    its last pose so every call has one shape (compiled once).
+    """
+    chunk = int(config.render_batch)
+    greys, depths = [], []
+    for start in range(0, states.shape[0], chunk):
+        xs = states[start:start + chunk]
+        count = xs.shape[0]
+        if count < chunk:
+            xs = np.concatenate([xs, np.repeat(xs[-1:], chunk - count, axis=0)])
+        frame = render_lib.render_batch(world.track, jnp.asarray(xs), world.camera,
+                                        supersample=int(config.supersample), chunk=1)
+        greys.append(np.asarray(frame.grey)[:count])
+        if with_depth:
+            depths.append(np.asarray(frame.depth)[:count])
+        if bar is not None:
+            bar.update(count)
+    return np.concatenate(greys), (np.concatenate(depths) if with_depth else None)
+
+
+_exact_flow_batch = jax.jit(jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, None)))
+
+
+def lap_arrays(world: episode_lib.World, states: np.ndarray, controls: np.ndarray, targets: np.ndarray,
+               config: CollectConfig, with_exact: bool, bar=None) -> dict:
+    """Render a flown lap and compute its flows: the arrays of one lap file (see the module docstring)."""
+    frames = controls.shape[0]
+    grey, depth = render_lap(world, states, config, with_exact, bar)
+    H, W = grey.shape[1:]
+    flow = np.empty((frames, H, W, 2), np.float16)
+    for t in range(frames):
+        flow[t] = flow_lib.farneback(grey[t], grey[t + 1], shape=None)
+    arrays = {"flow": flow, "q": states[:frames, 3:7].copy(), "u": controls, "states": states, "target": targets}
+    if with_exact:
+        exact = np.empty((frames, H, W, 2), np.float16)
+        valid = np.empty((frames, H, W), bool)
+        chunk = int(config.render_batch)
+        for start in range(0, frames, chunk):
+            stop = min(start + chunk, frames)
+            f, v = _exact_flow_batch(jnp.asarray(states[start:stop]), jnp.asarray(states[start + 1:stop + 1]),
+                                     jnp.asarray(depth[start:stop]), world.camera)
+            exact[start:stop], valid[start:stop] = np.asarray(f), np.asarray(v)
+        arrays["exact_flow"], arrays["exact_valid"] = exact, valid
+    return arrays
+
+
+def _read_manifest(root: Path) -> dict | None:
+    import json
+
+    path = root / MANIFEST
+    if not path.exists():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: unreadable dataset manifest ({err}); delete it to re-collect") from err
+    if not isinstance(manifest, dict) or manifest.get("format") != DATASET_FORMAT:
+        raise ValueError(f"{path}: not a {DATASET_FORMAT} manifest")
+    return manifest
+
+
+def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = True,
+            policy: episode_lib.Policy | None = None) -> dict:
+    """Collect (or resume collecting) a DOF dataset into ``out_dir``; returns the manifest.
+
+    Args:
+        out_dir: the dataset directory (created). A directory collected with another config is refused.
+        config: what to collect.
+        progress: tqdm progress bars (laps; frames of the lap in progress).
+        policy: a controller overriding the nominal MPPI from ``race.make_policy`` (tests; its name is
+            recorded in the manifest).
+
+    Returns:
+        The manifest (also in ``out_dir/manifest.json``); ``manifest["complete"]`` is False after a
+        Ctrl-C, which keeps every finished lap (run again to resume).
+    """
+    root = Path(out_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    previous = _read_manifest(root)
+    policy_name = policy.name if policy is not None else "mppi"
+    if previous is not None and (previous.get("config") != config.to_json() or previous.get("policy") != policy_name):
+        raise ValueError(f"{root} holds a dataset collected with another config ({previous.get('config')}, policy "
+                         f"{previous.get('policy')!r}); use a new directory or the same config to resume")
+    runner = (episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
+              if policy is not None else _cached_runner(int(config.num_samples), float(config.max_lap_time_s)))
+    base = episode_lib.make_world()
+    speeds, seeds = config.speeds(), config.seeds()
+    manifest = {
+        "format": DATASET_FORMAT,
+        "format_version": DATASET_VERSION,
+        "config": config.to_json(),
+        "policy": policy_name,
+        "mppi_config": dataclasses.asdict(episode_lib.paper_mppi_config(num_samples=config.num_samples))
+        if policy is None else None,
+        "image_size_wh": [int(base.camera.width), int(base.camera.height)],
+        "frame_dt_s": episode_lib.CONTROL_DT,
+        "farneback": {k: v for k, v in flow_lib.FARNEBACK_PARAMS.items()},
+        "split": {"train": [i for i in range(config.laps) if config.split_of(i) == "train"],
+                  "test": config.test_indices()},
+        "laps": [],
+        "frames": {"train": 0, "test": 0},
+        "versions": _versions(),
+        "controller_source_sha256": _controller_source() if policy is None else None,
+        "command": shlex.join(sys.argv),
+        "created": (previous or {}).get("created", datetime.datetime.now().isoformat(timespec="seconds")),
+        "complete": False,
+    }
+    manifest = _make_json_safe(manifest)
+    done: dict[int, dict] = {}
+    bar = frames_bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=config.laps, desc="collect", unit="lap")
+    t0 = time.perf_counter()
+    interrupted = False
+    try:
+        for lap in range(config.laps):
+            path = root / lap_filename(lap)
+            split = config.split_of(lap)
+            if _lap_is_complete(path):
+                done[lap] = _lap_entry(lap, path, split, _lap_summary(path))
+                if bar is not None:
+                    bar.update(1)
+                continue
+            world = base.replace(target_speed=jnp.asarray(speeds[lap], jnp.float32))
+            if bar is not None:
+                bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="fly")
+            states, controls, targets, summary = fly_lap(world, seeds[lap], runner)
+            if summary["frames"] < 1:
+                raise RuntimeError(f"lap {lap} (seed {seeds[lap]}, {speeds[lap]:.1f} m/s) ended before a single "
+                                   f"frame pair ({summary['end']}); nothing to store")
+            if bar is not None:
+                from tqdm.auto import tqdm
+
+                bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="render+flow")
+                frames_bar = tqdm(total=states.shape[0], desc=f"lap {lap} frames", unit="frame", leave=False)
+            with_exact = config.exact_flow == "all" or split == "test"
+            arrays = lap_arrays(world, states, controls, targets, config, with_exact, frames_bar)
+            if frames_bar is not None:
+                frames_bar.close()
+                frames_bar = None
+            meta = {"lap": lap, "split": split, "speed": speeds[lap], "seed": seeds[lap], **summary}
+            arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
+            _save_npz_atomic(path, arrays)
+            done[lap] = _lap_entry(lap, path, split, _lap_summary(path))
+            _write_manifest(root, manifest, done, config, complete=False)
+            if bar is not None:
+                bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+        print(f"\ninterrupted: keeping the {len(done)} finished lap(s) in {root}; run again to resume")
+    finally:
+        if frames_bar is not None:
+            frames_bar.close()
+        if bar is not None:
+            bar.close()
+    manifest = _write_manifest(root, manifest, done, config, complete=not interrupted and len(done) == config.laps)
+    manifest["wall_s_this_call"] = time.perf_counter() - t0
+    return manifest
+
+
+def _make_json_safe(value):
+    if isinstance(value, dict):
+        return {str(k): _make_json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_make_json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _lap_entry(lap: int, path: Path, split: str, meta: dict) -> dict:
+    entry = {k.removeprefix("meta_"): v for k, v in meta.items()}
+    entry.update({"lap": lap, "file": path.name, "split": split, "bytes": path.stat().st_size})
+    return entry
+
+
+def _write_manifest(root: Path, manifest: dict, done: dict[int, dict], config: CollectConfig,
+                    complete: bool) -> dict:
+    manifest = dict(manifest)
+    manifest["laps"] = [done[i] for i in sorted(done)]
+    manifest["frames"] = {s: int(sum(e["frames"] for e in manifest["laps"] if e["split"] == s))
+                          for s in ("train", "test")}
+    manifest["bytes"] = int(sum(e["bytes"] for e in manifest["laps"]))
+    manifest["complete"] = bool(complete)
+    manifest["updated"] = datetime.datetime.now().isoformat(timespec="seconds")
+    race.write_json_atomic(root / MANIFEST, _make_json_safe(manifest))
+    return manifest
+
+
+# --------------------------------------------------------------------------------------------------
+# Loading.
+# --------------------------------------------------------------------------------------------------
+
+
+def read_manifest(data_dir) -> dict:
+    """The dataset's manifest; ``FileNotFoundError`` / ``ValueError`` naming what is wrong."""
+    root = Path(data_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"no DOF dataset at {root}: the directory does not exist "
+                                f"(collect one with `pixelmpc collect {root}` or learn.dataset.collect)")
+    manifest = _read_manifest(root)
+    if manifest is None:
+        raise FileNotFoundError(f"no DOF dataset at {root}: {MANIFEST} is missing "
+                                f"(collect one with `pixelmpc collect {root}` or learn.dataset.collect)")
+    return manifest
+
+
+def _split_laps(manifest: dict, split: str, root: Path) -> list[dict]:
+    if split not in ("train", "test", "all"):
+        raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
+    laps = [e for e in manifest["laps"] if split == "all" or e["split"] == split]
+    if not laps:
+        raise ValueError(f"{root}: no {split} laps in the dataset (split {manifest.get('split')}, "
+                         f"{len(manifest['laps'])} lap(s) collected)")
+    return laps
+
+
+def load_lap(path, with_flow: bool = True, with_exact: bool = True, info: dict | None = None) -> Lap:
+    """One lap file; ``ValueError`` naming the file if it is damaged."""
+    path = Path(path)
+    try:
+        with np.load(path) as data:
+            missing = [k for k in LAP_KEYS if k not in data.files]
+            if missing:
+                raise ValueError(f"missing arrays {missing}")
+            meta = {k.removeprefix("meta_"): data[k].item() for k in data.files if k.startswith("meta_")}
+            has_exact = all(k in data.files for k in EXACT_KEYS)
+            lap = Lap(
+                flow=data["flow"] if with_flow else None,
+                q=data["q"], u=data["u"], states=data["states"], target=data["target"],
+                exact_flow=data["exact_flow"] if (with_exact and has_exact) else None,
+                exact_valid=data["exact_valid"] if (with_exact and has_exact) else None,
+                info={**meta, **(info or {})},
+            )
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: lap file listed in the manifest is missing; run collect again to "
+                                f"re-collect it") from None
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError) as err:
+        raise ValueError(f"{path}: damaged lap file ({err}); delete it and run collect again to re-collect "
+                         f"that lap") from err
+    frames = lap.q.shape[0]
+    if (lap.u.shape != (frames, 4) or lap.states.shape != (frames + 1, 10) or lap.target.shape != (frames + 1,)
+            or (lap.flow is not None and lap.flow.shape[0] != frames)):
+        raise ValueError(f"{path}: inconsistent lap arrays (q {lap.q.shape}, u {lap.u.shape}, states "
+                         f"{lap.states.shape}, target {lap.target.shape}); delete it and collect again")
+    return lap
+
+
+def load_laps(data_dir, split: str = "test", with_flow: bool = True, with_exact: bool = True) -> list[Lap]:
+    """The laps of ``split`` ("train", "test" or "all"), with states and targets for evaluation."""
+    root = Path(data_dir)
+    manifest = read_manifest(root)
+    return [load_lap(root / e["file"], with_flow, with_exact, info=e) for e in _split_laps(manifest, split, root)]
+
+
+def load_dataset(data_dir, split: str = "train") -> FlowData:
+    """The ``split`` frames as train.py's :class:`FlowData`: q (F, 4) f32, u (F, 4) f32, flow (F, H, W, 2) f16.
+
+    Filled lap by lap into one preallocated array (no transient second copy of the flows).
+    """
+    root = Path(data_dir)
+    manifest = read_manifest(root)
+    entries = _split_laps(manifest, split, root)
+    total = int(sum(e["frames"] for e in entries))
+    W, H = manifest["image_size_wh"]
+    q = np.empty((total, 4), np.float32)
+    u = np.empty((total, 4), np.float32)
+    flow = np.empty((total, H, W, 2), np.float16)
+    start = 0
+    for entry in entries:
+        lap = load_lap(root / entry["file"], with_flow=True, with_exact=False, info=entry)
+        n = lap.q.shape[0]
+        if n != entry["frames"] or lap.flow.shape[1:] != (H, W, 2):
+            raise ValueError(f"{root / entry['file']}: {n} frames of {lap.flow.shape[1:]} but the manifest says "
+                             f"{entry['frames']} of {(H, W, 2)}; delete the lap file and collect again")
+        q[start:start + n], u[start:start + n], flow[start:start + n] = lap.q, lap.u, lap.flow
+        start += n
+    return FlowData(q, u, flow)
+
+
+# --------------------------------------------------------------------------------------------------
+# The `pixelmpc collect` entry point.
+# --------------------------------------------------------------------------------------------------
+
+
+def run_collect(out_dir, laps: int = 4, seed: int = 0, max_lap_time_s: float = 10.0, speed_min: float = 6.0,
+                speed_max: float = 14.0, supersample: int = 1, test_laps: Sequence[int] | None = None,
+                paper: bool = False, progress: bool = True) -> dict:
+    """Collect a dataset and print a short summary. ``paper=True`` starts from :meth:`CollectConfig.paper`
+    (10 laps of 30 s) and ignores ``laps`` and ``max_lap_time_s``."""
+    fields = dict(seed=seed, speed_min=speed_min, speed_max=speed_max, supersample=supersample,
+                  test_laps=None if test_laps is None else tuple(test_laps))
+    config = (CollectConfig.paper(**fields) if paper
+              else CollectConfig(laps=laps, max_lap_time_s=max_lap_time_s, **fields))
+    manifest = collect(out_dir, config, progress=progress)
+    print(summarise_manifest(manifest, out_dir))
+    return manifest
+
+
+def summarise_manifest(manifest: dict, data_dir=None) -> str:
+    laps = manifest["laps"]
+    lines = [f"dataset {data_dir or ''}: {len(laps)}/{manifest['config']['laps']} laps, "
+             f"{manifest['frames']['train']} train + {manifest['frames']['test']} test frames, "
+             f"{manifest.get('bytes', 0) / 1e6:.0f} MB{'' if manifest['complete'] else ' (incomplete: run again)'}"]
+    for e in laps:
+        lines.append(f"  lap {e['lap']:>2} {e['split']:>5}  {e['speed']:5.1f} m/s  seed {e['seed']:>5}  "
+                     f"{e['frames']:>5} frames  {e['flight_time_s']:5.1f} s  {e['gates_passed']:>2} gates  {e['end']}")
+    return "\n".join(lines)

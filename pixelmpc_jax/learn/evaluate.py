@@ -1,0 +1,514 @@
+"""DOF evaluation (Sec. III-D and Fig. 7 of the paper), the shipped weights, and the train/evaluate entry points.
+
+* Flow accuracy: average endpoint error (AEE) in pixels per frame at 204 x 153 on held-out laps, against
+  the Farneback flow (the training label; the paper reports 2.45) and against the exact flow (valid
+  pixels only), next to two baselines: zero flow, and the mean flow field per orientation bin fitted on
+  the TRAIN laps (``train.fit_orientation_bin_baseline``).
+* Multi-step pixel prediction (Fig. 7): the target gate's centre (``detect_from_geometry`` along the
+  logged trajectory) is predicted ``k = 1..K`` steps ahead by integrating the DOF pixel dynamics with the
+  logged orientation and control, as PixelMPC does, ``uv_{k+1} = uv_k + dt * pixel_velocity(q_k, uv_k,
+  u_k)``, and compared with where the gate centre really projects. Each start tick where the gate is
+  detected with its centre in the image starts one prediction; step ``k`` counts while the true centre
+  has stayed in the image and the gate detected on every tick up to ``k``.
+* Figures: a Fig. 2-like panel (image, exact, Farneback and DOF flow in colour) and the multi-step curve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import functools
+import json
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.learn import dataset as dataset_lib
+from pixelmpc_jax.learn import train as train_lib
+from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.sim import race
+from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import render as render_lib
+
+PAPER_AEE_PX = 2.45
+SHIPPED_WEIGHTS = "dof_weights.msgpack"
+SHIPPED_RECORD = "dof_weights.json"
+# Evaluation without a dataset: laps flown with seeds that training never uses (training data starts at
+# seed 0 and has fewer than 1000 laps). Lap 1 (10 m/s) is the test lap; laps 0 and 2 (6 and 14 m/s) only
+# fit the orientation-bin baseline.
+HELDOUT_CONFIG = dataset_lib.CollectConfig(laps=3, seed=1000, max_lap_time_s=8.0, test_laps=(1,))
+_EVAL_CHUNK_FRAMES = 8
+
+
+# --------------------------------------------------------------------------------------------------
+# Shipped weights.
+# --------------------------------------------------------------------------------------------------
+
+
+def shipped_weights_path() -> Path:
+    """The packaged DOF weights file (``pixelmpc_jax/data/dof_weights.msgpack``)."""
+    return dof.PACKAGED_WEIGHTS
+
+
+def load_shipped_dof() -> dof.DOFParams:
+    """The DOF parameters shipped with the package (weights + normalisation, no optimizer state)."""
+    return dof.load_packaged_dof()
+
+
+def shipped_dof_record() -> dict:
+    """How the shipped weights were made (data, training config, calls, measured AEE): the checkpoint's config."""
+    return dof.load_checkpoint(shipped_weights_path())[1]
+
+
+def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
+    """Weights-only checkpoint (parameters + normalisation, ~140 KB) with ``record`` as its config, and the
+    same record as readable JSON beside it (``.json``)."""
+    path = Path(path)
+    dof.save_checkpoint(path, dof_params, record)
+    race.write_json_atomic(path.with_suffix(".json"), record)
+
+
+# --------------------------------------------------------------------------------------------------
+# Flow accuracy.
+# --------------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "dt"))
+def predict_flow_fields(dof_params: dof.DOFParams, q: jax.Array, u: jax.Array, width: int, height: int,
+                        dt: float) -> jax.Array:
+    """The DOF's dense flow prediction, pixels per frame: q, u (C, 4) -> (C, H, W, 2), ``[..., 0] = du``."""
+    jj, ii = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
+    uv = train_lib.pixel_uv(ii, jj, width, height)  # (H, W, 2)
+
+    def one(qf, uf):
+        feats = dof.dof_features(jnp.broadcast_to(qf, (height, width, 4)), uv, jnp.broadcast_to(uf, (height, width, 4)))
+        out = dof.dof_forward(dof_params, feats)  # (H, W, 2) = (l, theta)
+        return train_lib.polar_to_flow(out[..., 0], out[..., 1], width, height, dt)
+
+    return jax.lax.map(lambda args: one(*args), (q.astype(jnp.float32), u.astype(jnp.float32)))
+
+
+def _epe(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = a.astype(np.float32) - b.astype(np.float32)
+    return np.hypot(d[..., 0], d[..., 1])
+
+
+class _Mean:
+    """Running mean in float64."""
+
+    def __init__(self):
+        self.total, self.count = 0.0, 0
+
+    def add(self, values: np.ndarray) -> None:
+        self.total += float(np.sum(values, dtype=np.float64))
+        self.count += int(np.size(values))
+
+    @property
+    def value(self) -> float | None:
+        return self.total / self.count if self.count else None
+
+
+def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
+                  baseline: train_lib.OrientationBinBaseline, dt: float = episode_lib.CONTROL_DT,
+                  chunk_frames: int = _EVAL_CHUNK_FRAMES, progress: bool = False) -> dict:
+    """AEE (pixels per frame) of the DOF and the baselines on ``laps``, against Farneback (every pixel)
+    and against the exact flow (valid pixels, laps that store it)."""
+    names = ("dof", "zero", "mean")
+    vs_fb = {n: _Mean() for n in names}
+    vs_exact = {n: _Mean() for n in (*names, "farneback")}
+    total = sum(lap.q.shape[0] for lap in laps)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total, desc="AEE", unit="frame", leave=False)
+    for lap in laps:
+        H, W = lap.flow.shape[1:3]
+        bins = train_lib._bin_index(baseline.edges, train_lib._euler(lap.q))  # (F,)
+        for start in range(0, lap.q.shape[0], chunk_frames):
+            stop = min(start + chunk_frames, lap.q.shape[0])
+            count = stop - start
+            q, u = lap.q[start:stop], lap.u[start:stop]
+            if count < chunk_frames:  # pad: one compiled shape
+                q = np.concatenate([q, np.repeat(q[-1:], chunk_frames - count, 0)])
+                u = np.concatenate([u, np.repeat(u[-1:], chunk_frames - count, 0)])
+            pred = np.asarray(predict_flow_fields(dof_params, q, u, W, H, float(dt)))[:count]
+            fb = lap.flow[start:stop].astype(np.float32)
+            mean_pred = baseline.mean_flow[bins[start:stop]]
+            zero = np.zeros_like(fb)
+            for name, p in (("dof", pred), ("zero", zero), ("mean", mean_pred)):
+                vs_fb[name].add(_epe(p, fb))
+            if lap.exact_flow is not None:
+                exact = lap.exact_flow[start:stop].astype(np.float32)
+                valid = lap.exact_valid[start:stop]
+                for name, p in (("dof", pred), ("zero", zero), ("mean", mean_pred), ("farneback", fb)):
+                    vs_exact[name].add(_epe(p, exact)[valid])
+            if bar is not None:
+                bar.update(count)
+    if bar is not None:
+        bar.close()
+    return {
+        "aee_px": vs_fb["dof"].value,
+        "aee_exact_px": vs_exact["dof"].value,
+        "baseline_zero_aee_px": vs_fb["zero"].value,
+        "baseline_mean_aee_px": vs_fb["mean"].value,
+        "baseline_zero_aee_exact_px": vs_exact["zero"].value,
+        "baseline_mean_aee_exact_px": vs_exact["mean"].value,
+        "farneback_vs_exact_aee_px": vs_exact["farneback"].value,
+        "frames": total,
+        "exact_valid_pixels": vs_exact["dof"].count,
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# Multi-step pixel prediction (Fig. 7).
+# --------------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("horizon", "dt"))
+def _multistep_lap(dof_params, track, camera, states, controls, target, horizon: int, dt: float):
+    """Per start tick s (F,): predicted and true gate-centre pixel for k = 0..K. Returns
+    err (F, K+1) px, err_zero (F, K+1) px (the pixel held still), valid (F, K+1) bool."""
+    F = controls.shape[0]
+    scale = jnp.asarray([camera.width, camera.height], jnp.float32)
+    ks = jnp.arange(horizon + 1)
+
+    def one_start(s):
+        gate = track.gate(target[s])
+        idx = jnp.minimum(s + ks, F)  # state index of step k
+        det = jax.vmap(lambda x: detector_lib.detect_from_geometry(gate, x, camera))(states[idx])
+        seen = det.found & camera_lib.in_image(det.centre) & (s + ks <= F)
+        tracked = jnp.cumprod(seen.astype(jnp.int32)).astype(bool)  # seen on every tick up to k
+
+        def step(uv, k):
+            j = jnp.minimum(s + k, F - 1)
+            uv_next = uv + dt * dof.pixel_velocity(dof_params, states[j, 3:7], uv, controls[j])
+            return uv_next, uv_next
+
+        uv0 = det.centre[0]
+        _, rollout = jax.lax.scan(step, uv0, ks[:-1])
+        pred = jnp.concatenate([uv0[None], rollout])  # (K+1, 2)
+        err = jnp.linalg.norm((pred - det.centre) * scale, axis=-1)
+        err_zero = jnp.linalg.norm((uv0 - det.centre) * scale, axis=-1)
+        return err, err_zero, tracked
+
+    return jax.vmap(one_start)(jnp.arange(F))
+
+
+def multistep_error(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap], track, camera,
+                    horizon: int = 80, dt: float = episode_lib.CONTROL_DT) -> dict:
+    """Mean and std of the pixel error of the gate centre predicted ``k = 1..horizon`` steps ahead (Fig. 7).
+
+    Returns lists of length ``horizon`` (``None`` where no prediction reaches that step): ``mean_px``,
+    ``std_px``, ``count``, and ``zero_motion_mean_px`` (the error of assuming the pixel does not move).
+    """
+    if int(horizon) < 1:
+        raise ValueError(f"horizon must be >= 1, got {horizon}")
+    errs, zeros, valids = [], [], []
+    for lap in laps:
+        err, err_zero, valid = _multistep_lap(dof_params, track, camera, jnp.asarray(lap.states),
+                                              jnp.asarray(lap.u), jnp.asarray(lap.target), int(horizon), float(dt))
+        errs.append(np.asarray(err)[:, 1:])
+        zeros.append(np.asarray(err_zero)[:, 1:])
+        valids.append(np.asarray(valid)[:, 1:])
+    err, err_zero, valid = (np.concatenate(a) for a in (errs, zeros, valids))
+
+    def column_stat(values, fn):
+        return [float(fn(values[valid[:, k], k])) if valid[:, k].any() else None for k in range(horizon)]
+
+    return {
+        "steps": list(range(1, horizon + 1)),
+        "dt_s": float(dt),
+        "mean_px": column_stat(err, np.mean),
+        "std_px": column_stat(err, np.std),
+        "count": [int(c) for c in valid.sum(0)],
+        "zero_motion_mean_px": column_stat(err_zero, np.mean),
+        "starts": int(valid[:, 0].sum()),
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# Figures.
+# --------------------------------------------------------------------------------------------------
+
+
+def _figure_frame(lap: dataset_lib.Lap) -> int:
+    """A representative frame: mean Farneback magnitude nearest the lap's 75th percentile."""
+    mags = np.array([np.hypot(*lap.flow[t].astype(np.float32).reshape(-1, 2).T).mean()
+                     for t in range(lap.q.shape[0])])
+    return int(np.argmin(np.abs(mags - np.percentile(mags, 75))))
+
+
+def plot_flow_fields(path, rgb, exact, valid, farneback, predicted, title: str = "") -> None:
+    """Fig. 2-like: the image, the exact, Farneback and DOF flow in colour (one scale), and the legend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    exact = np.where(valid[..., None], exact, 0.0) if valid is not None else exact
+    reference = exact if exact is not None else farneback
+    vmax = float(np.percentile(np.hypot(reference[..., 0], reference[..., 1]), 99)) or 1.0
+    panels = [("image", rgb)]
+    if exact is not None:
+        panels.append(("exact flow", flow_lib.flow_to_rgb(exact, vmax)))
+    panels += [("Farneback flow (label)", flow_lib.flow_to_rgb(farneback, vmax)),
+               ("DOF prediction", flow_lib.flow_to_rgb(predicted, vmax))]
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(3.2 * len(panels) + 1.6, 2.8),
+                             gridspec_kw={"width_ratios": [1] * len(panels) + [0.5]})
+    for ax, (name, image) in zip(axes, panels):
+        ax.imshow(image)
+        ax.set_title(name, fontsize=9)
+        ax.axis("off")
+    axes[-1].imshow(flow_lib.colour_wheel())
+    axes[-1].set_title(f"legend\n(rim {vmax:.1f} px)", fontsize=8)
+    axes[-1].axis("off")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def plot_multistep(path, multistep: dict, title: str = "") -> None:
+    """Fig. 7 (right): mean +- std pixel error of the multi-step prediction vs the horizon step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = np.asarray(multistep["steps"])
+
+    def arr(key):
+        return np.asarray([np.nan if v is None else v for v in multistep[key]], float)
+
+    mean, std, zero = arr("mean_px"), arr("std_px"), arr("zero_motion_mean_px")
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(steps, mean, "C0-", label="DOF (Euler, logged q, u)")
+    ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.25, label="+- 1 std")
+    ax.plot(steps, zero, "C3--", lw=1, label="pixel held still")
+    ax.set(xlabel=f"prediction step (dt = {multistep['dt_s']:g} s)", ylabel="gate-centre error [px]",
+           title=title or "multi-step pixel prediction error")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------------
+# The evaluation.
+# --------------------------------------------------------------------------------------------------
+
+
+def default_cache_dir() -> Path:
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "pixelmpc_jax"
+
+
+def heldout_dataset(cache_dir=None, config: dataset_lib.CollectConfig = HELDOUT_CONFIG, progress: bool = True,
+                    policy: episode_lib.Policy | None = None) -> Path:
+    """Collect (or reuse) the seeded held-out set in the cache; returns its directory."""
+    tag = f"dof_heldout_seed{config.seed}_laps{config.laps}_t{config.max_lap_time_s:g}_ss{config.supersample}"
+    root = Path(cache_dir) if cache_dir is not None else default_cache_dir() / tag
+    dataset_lib.collect(root, config, progress=progress, policy=policy)
+    return root
+
+
+def _json_safe(value):
+    """Non-finite floats -> None (strict JSON), numpy scalars -> Python, recursively."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="runs/dof_eval", *, horizon: int = 80,
+             bins_per_angle: int = 4, cache_dir=None, heldout_config: dataset_lib.CollectConfig = HELDOUT_CONFIG,
+             figures: bool = True, progress: bool = True) -> dict:
+    """Evaluate DOF parameters on a dataset's test laps and write ``out_dir/dof_eval.json`` and the figures.
+
+    Args:
+        dof_params: the parameters (default: the shipped weights).
+        data_dir: a collected dataset (its test laps are evaluated, its train laps fit the orientation-bin
+            baseline). ``None``: a small seeded held-out set (``heldout_config``, seeds >= 1000, never used
+            for training) is collected into ``cache_dir`` (default ``~/.cache/pixelmpc_jax/...``) or reused.
+        out_dir: where ``dof_eval.json``, ``dof_flow_fields.png`` and ``dof_multistep.png`` go.
+        horizon: steps of the multi-step prediction (the paper: 80).
+        bins_per_angle: orientation bins per Euler angle of the mean-flow baseline.
+
+    Returns:
+        The dict written to ``dof_eval.json``: ``num_parameters``, ``aee_px`` (vs Farneback),
+        ``aee_exact_px``, ``baseline_zero_aee_px``, ``baseline_mean_aee_px``, the baselines against the
+        exact flow, ``farneback_vs_exact_aee_px``, ``multistep`` (per-step mean/std/count), and where the
+        data came from.
+    """
+    t0 = time.perf_counter()
+    dof_params = load_shipped_dof() if dof_params is None else dof_params
+    if data_dir is None:
+        data_dir = heldout_dataset(cache_dir, heldout_config, progress=progress)
+    data_dir = Path(data_dir)
+    manifest = dataset_lib.read_manifest(data_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    train_data = dataset_lib.load_dataset(data_dir, "train")
+    baseline = train_lib.fit_orientation_bin_baseline(train_data.q, train_data.u, train_data.flow, bins_per_angle)
+    del train_data
+    laps = dataset_lib.load_laps(data_dir, "test")
+    world = episode_lib.make_world()
+    W, H = manifest["image_size_wh"]
+    if (world.camera.width, world.camera.height) != (W, H):
+        raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
+                         f"{world.camera.height}")
+    dt = float(manifest["frame_dt_s"])
+    accuracy = flow_accuracy(dof_params, laps, baseline, dt, progress=progress)
+    multistep = multistep_error(dof_params, laps, world.track, world.camera, horizon, dt)
+
+    results = {
+        "num_parameters": dof.num_trainable_params(dof_params),
+        **accuracy,
+        "paper_aee_px": PAPER_AEE_PX,
+        "image_size_wh": [W, H],
+        "units": "pixels per frame (1/40 s) at the image size; multistep: pixels",
+        "multistep": multistep,
+        "multistep_at": {str(k): {"mean_px": multistep["mean_px"][k - 1], "std_px": multistep["std_px"][k - 1],
+                                  "count": multistep["count"][k - 1]} for k in (1, 10, 20, 40, 80) if k <= horizon},
+        "data": {
+            "dir": str(data_dir),
+            "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
+                          manifest["laps"] if e["split"] == "test"],
+            "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
+            "collect_config": manifest["config"],
+        },
+        "baseline_bins_per_angle": bins_per_angle,
+        "created": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+    if figures:
+        lap = laps[0]
+        t = _figure_frame(lap)
+        frame = render_lib.render(world.track, jnp.asarray(lap.states[t]), world.camera,
+                                  supersample=int(manifest["config"]["supersample"]))
+        predicted = np.asarray(predict_flow_fields(dof_params, lap.q[t:t + 1], lap.u[t:t + 1], W, H, dt))[0]
+        exact = None if lap.exact_flow is None else lap.exact_flow[t].astype(np.float32)
+        valid = None if lap.exact_valid is None else lap.exact_valid[t]
+        speed = float(np.linalg.norm(lap.states[t, 7:10]))
+        plot_flow_fields(out / "dof_flow_fields.png", np.asarray(frame.rgb), exact, valid,
+                         lap.flow[t].astype(np.float32), predicted,
+                         title=f"test lap {lap.info.get('lap')} frame {t}, {speed:.1f} m/s")
+        plot_multistep(out / "dof_multistep.png", multistep,
+                       title=f"multi-step gate-centre prediction, {multistep['starts']} starts")
+        results["figures"] = ["dof_flow_fields.png", "dof_multistep.png"]
+        results["figure_frame"] = {"lap": lap.info.get("lap"), "frame": t}
+    results["wall_s"] = time.perf_counter() - t0
+    results = _json_safe(results)
+    race.write_json_atomic(out / "dof_eval.json", results)
+    return results
+
+
+def summarise(results: dict) -> str:
+    def fmt(v):
+        return "-" if v is None else f"{v:.2f}"
+
+    ms = results.get("multistep_at", {})
+    steps = "  ".join(f"{k}: {fmt(v['mean_px'])}+-{fmt(v['std_px'])} px (n={v['count']})" for k, v in ms.items())
+    return "\n".join([
+        f"DOF ({results['num_parameters']} parameters) on {results['frames']} held-out frames:",
+        f"  AEE vs Farneback {fmt(results['aee_px'])} px/frame (paper {PAPER_AEE_PX}); vs exact flow "
+        f"{fmt(results['aee_exact_px'])} (Farneback itself vs exact {fmt(results['farneback_vs_exact_aee_px'])})",
+        f"  baselines vs Farneback: zero flow {fmt(results['baseline_zero_aee_px'])}, orientation-bin mean "
+        f"{fmt(results['baseline_mean_aee_px'])}",
+        f"  multi-step gate-centre error: {steps}",
+    ])
+
+
+# --------------------------------------------------------------------------------------------------
+# The `pixelmpc train` and `pixelmpc evaluate` entry points.
+# --------------------------------------------------------------------------------------------------
+
+
+def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
+              learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
+              ship: bool = False) -> dict:
+    """Train the DOF on ``data_dir``'s train laps (train.py, Algorithm 1), report the test-lap AEE, and
+    write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
+    (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
+    the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record."""
+    data_dir, out = Path(data_dir), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = dataset_lib.read_manifest(data_dir)
+    W, H = manifest["image_size_wh"]
+    train_data = dataset_lib.load_dataset(data_dir, "train")
+    has_test = bool(manifest["split"]["test"]) and manifest["frames"]["test"] > 0
+    test_data = dataset_lib.load_dataset(data_dir, "test") if has_test else None
+    checkpoint = out / "checkpoint.msgpack"
+    config = train_lib.TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed,
+                                   width=W, height=H, dt=float(manifest["frame_dt_s"]),
+                                   checkpoint_path=str(checkpoint), progress=progress)
+    t0 = time.perf_counter()
+    dof_params, history = train_lib.train(config, train_data, test_data,
+                                          resume_from=checkpoint if (resume and checkpoint.exists()) else None)
+    wall = time.perf_counter() - t0
+    race.write_json_atomic(out / "history.json", history)
+    record = {
+        "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
+        "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
+        "train_wall_s": wall,
+        "steps_done": history["step"][-1] if history["step"] else 0,
+        "interrupted": history["interrupted"],
+        "data": {
+            "dir": str(data_dir),
+            "collect_config": manifest["config"],
+            "policy": manifest.get("policy"),
+            "frames": manifest["frames"],
+            "bytes": manifest.get("bytes"),
+            "laps": [{k: e[k] for k in ("lap", "split", "speed", "seed", "frames", "end", "gates_passed")}
+                     for e in manifest["laps"]],
+        },
+        "results": {"test_aee_px": history.get("test_aee_px"),
+                    "test_zero_flow_aee_px": history.get("test_zero_flow_aee_px")},
+        "calls": [
+            f"pixelmpc_jax.learn.dataset.collect({str(data_dir)!r}, "
+            f"CollectConfig(**{json.dumps(manifest['config'])}))",
+            f"pixelmpc_jax.learn.evaluate.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
+            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed})",
+        ],
+        "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
+        "created": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+    export_weights(out / SHIPPED_WEIGHTS, dof_params, record)
+    if ship:
+        target = shipped_weights_path()
+        shutil.copyfile(out / SHIPPED_WEIGHTS, target)
+        shutil.copyfile(out / SHIPPED_RECORD, target.with_suffix(".json"))
+    aee = history.get("test_aee_px")
+    zero = history.get("test_zero_flow_aee_px")
+    print(f"trained {record['steps_done']} steps in {wall / 60:.1f} min on {manifest['frames']['train']} frames; "
+          f"test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
+          f"{'-' if zero is None else f'{zero:.2f}'}); weights: {out / SHIPPED_WEIGHTS}")
+    return record
+
+
+def run_evaluate(weights=None, data_dir=None, out_dir="runs/dof_eval", horizon: int = 80,
+                 progress: bool = True) -> dict:
+    """Evaluate a weights file (default: the shipped one) and print a short summary; see :func:`evaluate`."""
+    dof_params = load_shipped_dof() if weights is None else dof.load_checkpoint(weights)[0]
+    results = evaluate(dof_params, data_dir, out_dir, horizon=horizon, progress=progress)
+    print(summarise(results))
+    print(f"wrote {Path(out_dir) / 'dof_eval.json'}")
+    return results

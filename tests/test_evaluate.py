@@ -1,0 +1,100 @@
+"""DOF evaluation: AEE against Farneback / exact flow and the baselines, the multi-step error, the files
+written, and the shipped weights."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.learn import dataset as D
+from pixelmpc_jax.learn import evaluate as E
+from pixelmpc_jax.learn import train as T
+
+TINY = D.CollectConfig(laps=2, max_lap_time_s=1.0, num_samples=64, test_laps=(1,), render_batch=16)
+HORIZON = 12
+REQUIRED = ("num_parameters", "aee_px", "aee_exact_px", "baseline_zero_aee_px", "baseline_mean_aee_px")
+
+
+@pytest.fixture(scope="module")
+def tiny_dir(tmp_path_factory):
+    # Through the no-dataset path: the held-out collection into a cache directory.
+    return E.heldout_dataset(tmp_path_factory.mktemp("heldout"), TINY, progress=False)
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return E.load_shipped_dof()
+
+
+@pytest.fixture(scope="module")
+def results(tiny_dir, shipped, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    return out, E.evaluate(shipped, tiny_dir, out, horizon=HORIZON, progress=False)
+
+
+def test_evaluate_writes_the_required_finite_figures(results):
+    out, res = results
+    on_disk = json.loads((out / "dof_eval.json").read_text())
+    assert on_disk == res
+    for key in REQUIRED:
+        assert isinstance(res[key], (int, float)) and math.isfinite(res[key]), key
+    assert res["num_parameters"] == 34_690
+    assert res["frames"] == 40
+    ms = res["multistep"]
+    for key in ("steps", "mean_px", "std_px", "count", "zero_motion_mean_px"):
+        assert len(ms[key]) == HORIZON, key
+    assert ms["steps"] == list(range(1, HORIZON + 1))
+    assert ms["count"][0] > 0 and all(a >= b for a, b in zip(ms["count"], ms["count"][1:]))
+    assert all(math.isfinite(v) and v >= 0 for v, c in zip(ms["mean_px"], ms["count"]) if c)
+    for name in ("dof_flow_fields.png", "dof_multistep.png"):
+        assert (out / name).stat().st_size > 10_000
+
+
+def test_aee_figures_match_the_training_module(results, tiny_dir, shipped):
+    """The evaluation's AEE and baselines are train.py's definitions on the test laps (baseline fitted on
+    the train laps), so the numbers are comparable with the training history."""
+    _, res = results
+    test = D.load_dataset(tiny_dir, "test")
+    train = D.load_dataset(tiny_dir, "train")
+    assert res["aee_px"] == pytest.approx(T.evaluate_aee(shipped, test.q, test.u, test.flow), rel=1e-4)
+    assert res["baseline_zero_aee_px"] == pytest.approx(T.zero_flow_aee(test.q, test.u, test.flow), rel=1e-6)
+    baseline = T.fit_orientation_bin_baseline(train.q, train.u, train.flow)
+    assert res["baseline_mean_aee_px"] == pytest.approx(
+        T.orientation_bin_aee(baseline, test.q, test.u, test.flow), rel=1e-5)
+    # The Farneback label is close to the exact flow; the DOF is judged against both.
+    assert res["farneback_vs_exact_aee_px"] < res["baseline_zero_aee_exact_px"]
+
+
+def test_multistep_with_a_still_pixel_model_equals_the_zero_motion_error(tiny_dir, shipped):
+    """A DOF predicting no motion keeps the start pixel, so its error is the pixel's true displacement."""
+    still = shipped.replace(output_mean=jnp.zeros(2), output_std=jnp.asarray([1e-20, 1.0]))
+    world = E.episode_lib.make_world()
+    laps = D.load_laps(tiny_dir, "test", with_flow=False)
+    ms = E.multistep_error(still, laps, world.track, world.camera, horizon=HORIZON)
+    counted = [k for k in range(HORIZON) if ms["count"][k]]
+    assert counted
+    np.testing.assert_allclose([ms["mean_px"][k] for k in counted],
+                               [ms["zero_motion_mean_px"][k] for k in counted], rtol=1e-5, atol=1e-4)
+    assert ms["zero_motion_mean_px"][counted[-1]] > ms["zero_motion_mean_px"][0]
+
+
+def test_shipped_weights_load_and_predict_finite_flows(shipped):
+    assert E.shipped_weights_path().stat().st_size < 200_000  # parameters + normalisation only
+    assert dof.num_trainable_params(shipped) == 34_690
+    key_q, key_uv, key_u = jax.random.split(jax.random.key(0), 3)
+    q = jax.random.normal(key_q, (64, 4))
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    uv = jax.random.uniform(key_uv, (64, 2))
+    u = jnp.concatenate([jax.random.normal(key_u, (64, 3)), jnp.full((64, 1), 9.0)], axis=-1)
+    uv_dot = jax.vmap(dof.pixel_velocity, in_axes=(None, 0, 0, 0))(shipped, q, uv, u)
+    assert uv_dot.shape == (64, 2) and bool(jnp.all(jnp.isfinite(uv_dot)))
+    assert float(jnp.std(uv_dot)) > 0  # depends on its inputs
+    record = E.shipped_dof_record()
+    assert record["train_config"]["steps"] >= 1000 and record["calls"]
+    assert record["results"]["test_aee_px"] < record["results"]["test_zero_flow_aee_px"]
