@@ -105,7 +105,7 @@ def _cmd_race(args) -> int:
                             out=args.out, batch_size=args.batch, perturb=args.perturb,
                             max_time_s=args.max_time, temperature=args.temperature,
                             pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
-                            c_pixel=args.c_pixel)
+                            c_pixel=args.c_pixel, estimator=args.estimator, video=args.video)
     if not results["laps"]:
         print("no lap finished")
         return 1
@@ -121,6 +121,29 @@ def _cmd_render(args) -> int:
     results = write_render_figures(args.out)
     for name, entry in results.items():
         print(f"  {name}: Farneback vs exact AEE {entry['aee_px']:.2f} px, written to {entry['path']}")
+    return 0
+
+
+def _cmd_collect(args) -> int:
+    from pixelmpc_jax.learn.dataset import run_collect
+
+    run_collect(args.out, laps=args.laps, seed=args.seed, max_lap_time_s=args.max_lap_time,
+                supersample=args.supersample, paper=args.paper)
+    return 0
+
+
+def _cmd_train(args) -> int:
+    from pixelmpc_jax.learn.evaluate import run_train
+
+    run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
+              learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship)
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from pixelmpc_jax.learn.evaluate import run_evaluate
+
+    run_evaluate(weights=args.weights, data_dir=args.data, out_dir=args.out, horizon=args.horizon)
     return 0
 
 
@@ -146,6 +169,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=_writable_dir, default=Path("runs/render"), help="output directory")
     p.set_defaults(func=_cmd_render)
 
+    p = sub.add_parser("collect", help="fly nominal MPPI laps and store frames' Farneback flow (DOF data)")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_data"), help="dataset directory")
+    p.add_argument("--laps", type=_positive_int, default=4, help="laps, speeds spread over 6-14 m/s (default 4)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-lap-time", type=_positive_float, default=10.0, help="seconds flown per lap (default 10)")
+    p.add_argument("--supersample", type=_positive_int, default=1, help="render supersampling (default 1)")
+    p.add_argument("--paper", action="store_true", help="the paper's size: 10 laps of up to 30 s")
+    p.set_defaults(func=_cmd_collect)
+
+    p = sub.add_parser("train", help="train the DOF network on a collected dataset (resumable)")
+    p.add_argument("--data", type=Path, required=True, help="dataset directory from `pixelmpc collect`")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_train"))
+    p.add_argument("--steps", type=_positive_int, default=20000)
+    p.add_argument("--batch-size", type=_positive_int, default=4096, help="pixels per step (default 4096)")
+    p.add_argument("--learning-rate", type=_positive_float, default=1e-3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
+    p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="DOF accuracy: AEE, baselines, multi-step error, figures")
+    p.add_argument("--weights", type=Path, default=None, help="weights file (default: the shipped weights)")
+    p.add_argument("--data", type=Path, default=None,
+                   help="dataset directory (default: collect a small seeded held-out set)")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_eval"))
+    p.add_argument("--horizon", type=_positive_int, default=80, help="multi-step horizon (default 80)")
+    p.set_defaults(func=_cmd_evaluate)
+
     from pixelmpc_jax.sim.race import CONTROLLERS
 
     p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
@@ -155,6 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
     p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
                    help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
+    p.add_argument("--estimator", choices=("truth", "pf"), default="truth",
+                   help="state the controller acts on: ground truth (default) or the particle filter")
+    p.add_argument("--video", action="store_true",
+                   help="write OUT/onboard.gif of the first lap: predicted (green) and actual (red) target pixel")
     p.add_argument("--t-f", type=float, default=1.0, help="PixelMPC pixel-cost horizon t_f, s (default 1)")
     p.add_argument("--c-pixel", type=float, default=9e6, help="PixelMPC pixel-cost weight (default 9e6)")
     p.add_argument("--speed", type=_positive_float, default=14.0, help="target speed, m/s (default 14)")

@@ -37,3 +37,41 @@ def test_unwritable_output_directory_is_rejected_before_running(tmp_path, capsys
         cli.main(["demo", "--out", str(blocker / "sub")])
     assert exc.value.code == 2
     assert "cannot be written" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["race", "--controller", "pid"], "invalid choice"),
+        (["race", "--speed", "-14"], "must be positive"),
+        (["race", "--laps", "0"], "must be a positive integer"),
+        (["race", "--laps", "two"], "expected an integer"),
+    ],
+)
+def test_race_rejects_bad_arguments_before_running(argv, message, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
+    from pixelmpc_jax.sim import metrics, race
+
+    calls = {"n": 0}
+    real = metrics.lap_metrics
+
+    def interrupt_on_second_lap(log, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real(log, *args, **kwargs)
+
+    monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
+    results = race.run_laps("mppi", speed=10.0, laps=3, seed=4, out=tmp_path, batch_size=1, max_time_s=0.2,
+                            progress=False, num_samples=32)
+    assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert len(saved["laps"]) == 1
+    assert set(metrics.LAP_KEYS) <= set(saved["laps"][0])
+    assert saved["aggregate"]["num_laps"] == 1 and "success_rate" in saved["aggregate"]

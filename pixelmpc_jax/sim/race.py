@@ -79,6 +79,8 @@ def run_laps(
     t_f: float = 1.0,
     c_pixel: float = 9e6,
     dof_params=None,
+    estimator: str = "truth",
+    video: bool = False,
 ) -> dict:
     """Fly ``laps`` laps (seeds ``seed .. seed + laps - 1``) and return ``{"laps": [...], "aggregate": {...}}``.
 
@@ -92,14 +94,15 @@ def run_laps(
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     policy = make_policy(controller, temperature, num_samples, pixel_model, t_f, c_pixel)
-    runner = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s, detector=detector))
+    episode_config = episode_lib.EpisodeConfig(max_time_s=max_time_s, detector=detector, estimator=estimator)
+    runner = episode_lib.make_runner(policy, episode_config)
     if controller == "pixelmpc" and pixel_model == "dof" and dof_params is None:
         from pixelmpc_jax.dynamics import dof
 
         dof_params = dof.load_packaged_dof()
     base = episode_lib.make_world(target_speed=float(speed), dof=dof_params)
     results: dict = {"controller": policy.name, "speed": speed, "seed": seed, "perturb": perturb,
-                     "detector": detector, "laps": [], "aggregate": {}}
+                     "detector": detector, "estimator": estimator, "laps": [], "aggregate": {}}
     if controller == "pixelmpc":
         results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
     trajectories: list[np.ndarray] = []
@@ -116,7 +119,14 @@ def run_laps(
             keys = jax.vmap(jax.random.PRNGKey)(np.asarray(chunk))
             logs = metrics_lib.unbatch(runner.batch(worlds, keys))
             for lap_seed, log in zip(chunk, logs):
+                if video and out is not None and lap_seed == seed:
+                    from pixelmpc_jax.sim.video import write_onboard_gif
+
+                    write_onboard_gif(base.track, log, Path(out) / "onboard.gif", base.camera)
                 lap = metrics_lib.lap_metrics(log)
+                if estimator == "pf":
+                    n = int(log.num_ticks)
+                    lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
                 lap["seed"] = lap_seed
                 results["laps"].append(lap)
                 trajectories.append(np.asarray(log.states)[: int(log.num_ticks) + 1])
