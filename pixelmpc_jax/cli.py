@@ -147,6 +147,13 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    from pixelmpc_jax.bench import run_bench
+
+    run_bench(args.out, quick=args.quick)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pixelmpc",
@@ -196,6 +203,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_eval"))
     p.add_argument("--horizon", type=_positive_int, default=80, help="multi-step horizon (default 80)")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("bench", help="runtime harness: Table I, controller scaling, peers, matmul roofline")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/bench"))
+    p.add_argument("--quick", action="store_true", help="paper-size controller rows and the pytorch-mppi peer only")
+    p.set_defaults(func=_cmd_bench)
 
     from pixelmpc_jax.sim.race import CONTROLLERS
 

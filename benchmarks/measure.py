@@ -1,0 +1,79 @@
+"""Timing for the runtime harness: compile (first call) outside the timed region, block on every call,
+warm up, then at least ``repeats`` timed calls; only calls slower than ``slow_s`` get fewer (recorded).
+
+A row is a flat dict with the fields of ``bench.json`` (see ``benchmarks/suite.py``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+
+def _block(out):
+    """Wait for JAX arrays (torch CPU and numpy results are already computed when returned)."""
+    return jax.block_until_ready(out) if any(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(out)) \
+        else out
+
+
+def measure(fn: Callable[[], object], repeats: int = 30, warmup: int = 3, slow_s: float = 1.0,
+            slow_repeats: int = 5, budget_s: float | None = None) -> dict:
+    """Time ``fn()``: one first call (compilation; timed apart as ``first_call_ms``), ``warmup`` calls, then
+    ``repeats`` timed calls, each ending in ``block_until_ready``. A call slower than ``slow_s`` seconds is
+    repeated only ``slow_repeats`` times with one warm-up (``reduced_repeats`` says so); with ``budget_s`` the
+    repeats are cut to fit about that many seconds (never below ``slow_repeats``).
+
+    Returns ms figures: median, mean, two_sigma (2 x std, population), min, max; repeats and first_call_ms.
+    """
+    start = time.perf_counter()
+    _block(fn())
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    _block(fn())
+    second = time.perf_counter() - start
+    requested = repeats
+    if second > slow_s:
+        repeats, warmup = min(repeats, slow_repeats), 0
+    if budget_s is not None:
+        repeats = min(repeats, max(slow_repeats, int(budget_s / max(second, 1e-6))))
+    reduced = repeats < requested
+    for _ in range(max(warmup - 1, 0)):
+        _block(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        _block(fn())
+        times.append((time.perf_counter() - start) * 1e3)
+    arr = np.asarray(times)
+    return {
+        "median_ms": float(np.median(arr)),
+        "mean_ms": float(arr.mean()),
+        "two_sigma_ms": float(2.0 * arr.std()),
+        "min_ms": float(arr.min()),
+        "max_ms": float(arr.max()),
+        "repeats": int(repeats),
+        "reduced_repeats": bool(reduced),
+        "first_call_ms": float(first * 1e3),
+    }
+
+
+def make_row(group: str, name: str, num_samples: int | None, horizon: int | None, stats: dict | None,
+             **extra) -> dict:
+    """One row of bench.json; ``stats`` None (not run: OOM, skipped) leaves the timing fields None."""
+    timing = {k: None for k in ("median_ms", "mean_ms", "two_sigma_ms", "min_ms", "max_ms")}
+    row = {"group": group, "name": name, "num_samples": num_samples, "horizon": horizon, **timing,
+           "repeats": 0, "status": "ok" if stats is not None else "not run"}
+    if stats is not None:
+        row.update(stats)
+    row.update(extra)
+    return row
+
+
+def fmt_ms(row: dict) -> str:
+    """'mean +- 2sigma (max)' in ms, or the row's status."""
+    if row.get("median_ms") is None:
+        return str(row.get("status"))
+    return f"{row['mean_ms']:.2f} ± {row['two_sigma_ms']:.2f} (max {row['max_ms']:.2f})"

@@ -1,0 +1,214 @@
+"""The runtime harness: bench.json schema on a tiny run, the flop counter on hand cases, the torch port of the
+PixelMPC problem against the JAX functions, and the diff-drive problem's cost-map lookup."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+# the harness lives beside the package (benchmarks/); plain `pytest` does not put the repository root on the path
+if str(Path(__file__).resolve().parent.parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks import problems, roofline, suite  # noqa: E402
+from benchmarks.table1 import SpyNet, spynet_flops_per_image  # noqa: E402
+from pixelmpc_jax.control import costs  # noqa: E402
+from pixelmpc_jax.control import pixelmpc as PM  # noqa: E402
+from pixelmpc_jax.dynamics import dof  # noqa: E402
+from pixelmpc_jax.dynamics import quadrotor as Q  # noqa: E402
+
+# --------------------------------------------------------------------------------------------------
+# The flop counter.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_dof_flops_hand_case():
+    # 10-128-128-128-2: MACs 1280 + 16384 + 16384 + 256 = 34,304 -> 68,608 flops; biases 386 + ReLUs 384
+    assert roofline.dof_flops_per_eval() == {"matmul": 68_608, "elementwise": 770}
+    # a 2-3-1 network: 2 x (6 + 3) = 18 matmul flops; biases 3 + 1, ReLUs 3
+    assert roofline.dof_flops_per_eval((2, 3, 1)) == {"matmul": 18, "elementwise": 7}
+    # the counted weights are the network's parameters less its biases
+    assert 68_608 // 2 + 386 == 34_690
+
+
+def test_step_flops_hand_case():
+    per = {"dynamics": 10.0, "racing": 100.0, "pixel": 5.0}
+    f = roofline.step_flops(num_samples=2, horizon=3, pixel_steps=1, per_step=per, control_dim=4,
+                            layer_sizes=(2, 3, 1))
+    assert f["dof_matmul"] == 2 * 1 * 18
+    assert f["dof_elementwise"] == 2 * 1 * 7
+    assert f["dynamics"] == 2 * 3 * 10
+    assert f["racing"] == 2 * 3 * 100
+    assert f["pixel"] == 2 * 1 * 5
+    assert f["mppi"] == 2 * 3 * 4 * roofline.MPPI_FLOPS_PER_SAMPLE_STEP
+    assert f["total"] == 36 + 14 + 60 + 600 + 10 + 2 * 3 * 4 * roofline.MPPI_FLOPS_PER_SAMPLE_STEP
+
+
+def test_spynet_has_the_papers_parameter_count():
+    variables = jax.eval_shape(SpyNet().init, jax.random.PRNGKey(0), jnp.zeros((1, 32, 32, 3)),
+                               jnp.zeros((1, 32, 32, 3)))
+    assert sum(int(np.prod(x.shape)) for x in jax.tree_util.tree_leaves(variables)) == 1_200_250
+    # per pixel 49 x (8*32 + 32*64 + 64*32 + 32*16 + 16*2) MACs over a 2x2 .. 32x32 pyramid
+    assert spynet_flops_per_image((32, 32)) == 2 * 49 * 4896 * (1024 + 256 + 64 + 16 + 4)
+
+
+# --------------------------------------------------------------------------------------------------
+# The diff-drive problem.
+# --------------------------------------------------------------------------------------------------
+
+MAP = jnp.asarray([[0.0, 1.0], [2.0, 3.0]])  # map[row, col]: value at the centre (col + 0.5, row + 0.5)
+ORIGIN = jnp.zeros(2)
+
+
+@pytest.mark.parametrize("xy, expected", [
+    ((0.5, 0.5), 0.0),  # the centre of cell (0, 0)
+    ((1.5, 0.5), 1.0),  # the centre of cell col 1, row 0
+    ((1.0, 0.5), 0.5),  # half-way between the two cells of row 0
+    ((1.0, 1.0), 1.5),  # the mean of all four
+    ((0.5, 1.25), 1.5),  # 0.75 of the way from row 0 (value 0) to row 1 (value 2)
+    ((-3.0, -3.0), 0.0),  # outside: clamped to the corner cell
+    ((9.0, 9.0), 3.0),
+])
+def test_costmap_bilinear_hand_cases(xy, expected):
+    value = problems.costmap_lookup(MAP, jnp.asarray(xy), ORIGIN, 1.0, "bilinear")
+    np.testing.assert_allclose(value, expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("xy, expected", [((0.2, 0.3), 0.0), ((1.2, 0.3), 1.0), ((0.9, 1.7), 2.0),
+                                          ((1.99, 1.01), 3.0), ((5.0, -1.0), 1.0)])
+def test_costmap_nearest_hand_cases(xy, expected):
+    value = problems.costmap_lookup(MAP, jnp.asarray(xy), ORIGIN, 1.0, "nearest")
+    assert float(value) == expected
+
+
+def test_costmap_resolution_and_origin():
+    origin = jnp.asarray([10.0, -2.0])
+    # cell (col 1, row 0) centre at origin + (1.5, 0.5) * 0.05
+    xy = origin + jnp.asarray([1.5, 0.5]) * 0.05
+    np.testing.assert_allclose(problems.costmap_lookup(MAP, xy, origin, 0.05), 1.0, atol=1e-5)
+
+
+def test_diff_drive_step_hand_case():
+    x = jnp.asarray([1.0, 2.0, jnp.pi / 2])
+    np.testing.assert_allclose(problems.diff_drive_step(x, jnp.asarray([1.0, 0.5]), 0.02),
+                               [1.0, 2.02, jnp.pi / 2 + 0.01], atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# The torch port equals the JAX functions.
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def port_setup():
+    pytest.importorskip("torch")
+    from benchmarks import torch_port
+
+    problem = problems.pixelmpc_problem(16, 80, 1.0)
+    port = torch_port.PixelMPCTorch(problem, Q.QuadParams())
+    K = 48
+    key_x, key_u, key_q = jax.random.split(jax.random.PRNGKey(5), 3)
+    # states around the start pose: most fly, some crash (tilt, floor), so every branch of the cost is used
+    X = jnp.broadcast_to(problem.x0, (K, 12)) + jnp.concatenate(
+        [0.5 * jax.random.normal(key_x, (K, 3)), 0.3 * jax.random.normal(key_q, (K, 4)),
+         2.0 * jax.random.normal(key_u, (K, 3)), 0.2 * jax.random.normal(key_x, (K, 2))], axis=1)
+    X = X.at[:, 3:7].set(Q.normalize_quat(X[:, 3:7]))
+    U = Q.hover_control(Q.QuadParams()) + jax.random.normal(key_u, (K, 4)) * jnp.asarray([0.2, 0.2, 0.3, 2.2])
+    return torch_port, problem, port, X, U
+
+
+def test_torch_quadrotor_step_equals_jax(port_setup):
+    torch_port, problem, port, X, U = port_setup
+    expected = jax.vmap(lambda x, u: Q.step(x[:10], u, 0.025, Q.QuadParams()))(X, U)
+    got = port.quad.step(torch_port.to_torch(X[:, :10]), torch_port.to_torch(U)).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_torch_dof_equals_jax(port_setup):
+    torch_port, problem, port, X, U = port_setup
+    expected = jax.vmap(lambda x, u: dof.pixel_velocity(problem.params.dof, x[3:7], x[10:], u))(X, U)
+    got = port.dof.pixel_velocity(*(torch_port.to_torch(a) for a in (X[:, 3:7], X[:, 10:], U))).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("t", [0, 17, 79])
+def test_torch_racing_and_pixel_cost_equal_jax(port_setup, t):
+    torch_port, problem, port, X, U = port_setup
+    config = problem.config
+    racing = jax.vmap(lambda x: costs.racing_cost(x[:10], t, problem.params.racing, config.racing))(X)
+    got = port.racing(torch_port.to_torch(X), t).numpy()
+    assert np.any(np.asarray(racing) < 1e5) and np.any(np.asarray(racing) > 1e8)  # flying and crashed states
+    np.testing.assert_allclose(got, racing, rtol=1e-5, atol=1e-3)
+    pixel = jax.vmap(lambda x: PM.pixel_cost(x[10:], config))(X)
+    np.testing.assert_allclose(torch_port.pixel_cost_torch(torch_port.to_torch(X[:, 10:]), config).numpy(), pixel,
+                               rtol=1e-5)
+
+
+def test_torch_rollout_cost_equals_jax(port_setup):
+    """A whole rollout (dynamics over t_f with the DOF, then the robot alone) and its summed cost."""
+    torch_port, problem, port, X, U = port_setup
+    import torch
+
+    from pixelmpc_jax.control.mppi import Prefix, rollout_cost
+
+    config, n_f, dt = problem.config, problem.config.pixel_steps, problem.config.mppi.dt
+    controls = Q.hover_control(Q.QuadParams()) + 0.3 * jax.random.normal(jax.random.PRNGKey(9), (4, 80, 4))
+
+    def robot(X, u, p):
+        return jnp.concatenate([Q.step(X[:10], u, dt, Q.QuadParams()), X[10:]])
+
+    def prefix_dyn(X, u, p):
+        uv = X[10:] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:], u)
+        return jnp.concatenate([Q.step(X[:10], u, dt, Q.QuadParams()), uv])
+
+    def racing(X, u, t, p):
+        return costs.racing_cost(X[:10], t, p.racing, config.racing)
+
+    def prefix_cost(X, u, t, p):
+        return racing(X, u, t, p) + PM.pixel_cost(X[10:], config)
+
+    prefix = Prefix(n_f, prefix_dyn, prefix_cost)
+    expected = jax.vmap(lambda c: rollout_cost(robot, racing, None, problem.x0, c, problem.params, prefix))(controls)
+    state = torch_port.to_torch(problem.x0)[None].repeat(4, 1)
+    total = torch.zeros(4)
+    for t in range(80):
+        u = torch_port.to_torch(controls[:, t])
+        state = port.dynamics(state, u, t)
+        total = total + port.running_cost(state, u, t)
+    np.testing.assert_allclose(total.numpy(), expected, rtol=1e-4)
+
+
+# --------------------------------------------------------------------------------------------------
+# bench.json on a tiny run.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_smoke_run_writes_the_schema(tmp_path):
+    result = suite.run_bench(tmp_path, smoke=True)
+    written = json.loads((tmp_path / "bench.json").read_text())
+    assert (tmp_path / "bench.md").read_text().startswith("# pixelmpc-jax runtime benchmarks")
+    assert (tmp_path / "scaling.png").stat().st_size > 0
+    assert written["mode"] == "smoke" and len(written["rows"]) == len(result["rows"])
+    for key in ("platform", "device_kind", "cpu_model", "cpu_count"):
+        assert key in written["device"]
+    for key in ("jax", "jaxlib", "torch", "pytorch_mppi"):
+        assert key in written["versions"]
+    groups = {r["group"] for r in written["rows"]}
+    assert {"controller", "roofline", "peer", "mppi_generic", "table1", "scaling"} <= groups
+    for row in written["rows"]:
+        for field in suite.REQUIRED_ROW_FIELDS:
+            assert field in row, (row["name"], field)
+        if row["status"] == "ok":
+            assert 0 < row["median_ms"] <= row["max_ms"] and row["mean_ms"] > 0 and row["two_sigma_ms"] >= 0
+    peer_rows = [r for r in written["rows"] if r["group"] == "peer"]
+    if written["versions"]["torch"] is not None:
+        assert all(r["ratio"] > 0 for r in peer_rows)
+    assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
+    assert set(written["summary"]["targets"]) == {"pixelmpc_step_ms <= 12", "ratio_vs_pytorch_mppi <= 0.35",
+                                                  "dof_fraction >= 0.70"}
