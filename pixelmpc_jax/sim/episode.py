@@ -417,9 +417,36 @@ class Runner(NamedTuple):
     batch: Callable[[World, jax.Array], EpisodeLog]
 
 
+def shard_batch(tree, devices=None):
+    """Place a batch (leading axis B on every leaf) across ``devices`` (default: all JAX devices) with a
+    1-D ``Mesh`` and ``NamedSharding``, padding B to a multiple of the device count by repeating the last
+    element. Returns ``(sharded tree, B)``; with one device the tree is returned as it is."""
+    import numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = list(devices if devices is not None else jax.devices())
+    size = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    if len(devices) <= 1:
+        return tree, size
+    padded = -(-size // len(devices)) * len(devices)
+    if padded != size:
+        tree = jax.tree_util.tree_map(
+            lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - size, axis=0)]), tree)
+    mesh = Mesh(np.asarray(devices), ("batch",))
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("batch"))), size
+
+
 def make_runner(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Runner:
+    """Compiled runners; ``batch`` splits its episodes over every device present (see :func:`shard_batch`)."""
     run = episode_fn(policy, config)
-    return Runner(single=jax.jit(run), batch=jax.jit(jax.vmap(run)))
+    batch_jit = jax.jit(jax.vmap(run))
+
+    def batch(worlds: World, keys: jax.Array) -> EpisodeLog:
+        (worlds, keys), size = shard_batch((worlds, keys))
+        logs = batch_jit(worlds, keys)
+        return jax.tree_util.tree_map(lambda a: a[:size], logs)
+
+    return Runner(single=jax.jit(run), batch=batch)
 
 
 def stack_worlds(worlds: list[World]) -> World:
