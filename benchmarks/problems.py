@@ -76,7 +76,8 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
     ctrl = pixelmpc_lib.make_pixelmpc(config)
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
     params = pixelmpc_lib.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(True),
-                                         target_centre=track.gates.centre[0], camera=camera_lib.default_camera())
+                                         target_centre=track.gates.centre[0], target_normal=track.gates.normal[0],
+                                         camera=camera_lib.default_camera())
     x = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
     x0 = jnp.concatenate([x, jnp.asarray(START_PIXEL, jnp.float32)])
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quadrotor.QuadParams()))

@@ -184,6 +184,8 @@ class PixelMPCTorch:
         self.dof = DOFTorch(problem.params.dof)
         self.racing = RacingCostTorch(problem.params.racing, config.racing)
         self.active = float(np.asarray(problem.params.target_active))
+        self.target_centre = to_torch(problem.params.target_centre)
+        self.target_normal = to_torch(problem.params.target_normal)
 
     def dynamics(self, X: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
         x_next = self.quad.step(X[:, :10], u)
@@ -195,7 +197,8 @@ class PixelMPCTorch:
     def running_cost(self, X: torch.Tensor, u: torch.Tensor, t: int) -> torch.Tensor:
         cost = self.racing(X, t)
         if t < self.n_f:
-            cost = cost + self.active * pixel_cost_torch(X[:, 10:], self.config)
+            ahead = ((X[:, :3] - self.target_centre) @ self.target_normal < 0.0).to(X.dtype)
+            cost = cost + self.active * ahead * pixel_cost_torch(X[:, 10:], self.config)
         return cost
 
 

@@ -26,7 +26,8 @@ def setup():
 def make_params(track, dof_params, config, active=True, target=0, speed=14.0):
     racing = costs.racing_params(track, jnp.linspace(0.0, 20.0, config.mppi.horizon), speed, config.racing)
     return PM.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(active),
-                             target_centre=track.gates.centre[target], camera=C.default_camera())
+                             target_centre=track.gates.centre[target],
+                             target_normal=track.gates.normal[target], camera=C.default_camera())
 
 
 def state(track, uv=(0.55, 0.45)):

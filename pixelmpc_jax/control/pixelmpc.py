@@ -9,7 +9,8 @@ The robot follows the paper's quadrotor model; the target gate's pixel follows a
   be known).
 
 The cost is the racing cost of Eq. (19) plus the pixel cost of Eq. (18), ``c_pixel * L1(uv_t, centre)``,
-counted over the first ``t_f`` seconds of the horizon and only while the detector reports the target.
+counted over the first ``t_f`` seconds of the horizon, only while the detector reports the target, and
+for each predicted state only until it passes the target gate's plane (the target then switches).
 The pixel does not feed back into the robot, so the pixel model runs only over those first
 ``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.mppi.Prefix`); the rest of the horizon
 rolls out the robot alone. The whole step is one compiled function; DOF weights, the target pixel and
@@ -94,7 +95,11 @@ class PixelMPCParams:
         racing: the racing cost's per-tick params (path windows, gates, target speed).
         dof: the DOF network's weights and normalisation (unused by the projection model).
         target_active: () bool, the detector reports the target this tick (else no pixel cost).
-        target_centre: (3,) the target gate's centre, world frame (used by the projection model only).
+        target_centre: (3,) the target gate's centre, world frame.
+        target_normal: (3,) the target gate's normal (direction of travel). A predicted state past the
+            target's plane has passed the gate; the paper then switches to the next target, so the pixel
+            cost stops counting for that sample (otherwise flying through the gate would be penalised by
+            the pixel of a gate already behind the camera).
         camera: the onboard camera (projection model only).
     """
 
@@ -102,6 +107,7 @@ class PixelMPCParams:
     dof: dof_lib.DOFParams
     target_active: jax.Array
     target_centre: jax.Array
+    target_normal: jax.Array
     camera: camera_lib.Camera
 
 
@@ -136,6 +142,12 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
     def running_cost(X, u, t, p):
         return racing(X, t, p)
 
+    def pixel_term(X, p):
+        """The pixel cost of a predicted state while the target is detected and not yet passed."""
+        ahead = jnp.dot(X[quadrotor.POS] - p.target_centre, p.target_normal) < 0.0
+        active = (p.target_active & ahead).astype(X.dtype)
+        return active * pixel_cost(X[quadrotor.STATE_DIM:], config)
+
     if config.pixel_model == "dof":
         def prefix_dynamics(X, u, p):
             x, uv = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
@@ -143,8 +155,7 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
             return jnp.concatenate([robot_step(X, u), uv + dt * uv_dot])
 
         def prefix_cost(X, u, t, p):
-            active = p.target_active.astype(X.dtype)
-            return racing(X, t, p) + active * pixel_cost(X[quadrotor.STATE_DIM:], config)
+            return racing(X, t, p) + pixel_term(X, p)
     else:
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u)
@@ -154,8 +165,7 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
             return jnp.concatenate([x_next, uv])
 
         def prefix_cost(X, u, t, p):
-            active = p.target_active.astype(X.dtype)
-            return racing(X, t, p) + active * pixel_cost(X[quadrotor.STATE_DIM:], config)
+            return racing(X, t, p) + pixel_term(X, p)
 
     prefix = Prefix(n_f, prefix_dynamics, prefix_cost) if n_f > 0 else None
     return make_mppi(config.mppi, dynamics, running_cost, prefix=prefix)

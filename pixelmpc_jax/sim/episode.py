@@ -227,7 +227,8 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
         uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
         params = pixelmpc_lib.PixelMPCParams(
             racing=racing, dof=world.dof, target_active=detection.found,
-            target_centre=world.track.gates.centre[obs.target_gate], camera=world.camera,
+            target_centre=world.track.gates.centre[obs.target_gate],
+            target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera,
         )
         return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
 
