@@ -221,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimator", choices=("truth", "pf"), default="truth",
                    help="state the controller acts on: ground truth (default) or the particle filter")
     p.add_argument("--video", action="store_true",
-                   help="write OUT/onboard.gif of the first lap: predicted (green) and actual (red) target pixel")
+                   help="write OUT/onboard.mp4 of the first lap: predicted (green) and actual (red) target pixel")
     p.add_argument("--t-f", type=float, default=1.0, help="PixelMPC pixel-cost horizon t_f, s (default 1)")
     p.add_argument("--c-pixel", type=float, default=9e6, help="PixelMPC pixel-cost weight (default 9e6)")
     p.add_argument("--speed", type=_positive_float, default=14.0, help="target speed, m/s (default 14)")

@@ -121,9 +121,9 @@ def run_laps(
             logs = metrics_lib.unbatch(runner.batch(worlds, keys))
             for lap_seed, log in zip(chunk, logs):
                 if video and out is not None and lap_seed == seed:
-                    from pixelmpc_jax.sim.video import write_onboard_gif
+                    from pixelmpc_jax.sim.video import write_onboard_video
 
-                    write_onboard_gif(base.track, log, Path(out) / "onboard.gif", base.camera)
+                    write_onboard_video(base.track, log, Path(out) / "onboard.mp4", base.camera)
                 lap = metrics_lib.lap_metrics(log)
                 if estimator == "pf":
                     n = int(log.num_ticks)

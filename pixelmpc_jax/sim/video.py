@@ -1,5 +1,5 @@
 """The onboard video (the paper's Fig. 1): camera frames with the MPC-predicted target-pixel trajectory
-(green) and the pixel's actual future trajectory (red), written as an animated GIF."""
+(green) and the pixel's actual future trajectory (red), written as MP4 (OpenCV) or an animated GIF."""
 
 from __future__ import annotations
 
@@ -59,15 +59,26 @@ def annotated_frames(track, log: EpisodeLog, camera: camera_lib.Camera | None = 
     return frames
 
 
-def write_onboard_gif(track, log: EpisodeLog, path: Path, camera: camera_lib.Camera | None = None,
-                      every: int = 2, scale: int = 3, max_frames: int | None = 400) -> Path:
-    """Write the annotated onboard frames as an animated GIF at real time (``every`` ticks per frame)."""
-    from PIL import Image
-
+def write_onboard_video(track, log: EpisodeLog, path: Path, camera: camera_lib.Camera | None = None,
+                        every: int = 2, scale: int = 2, max_frames: int | None = None) -> Path:
+    """Write the annotated onboard frames at real time (``every`` ticks per frame): MP4 for a ``.mp4`` path
+    (compact: the rendered textures make GIFs large), otherwise an animated GIF."""
     frames = annotated_frames(track, log, camera, every, scale, max_frames)
     if not frames:
         raise ValueError("the episode has no ticks to draw")
+    path = Path(path)
+    if path.suffix.lower() == ".mp4":
+        h, w = frames[0].shape[:2]
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 40.0 / every, (w, h))
+        if not writer.isOpened():
+            raise RuntimeError(f"OpenCV cannot write MP4 here; use a .gif path instead of {path}")
+        for frame in frames:
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        writer.release()
+        return path
+    from PIL import Image
+
     images = [Image.fromarray(f) for f in frames]
-    duration_ms = int(round(every * 25))
-    images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=True)
-    return Path(path)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(every * 25)), loop=0,
+                   optimize=True)
+    return path
