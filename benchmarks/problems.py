@@ -91,14 +91,7 @@ def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed:
     cost_config = costs.RacingCostConfig()
     quad_params = quadrotor.QuadParams()
     dt = mppi_config.dt
-
-    def dynamics(x, u, p):
-        return quadrotor.step(x, u, dt, quad_params)
-
-    def running_cost(x, u, t, p):
-        return costs.racing_cost(x, t, p, cost_config)
-
-    ctrl = make_mppi(mppi_config, dynamics, running_cost)
+    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params)
     params = _racing_params(track, step_progress(horizon, dt), TARGET_SPEED, cost_config)
     x0 = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quad_params))

@@ -117,6 +117,25 @@ def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
     return config.c_pixel * config.pixel_cost_scale * jnp.sum(jnp.abs(uv - centre))
 
 
+def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
+                      cost_config: costs.RacingCostConfig | None = None,
+                      quad_params: quadrotor.QuadParams | None = None) -> Controller:
+    """The paper's baseline, "nominal MPPI": the 10-state robot model with the racing cost of Eq. (19) only;
+    ``step(state, x0 (10,), params: RacingParams)``."""
+    mppi_config = mppi_config or paper_mppi_config()
+    cost_config = cost_config or costs.RacingCostConfig()
+    quad_params = quad_params or quadrotor.QuadParams()
+    dt = mppi_config.dt
+
+    def dynamics(x, u, p):
+        return quadrotor.step(x, u, dt, quad_params)
+
+    def running_cost(x, u, t, p):
+        return costs.racing_cost(x, t, p, cost_config)
+
+    return make_mppi(mppi_config, dynamics, running_cost)
+
+
 def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
                   quad_params: quadrotor.QuadParams | None = None) -> Controller:
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.

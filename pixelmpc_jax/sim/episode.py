@@ -19,7 +19,7 @@ from flax import struct
 
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
-from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig
 from pixelmpc_jax.control.pixelmpc import paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
@@ -197,15 +197,7 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
     quad_params = quad_params or quadrotor.QuadParams()
-    dt = mppi_config.dt
-
-    def dynamics(x, u, p):
-        return quadrotor.step(x, u, dt, quad_params)
-
-    def running_cost(x, u, t, p):
-        return costs.racing_cost(x, t, p, cost_config)
-
-    ctrl = make_mppi(mppi_config, dynamics, running_cost)
+    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params)
 
     def build(obs, world, racing):
         return obs.x_est, racing
