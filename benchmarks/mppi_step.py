@@ -17,11 +17,12 @@ import jax.numpy as jnp
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.platform_info import device_description
 
 try:
-    from benchmarks.timing import device_description, time_call
+    from benchmarks.measure import measure
 except ImportError:  # run as a script from the benchmarks folder
-    from timing import device_description, time_call
+    from measure import measure
 
 
 def main(argv=None) -> dict:
@@ -64,7 +65,7 @@ def main(argv=None) -> dict:
         holder["x"] = quadrotor.step(holder["x"], u, config.dt, params)
         return u, info.min_cost
 
-    result = time_call(call, repeats=args.repeats)
+    result = measure(call, repeats=args.repeats)
     device = device_description()
     result.update(num_samples=args.samples, horizon=args.horizon, device=device)
     rollouts_per_s = args.samples * args.horizon / (result["median_ms"] / 1e3)

@@ -19,15 +19,16 @@ import jax.numpy as jnp
 
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import particle_filter as pf
+from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.plant import IMU
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 from pixelmpc_jax.world import track as track_lib
 
 try:
-    from benchmarks.timing import device_line, time_call
+    from benchmarks.measure import measure
 except ImportError:  # run as a script from the benchmarks folder
-    from timing import device_line, time_call
+    from measure import measure
 
 
 def main(argv=None) -> dict:
@@ -54,10 +55,10 @@ def main(argv=None) -> dict:
         holder["state"] = pf.pf_predict(holder["state"], imu, config)
         return holder["state"].particles
 
-    jax.block_until_ready(step())  # compile outside the timed region (time_call also warms up)
+    jax.block_until_ready(step())  # compile outside the timed region (measure also warms up)
     jax.block_until_ready(predict())
-    result = time_call(step, repeats=args.repeats)
-    baseline = time_call(predict, repeats=args.repeats)
+    result = measure(step, repeats=args.repeats)
+    baseline = measure(predict, repeats=args.repeats)
     device = device_line()
     result.update(num_particles=args.particles, device=device, predict_only=baseline)
     print(f"device: {device}")
