@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.mppi import BatchCost, MPPIConfig, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 
@@ -46,8 +46,7 @@ def main(argv=None) -> dict:
         x = track.start
         cost_params = costs.racing_params(track, jnp.linspace(0.0, 25.0, args.horizon), 14.0, cost_config)
 
-        def running_cost(x, u, t, p):
-            return costs.racing_cost(x, t, p, cost_config)
+        running_cost = BatchCost(lambda X, U, t, p: costs.racing_cost_batch(X, t, p, cost_config))
     else:
         weights = costs.WaypointWeights()
         x = quadrotor.hover_state((0.0, 0.0, 2.0))

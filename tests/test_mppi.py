@@ -270,3 +270,27 @@ def test_prefix_equals_one_time_varying_rollout():
     assert info.nominal_trajectory.shape == (13, 5)
     with pytest.raises(ValueError, match="prefix.steps"):
         make_mppi(cfg, main_dynamics, main_cost, prefix=Prefix(13, prefix_dynamics, main_cost))
+
+
+def test_batch_cost_gives_the_same_rollout_costs_as_the_one_sample_cost():
+    """A BatchCost sees all samples at once; each sample's cost must be its own (no mixing across samples)."""
+    from pixelmpc_jax.control.mppi import BatchCost, rollout_cost, rollout_costs
+
+    goal = jnp.asarray([1.0, -0.5])
+
+    def batch_goal_cost(X, U, t, goal):  # samples on the last axis inside, as a real batch cost lays it out
+        Xt, Ut = X.T, U.T
+        return (jnp.sum((Xt[:2] - goal[:, None]) ** 2, axis=0) + 0.1 * jnp.sum(Xt[2:] ** 2, axis=0)
+                + 0.01 * jnp.sum(Ut**2, axis=0))
+
+    controls = jax.random.normal(jax.random.PRNGKey(3), (16, 12, 2))
+    x0 = jnp.asarray([0.0, 0.0, 0.3, 0.0])
+    expected = jnp.stack([rollout_cost(double_integrator, goal_cost, None, x0, c, goal) for c in controls])
+    got_vmapped = rollout_costs(double_integrator, goal_cost, None, x0, controls, goal)
+    got_batch = rollout_costs(double_integrator, BatchCost(batch_goal_cost), None, x0, controls, goal)
+    np.testing.assert_allclose(got_vmapped, expected, rtol=1e-5)
+    np.testing.assert_allclose(got_batch, expected, rtol=1e-5)
+    # called on one sample, a BatchCost runs as a batch of one
+    x1 = double_integrator(x0, controls[0, 0], goal)
+    np.testing.assert_allclose(BatchCost(batch_goal_cost)(x1, controls[0, 0], 0, goal),
+                               goal_cost(x1, controls[0, 0], 0, goal), rtol=1e-6)

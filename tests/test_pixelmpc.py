@@ -122,3 +122,26 @@ def test_bad_config_is_rejected():
         PM.PixelMPCConfig(t_f=-1.0)
     with pytest.raises(ValueError, match="c_pixel"):
         PM.PixelMPCConfig(c_pixel=-5.0)
+
+
+def test_batched_racing_cost_equals_each_sample_on_its_own(setup):
+    """The racing cost runs with the samples on the last axis; a batch must give every sample the cost it
+    gets alone (a reduction over the wrong axis would mix samples), crashes and tilts included."""
+    track, _ = setup
+    cfg = costs.RacingCostConfig()
+    params = costs.racing_params(track, jnp.linspace(0.0, 20.0, 8), 14.0, cfg)
+    key_p, key_q, key_v = jax.random.split(jax.random.PRNGKey(11), 3)
+    n = 64
+    path = track.path_points[jnp.linspace(0, 60, n).astype(jnp.int32)]
+    pos = path + 1.5 * jax.random.normal(key_p, (n, 3))
+    pos = pos.at[0].set(track.gates.centre[0] + jnp.asarray([0.0, 0.0, 0.5 * float(track.gates.height[0]) + 0.1]))
+    pos = pos.at[1, 2].set(-1.0)  # below the floor
+    q = Q.normalize_quat(jnp.asarray([1.0, 0.0, 0.0, 0.0]) + 0.6 * jax.random.normal(key_q, (n, 4)))
+    v = 8.0 * jax.random.normal(key_v, (n, 3))
+    X = jnp.concatenate([pos, q, v], axis=1)
+    for t in (0, 5):
+        batch = costs.racing_cost_batch(X, t, params, cfg)
+        alone = jnp.stack([costs.racing_cost(X[i], t, params, cfg) for i in range(n)])
+        np.testing.assert_allclose(batch, alone, rtol=1e-5)
+        assert bool(costs.crashed(X[:2, :3].T, params, cfg).all())
+        assert float(batch[0]) >= cfg.c1 * cfg.crash_value**2  # the gate frame's top bar

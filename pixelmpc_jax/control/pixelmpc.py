@@ -26,7 +26,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import Controller, MPPIConfig, Prefix, make_mppi
+from pixelmpc_jax.control.mppi import BatchCost, Controller, MPPIConfig, Prefix, make_mppi
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as camera_lib
@@ -130,10 +130,10 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     def dynamics(x, u, p):
         return quadrotor.step(x, u, dt, quad_params)
 
-    def running_cost(x, u, t, p):
-        return costs.racing_cost(x, t, p, cost_config)
+    def running_cost(X, U, t, p):
+        return costs.racing_cost_batch(X, t, p, cost_config)
 
-    return make_mppi(mppi_config, dynamics, running_cost)
+    return make_mppi(mppi_config, dynamics, BatchCost(running_cost))
 
 
 def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
@@ -151,14 +151,14 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
     def robot_step(X, u):
         return quadrotor.step(X[:quadrotor.STATE_DIM], u, dt, quad_params)
 
-    def racing(X, t, p):
-        return costs.racing_cost(X[:quadrotor.STATE_DIM], t, p.racing, config.racing)
+    def racing(X, t, p):  # X (N, 12) -> (N,)
+        return costs.racing_cost_batch(X, t, p.racing, config.racing)
 
     # The rest of the horizon: the robot alone, the pixel carried unchanged and not costed.
     def dynamics(X, u, p):
         return jnp.concatenate([robot_step(X, u), X[quadrotor.STATE_DIM:]])
 
-    def running_cost(X, u, t, p):
+    def running_cost(X, U, t, p):
         return racing(X, t, p)
 
     def pixel_term(X, p):
@@ -173,8 +173,6 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
             uv_dot = dof_lib.pixel_velocity(p.dof, x[quadrotor.QUAT], uv, u)
             return jnp.concatenate([robot_step(X, u), uv + dt * uv_dot])
 
-        def prefix_cost(X, u, t, p):
-            return racing(X, t, p) + pixel_term(X, p)
     else:
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u)
@@ -183,8 +181,8 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
             uv = jnp.where(in_front, uv, jnp.zeros_like(uv))
             return jnp.concatenate([x_next, uv])
 
-        def prefix_cost(X, u, t, p):
-            return racing(X, t, p) + pixel_term(X, p)
+    def prefix_cost(X, U, t, p):
+        return racing(X, t, p) + jax.vmap(pixel_term, in_axes=(0, None))(X, p)
 
-    prefix = Prefix(n_f, prefix_dynamics, prefix_cost) if n_f > 0 else None
-    return make_mppi(config.mppi, dynamics, running_cost, prefix=prefix)
+    prefix = Prefix(n_f, prefix_dynamics, BatchCost(prefix_cost)) if n_f > 0 else None
+    return make_mppi(config.mppi, dynamics, BatchCost(running_cost), prefix=prefix)
