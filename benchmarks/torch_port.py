@@ -168,7 +168,10 @@ class RacingCostTorch:
 def pixel_cost_torch(uv: torch.Tensor, config) -> torch.Tensor:
     """``pixelmpc.pixel_cost`` for a batch (K, 2) -> (K,)."""
     centre = torch.tensor(pixelmpc_lib.IMAGE_CENTRE, dtype=uv.dtype)
-    return config.c_pixel * config.pixel_cost_scale * (uv - centre).abs().sum(1)
+    error = torch.clamp((uv - centre).abs() - config.pixel_deadzone, min=0.0)
+    if config.pixel_error_clip is not None:
+        error = torch.clamp(error, max=config.pixel_error_clip)
+    return config.c_pixel * config.pixel_cost_scale * error.sum(1)
 
 
 class PixelMPCTorch:

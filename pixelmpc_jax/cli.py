@@ -154,6 +154,14 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_reproduce(args) -> int:
+    from pixelmpc_jax.reproduce import reproduce
+
+    reproduce(args.parts, args.out, quick=args.quick)
+    print(f"report: {args.out / 'REPORT.md'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pixelmpc",
@@ -208,6 +216,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=_writable_dir, default=Path("runs/bench"))
     p.add_argument("--quick", action="store_true", help="paper-size controller rows and the pytorch-mppi peer only")
     p.set_defaults(func=_cmd_bench)
+
+    from pixelmpc_jax.reproduce import CHOICES
+
+    p = sub.add_parser("reproduce", help="run the paper's experiments and benchmark into one report (resumable)")
+    p.add_argument("parts", nargs="*", default=["all"], choices=CHOICES, metavar="PART",
+                   help=f"what to reproduce (default all): {', '.join(CHOICES)}")
+    p.add_argument("--out", type=_writable_dir, default=Path("runs/reproduce"), help="output directory")
+    p.add_argument("--quick", action="store_true",
+                   help="a small version in minutes (2 laps per cell, the bench's quick rows, the tables only)")
+    p.set_defaults(func=_cmd_reproduce)
 
     from pixelmpc_jax.sim.race import CONTROLLERS
 

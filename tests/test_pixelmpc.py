@@ -145,3 +145,18 @@ def test_batched_racing_cost_equals_each_sample_on_its_own(setup):
         np.testing.assert_allclose(batch, alone, rtol=1e-5)
         assert bool(costs.crashed(X[:2, :3].T, params, cfg).all())
         assert float(batch[0]) >= cfg.c1 * cfg.crash_value**2  # the gate frame's top bar
+
+
+def test_pixel_cost_clip_and_dead_zone():
+    paper = PM.PixelMPCConfig(pixel_error_clip=None, c_pixel=1.0, pixel_cost_scale=1.0)
+    uv = jnp.asarray([0.9, -2.5])  # 0.4 right of the centre, 3 image heights above it
+    np.testing.assert_allclose(PM.pixel_cost(uv, paper), 0.4 + 3.0, rtol=1e-6)
+    clipped = PM.PixelMPCConfig(c_pixel=1.0, pixel_cost_scale=1.0)  # default clip: 1 image size per axis
+    np.testing.assert_allclose(PM.pixel_cost(uv, clipped), 0.4 + 1.0, rtol=1e-6)
+    dead = PM.PixelMPCConfig(c_pixel=1.0, pixel_cost_scale=1.0, pixel_deadzone=0.3)
+    np.testing.assert_allclose(PM.pixel_cost(uv, dead), 0.1 + 1.0, rtol=1e-6)
+    np.testing.assert_allclose(PM.pixel_cost(jnp.asarray([0.6, 0.35]), dead), 0.0, atol=1e-7)
+    with pytest.raises(ValueError, match="pixel_deadzone"):
+        PM.PixelMPCConfig(pixel_deadzone=0.5)
+    with pytest.raises(ValueError, match="pixel_error_clip"):
+        PM.PixelMPCConfig(pixel_error_clip=0.0)

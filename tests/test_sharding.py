@@ -35,3 +35,38 @@ def test_four_device_run_equals_one_device_run():
     assert one["devices"] == 1 and four["devices"] == 4
     assert one["ticks"] == four["ticks"] == [20] * 6  # 6 episodes: padded to 8 over 4 devices, cut back
     np.testing.assert_allclose(np.asarray(four["states"]), np.asarray(one["states"]), atol=1e-4)
+
+
+TRAIN_SCRIPT = r"""
+import json
+import jax, numpy as np
+from pixelmpc_jax.learn import train as T
+rng = np.random.default_rng(0)
+n, W, H = 16, 16, 12
+q = rng.normal(size=(n, 4)).astype(np.float32); q /= np.linalg.norm(q, axis=1, keepdims=True)
+u = rng.normal(size=(n, 4)).astype(np.float32)
+flow = rng.normal(size=(n, H, W, 2)).astype(np.float16)
+config = T.TrainConfig(steps=6, batch_size=256, learning_rate=1e-3, schedule="constant", log_every=1,
+                       checkpoint_every=0, width=W, height=H, dt=0.025, probe_size=64, eval_chunk_pixels=512,
+                       progress=False)
+params, history = T.train(config, T.FlowData(q, u, flow))
+leaves = [np.asarray(x).ravel().tolist() for x in jax.tree_util.tree_leaves(params.weights)]
+print(json.dumps({"devices": jax.device_count(), "split": T.data_parallel_devices(256), "loss": history["loss"],
+                  "weights": leaves}))
+"""
+
+
+def test_dof_training_split_over_four_devices_equals_one_device():
+    def train_on(device_count):
+        env = dict(os.environ)
+        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={device_count}"
+        env["JAX_PLATFORMS"] = "cpu"
+        out = subprocess.run([sys.executable, "-c", TRAIN_SCRIPT], env=env, capture_output=True, text=True,
+                             check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    one, four = train_on(1), train_on(4)
+    assert (one["devices"], one["split"]) == (1, 1) and (four["devices"], four["split"]) == (4, 4)
+    np.testing.assert_allclose(four["loss"], one["loss"], rtol=1e-4)
+    for a, b in zip(four["weights"], one["weights"]):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)

@@ -187,7 +187,7 @@ def test_keyboard_interrupt_saves_and_returns(train_data, tmp_path, monkeypatch)
     real = train_mod._make_iteration(config)
     calls = []
 
-    def interrupted_after_seven(cfg):
+    def interrupted_after_seven(cfg, num_devices=1):
         def iteration(state, data):
             if len(calls) == 7:
                 raise KeyboardInterrupt

@@ -64,14 +64,23 @@ class PixelMPCConfig:
             the scale is calibrated so the paper's c_pixel grid spans the same range of behaviour
             (see the README).
         pixel_model: "dof" or "projection".
+        pixel_error_clip: each axis of ``uv - centre`` is clipped to this many image widths/heights before
+            the L1 norm (None: unclipped, as the paper writes it). A target pixel outside the image is lost
+            wherever it is; unclipped, the error of a predicted pixel near the camera plane (a gate just
+            beside or behind the camera) grows without bound and swamps every other term.
+        pixel_deadzone: the error of each axis is counted only beyond this distance from the centre (0, the
+            paper's cost, by default). A dead zone of 0.3 charges only a pixel near or past the image border:
+            a cost on keeping the target in view rather than centred.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
     racing: costs.RacingCostConfig = dataclasses.field(default_factory=costs.RacingCostConfig)
     t_f: float = 1.0
     c_pixel: float = 9e6
-    pixel_cost_scale: float = 1e-4
+    pixel_cost_scale: float = 3e-5
     pixel_model: str = "dof"
+    pixel_error_clip: float | None = 1.0
+    pixel_deadzone: float = 0.0
 
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
@@ -80,6 +89,10 @@ class PixelMPCConfig:
             raise ValueError(f"t_f must be >= 0 seconds, got {self.t_f!r}")
         if not (self.c_pixel >= 0.0):
             raise ValueError(f"c_pixel must be >= 0, got {self.c_pixel!r}")
+        if not (0.0 <= self.pixel_deadzone < 0.5):
+            raise ValueError(f"pixel_deadzone must lie in [0, 0.5), got {self.pixel_deadzone!r}")
+        if self.pixel_error_clip is not None and not (self.pixel_error_clip > 0.0):
+            raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
 
     @property
     def pixel_steps(self) -> int:
@@ -112,9 +125,12 @@ class PixelMPCParams:
 
 
 def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
-    """Eq. (18)'s integrand per step: c_pixel * scale * (|u - 0.5| + |v - 0.5|)."""
-    centre = jnp.asarray(IMAGE_CENTRE, uv.dtype)
-    return config.c_pixel * config.pixel_cost_scale * jnp.sum(jnp.abs(uv - centre))
+    """Eq. (18)'s integrand per step: c_pixel * scale * (|u - 0.5| + |v - 0.5|), each axis less the dead zone
+    (at least 0) and clipped to ``pixel_error_clip``."""
+    error = jnp.maximum(jnp.abs(uv - jnp.asarray(IMAGE_CENTRE, uv.dtype)) - config.pixel_deadzone, 0.0)
+    if config.pixel_error_clip is not None:
+        error = jnp.minimum(error, config.pixel_error_clip)
+    return config.c_pixel * config.pixel_cost_scale * jnp.sum(error)
 
 
 def make_nominal_mppi(mppi_config: MPPIConfig | None = None,

@@ -27,14 +27,20 @@ class Cell:
     c_pixel: float = 9e6
     pixel_model: str = "dof"
     speed: float = 14.0
+    estimator: str = "truth"
+    course: str = "alphapilot"
+    max_time_s: float = 60.0
 
     def key(self) -> str:
         return self.name
 
 
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
-             max_time_s: float = 60.0, progress: bool = True, dof_params=None) -> dict:
-    """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``."""
+             progress: bool = True, dof_params=None) -> dict:
+    """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
+
+    Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap) and, with the
+    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.json"
@@ -48,10 +54,11 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
             continue
         start = time.perf_counter()
         res = race.run_laps(controller=cell.controller, speed=cell.speed, laps=laps, seed=seed, out=None,
-                            batch_size=batch_size, max_time_s=max_time_s, progress=progress,
+                            batch_size=batch_size, max_time_s=cell.max_time_s, progress=progress,
                             pixel_model=cell.pixel_model, t_f=cell.t_f, c_pixel=cell.c_pixel,
-                            dof_params=dof_params)
+                            dof_params=dof_params, estimator=cell.estimator, course=cell.course)
         trajectories = res.pop("trajectories")
+        covariances = res.pop("covariances")
         if len(res["laps"]) < laps:  # interrupted inside the cell: keep what is finished, stop here
             break
         res["config"] = dataclasses.asdict(cell)
@@ -59,6 +66,8 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         results[cell.key()] = res
         race.write_json_atomic(path, results)
         np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
+        if covariances:
+            np.savez_compressed(out / f"covariances_{cell.name}.npz", *covariances)
     return results
 
 

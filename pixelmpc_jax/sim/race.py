@@ -19,6 +19,17 @@ from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.world import track as track_lib
 
 CONTROLLERS = ("mppi", "pixelmpc")
+COURSES = ("alphapilot", "straight")
+
+
+def make_course(course: str = "alphapilot") -> track_lib.Track:
+    """The named course: "alphapilot" (the paper's race) or "straight" (five gates 20 m apart in a row, the
+    paper's straight-lane test)."""
+    if course == "alphapilot":
+        return track_lib.load_course()
+    if course == "straight":
+        return track_lib.straight_course()
+    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)}")
 
 
 def write_json_atomic(path: Path, data) -> None:
@@ -82,11 +93,14 @@ def run_laps(
     dof_params=None,
     estimator: str = "truth",
     video: bool = False,
+    course: str = "alphapilot",
 ) -> dict:
     """Fly ``laps`` laps (seeds ``seed .. seed + laps - 1``) and return ``{"laps": [...], "aggregate": {...}}``.
 
     Lap i uses PRNG key ``seed + i`` for the plant noise and the controller, so a lap is reproducible on
-    its own and a batch gives the same per-lap result as single runs.
+    its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
+    :func:`make_course`). The result also holds, per lap, the flown states (``trajectories``) and, with the
+    particle filter, the trace of its position covariance at each tick (``covariances``).
     """
     if not (isinstance(speed, (int, float)) and speed > 0):
         raise ValueError(f"speed must be a positive number of m/s, got {speed!r}")
@@ -101,12 +115,13 @@ def run_laps(
         from pixelmpc_jax.dynamics import dof
 
         dof_params = dof.load_packaged_dof()
-    base = episode_lib.make_world(target_speed=float(speed), dof=dof_params)
+    base = episode_lib.make_world(track=make_course(course), target_speed=float(speed), dof=dof_params)
     results: dict = {"controller": policy.name, "speed": speed, "seed": seed, "perturb": perturb,
-                     "detector": detector, "estimator": estimator, "laps": [], "aggregate": {}}
+                     "detector": detector, "estimator": estimator, "course": course, "laps": [], "aggregate": {}}
     if controller == "pixelmpc":
         results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
     trajectories: list[np.ndarray] = []
+    covariances: list[np.ndarray] = []
     seeds = list(range(seed, seed + laps))
     bar = None
     if progress:
@@ -128,6 +143,9 @@ def run_laps(
                 if estimator == "pf":
                     n = int(log.num_ticks)
                     lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
+                    errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
+                    lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
+                    covariances.append(np.asarray(log.position_cov_trace)[:n])
                 lap["seed"] = lap_seed
                 results["laps"].append(lap)
                 trajectories.append(np.asarray(log.states)[: int(log.num_ticks) + 1])
@@ -149,6 +167,7 @@ def run_laps(
         plot_trajectories(base.track, trajectories, Path(out) / "trajectories.png",
                           title=f"{controller}, target {speed:g} m/s, {len(trajectories)} lap(s)")
     results["trajectories"] = trajectories
+    results["covariances"] = covariances
     return results
 
 

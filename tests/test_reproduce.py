@@ -1,0 +1,59 @@
+"""pixelmpc reproduce: part selection, resuming, the combined report."""
+
+import json
+
+import pytest
+
+from pixelmpc_jax import reproduce as R
+
+
+def test_aliases_expand_in_canonical_order_without_repeats():
+    assert R.resolve_parts(["all"]) == list(R.PARTS)
+    assert R.resolve_parts(["all"], quick=True) == list(R.QUICK_PARTS)
+    assert R.resolve_parts(["fig9", "table1", "table3", "fig8"]) == ["bench", "table2", "table4"]
+    with pytest.raises(ValueError, match="unknown part 'table9'"):
+        R.resolve_parts(["table9"])
+
+
+def test_finished_parts_are_kept_and_an_interrupted_part_is_rerun(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_runners(quick, progress):
+        def make(part, fail=False):
+            def run(folder):
+                calls.append(part)
+                if fail:
+                    raise KeyboardInterrupt
+                (folder / "REPORT.md").write_text(f"# {part} results\n\n![plot](figure.png)\n")
+                return "REPORT.md"
+            return run
+        return {"bench": make("bench"), "dof": make("dof"), "table2": make("table2"),
+                "table2_projection": make("table2_projection"), "table4": make("table4", fail=fail_table4[0])}
+
+    fail_table4 = [True]
+    monkeypatch.setattr(R, "_runners", fake_runners)
+    with pytest.raises(KeyboardInterrupt):
+        R.reproduce(["table1", "table2", "table4"], tmp_path, quick=True, progress=False)
+    state = json.loads((tmp_path / "reproduce.json").read_text())
+    assert set(state) == {"bench", "table2"}  # table4 was interrupted: not recorded
+    assert calls == ["bench", "table2", "table4"]
+
+    fail_table4[0] = False
+    R.reproduce(["table1", "table2", "table4"], tmp_path, quick=True, progress=False)
+    assert calls == ["bench", "table2", "table4", "table4"]  # the finished parts were not recomputed
+    report = (tmp_path / "REPORT.md").read_text()
+    for part in ("bench", "table2", "table4"):
+        assert f"## {R.TITLES[part]}" in report
+        assert f"({part}/figure.png)" in report  # image links point into the part's folder
+    # a full run does not accept the quick results as finished
+    R.reproduce(["table2"], tmp_path, quick=False, progress=False)
+    assert calls[-1] == "table2"
+    assert json.loads((tmp_path / "reproduce.json").read_text())["table2"]["quick"] is False
+
+
+def test_cli_rejects_an_unknown_part():
+    from pixelmpc_jax.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["reproduce", "table9"])
+    assert exc.value.code == 2
