@@ -306,3 +306,52 @@ def test_extreme_commands_stay_finite():
         np.testing.assert_allclose(np.linalg.norm(np.asarray(xs[:, 3:7]), axis=1), 1.0, atol=1e-5)
         assert np.asarray(motors).min() >= 0.0 and np.asarray(motors).max() <= 2200.0
     assert isinstance(state, PlantState)
+
+
+def test_preintegration_closed_form_constant_rates_and_force():
+    from pixelmpc_jax.dynamics.quadrotor import quat_from_axis_angle
+    from pixelmpc_jax.sim.plant import IMU, preintegrate
+
+    dt, n = 1.0 / 960.0, 24
+    w = jnp.asarray([0.0, 0.0, 3.0])
+    a = jnp.asarray([1.0, 0.0, 9.81])
+    tick = preintegrate(IMU(accel=jnp.tile(a, (n, 1)), gyro=jnp.tile(w, (n, 1))), dt)
+    np.testing.assert_allclose(tick.delta_q, quat_from_axis_angle(w, 3.0 * n * dt), atol=1e-6)
+    # the force turns with the body about z: integral of Rz(3 t) a dt
+    t = np.arange(n) * dt
+    rotated_x = np.sum(np.cos(3.0 * t)) * dt
+    rotated_y = np.sum(np.sin(3.0 * t)) * dt
+    np.testing.assert_allclose(tick.delta_v, [rotated_x, rotated_y, 9.81 * n * dt], rtol=1e-5, atol=1e-7)
+    still = preintegrate(IMU(accel=jnp.tile(a, (n, 1)), gyro=jnp.zeros((n, 3))), dt)
+    np.testing.assert_allclose(still.delta_p, 0.5 * a * (n * dt) ** 2, rtol=1e-5)
+    assert float(tick.num_samples) == n and float(tick.dt) == pytest.approx(n * dt)
+
+
+def test_preintegrated_imu_tracks_the_plant_through_fast_rotations():
+    """Dead reckoning from a tick's preintegrated samples follows the (noise-free) plant through rates of
+    several rad/s; the tick's mean sample alone (constant rates over the tick) falls behind."""
+    from pixelmpc_jax.perception import particle_filter as pf
+
+    params = PlantParams().without_noise()
+    state = init_plant(hover_state((0.0, 0.0, 5.0)), params)
+    x_pre = x_mean = state.x
+    tick = jax.jit(lambda s, u: plant_tick(s, u, jax.random.PRNGKey(0), params))
+    pre = jax.jit(lambda x, imu: pf.propagate_preintegrated(x, imu, jnp.zeros(3), jnp.zeros(3)))
+    mean = jax.jit(lambda x, imu: pf.propagate_particle(x, imu.accel, imu.gyro, 0.025))
+
+    def attitude_error_deg(x):
+        return math.degrees(2 * math.acos(min(1.0, abs(float(jnp.dot(state.x[3:7], x[3:7]) /
+                                                              jnp.linalg.norm(x[3:7]))))))
+
+    worst_pre = worst_mean = 0.0
+    for k in range(80):
+        t = 0.025 * k
+        u = jnp.asarray([5 * math.sin(9 * t), 4 * math.sin(7 * t + 0.5), 3 * math.cos(5 * t), 14.0])
+        state, _, imu = tick(state, u)
+        x_pre, x_mean = pre(x_pre, imu), mean(x_mean, imu)
+        worst_pre = max(worst_pre, attitude_error_deg(x_pre))
+        worst_mean = max(worst_mean, attitude_error_deg(x_mean))
+    # measured: 0.31 deg against 0.45 deg (the rest is the plant's explicit Euler step, which turns by the
+    # rate at a substep's start while the gyro samples it at the end)
+    assert worst_pre < 0.35 and worst_pre < 0.75 * worst_mean
+    assert float(jnp.linalg.norm(state.x[:3] - x_pre[:3])) < 0.05

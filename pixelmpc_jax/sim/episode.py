@@ -72,8 +72,8 @@ class EpisodeConfig:
         logged_prediction_steps: how many steps of the controller's predicted target pixel to log per
             tick (for the onboard video); controllers without a pixel state log zeros.
         estimator: "truth" (the controller sees the true state) or "pf" (the particle filter of Section
-            V-D, fed each tick with the previous tick's mean IMU sample and the target gate's detection;
-            the controller sees its mean).
+            V-D, fed each tick with the previous tick's 24 IMU samples, preintegrated, and the target
+            gate's detection; the controller sees its mean).
         pf: the particle filter's settings; pf_initial_spread: its initial spread (position m, attitude
             rad, velocity m/s) around the true start.
         progress_window_m: arc length searched around the last progress when tracking the robot along
@@ -280,7 +280,7 @@ class _Carry(NamedTuple):
     progress: jax.Array
     progress_est: jax.Array
     filter: Any
-    imu_prev: plant_lib.IMU
+    imu_prev: plant_lib.TickIMU
     end_cause: jax.Array
     key: jax.Array
     log: EpisodeLog
@@ -334,7 +334,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             progress=jnp.asarray(0.0, jnp.float32), progress_est=jnp.asarray(0.0, jnp.float32),
             filter=(pf_lib.pf_init(key_filter, x0, config.pf, config.pf_initial_spread)
                     if config.estimator == "pf" else jnp.zeros(())),
-            imu_prev=plant_lib.IMU(accel=jnp.asarray([0.0, 0.0, 9.81], x0.dtype), gyro=jnp.zeros(3, x0.dtype)),
+            imu_prev=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), key=key, log=log,
         )
 
@@ -360,7 +360,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
                 target_visibility=camera_lib.gate_visibility(target_gate, x, world.camera), detection=detection,
             )
             u, policy_state, prediction = policy.act(c.policy_state, obs, world)
-            plant_state, _, imu_mean = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
+            plant_state, _, imu_tick = plant_lib.plant_tick(c.plant, u, key_plant, world.plant_params, SUBSTEPS)
             p0, p1 = x[quadrotor.POS], plant_state.x[quadrotor.POS]
             passed = track_lib.gate_passed(target_gate, p0, p1)
             target = c.target + passed.astype(jnp.int32)
@@ -393,7 +393,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
                 finished=finished & ~hit,
             )
             return _Carry(tick=tick, done=done, plant=plant_state, policy_state=policy_state, target=target,
-                          progress=progress, progress_est=progress_est, filter=filter_state, imu_prev=imu_mean,
+                          progress=progress, progress_est=progress_est, filter=filter_state, imu_prev=imu_tick,
                           end_cause=end_cause.astype(jnp.int32), key=key, log=log)
 
         final = jax.lax.while_loop(lambda c: ~c.done, body, carry)
