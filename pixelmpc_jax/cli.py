@@ -99,13 +99,15 @@ def _positive_int(text: str) -> int:
 def _cmd_race(args) -> int:
     from pixelmpc_jax.sim import metrics, race
 
-    print(f"{args.controller} racing the AlphaPilot course at {args.speed:g} m/s: {args.laps} lap(s), "
+    course = "the AlphaPilot course" if args.course == "alphapilot" else "the straight lane"
+    print(f"{args.controller} racing {course} at {args.speed:g} m/s: {args.laps} lap(s), "
           f"seeds {args.seed}..{args.seed + args.laps - 1}, output {args.out}")
     results = race.run_laps(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
                             out=args.out, batch_size=args.batch, perturb=args.perturb,
                             max_time_s=args.max_time, temperature=args.temperature,
                             pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
-                            c_pixel=args.c_pixel, estimator=args.estimator, video=args.video)
+                            c_pixel=args.c_pixel, estimator=args.estimator, video=args.video,
+                            course=args.course)
     if not results["laps"]:
         print("no lap finished")
         return 1
@@ -227,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a small version in minutes (2 laps per cell, the bench's quick rows, the tables only)")
     p.set_defaults(func=_cmd_reproduce)
 
-    from pixelmpc_jax.sim.race import CONTROLLERS
+    from pixelmpc_jax.sim.race import CONTROLLERS, COURSES
 
     p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
     p.add_argument("--controller", choices=CONTROLLERS, default="pixelmpc",
@@ -236,6 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
     p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
                    help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
+    p.add_argument("--course", choices=COURSES, default="alphapilot",
+                   help="alphapilot (default) or straight (five gates 20 m apart, the paper's straight lane)")
     p.add_argument("--estimator", choices=("truth", "pf"), default="truth",
                    help="state the controller acts on: ground truth (default) or the particle filter")
     p.add_argument("--video", action="store_true",

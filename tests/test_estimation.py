@@ -40,3 +40,16 @@ def test_summary_counts_successes_failures_and_covariance_maxima():
     assert "| pixelmpc | 16 m/s | 50% of 4 | 60% |" in report
     assert "9.2" in report and "5.7" in report  # the paper's straight-lane figures beside ours
     assert "Wall time of the cells run: 4.0 min" in report
+
+
+def test_courses_by_name():
+    import pytest
+
+    from pixelmpc_jax.sim.race import make_course
+
+    assert make_course("alphapilot").num_gates == 11
+    straight = make_course("straight")
+    assert straight.num_gates == 5
+    np.testing.assert_allclose(np.diff(np.asarray(straight.gates.centre)[:, 0]), 20.0)
+    with pytest.raises(ValueError, match="unknown course"):
+        make_course("monza")
