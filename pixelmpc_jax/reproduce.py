@@ -100,18 +100,22 @@ def write_report(out: Path, state: dict) -> Path:
     lines = ["# pixelmpc-jax: the paper reproduced", "",
              f"Written {datetime.datetime.now().isoformat(timespec='seconds')} on {device_line()}.", "",
              "| part | mode | wall time | finished |", "|---|---|---|---|"]
+    partial = [part for part in PARTS if part not in state and (out / part / "REPORT.md").exists()]
     for part in PARTS:
         entry = state.get(part)
         if entry:
             lines.append(f"| [{TITLES[part]}](#{part}) | {'quick' if entry['quick'] else 'full'} | "
                          f"{entry['wall_time_s'] / 60:.1f} min | {entry['finished']} |")
+        elif part in partial:
+            lines.append(f"| [{TITLES[part]}](#{part}) | - | - | no: interrupted, resume with "
+                         f"`pixelmpc reproduce {part} --out {out}` |")
     total = sum(entry["wall_time_s"] for entry in state.values())
     lines += ["", f"Total wall time of the parts: {total / 60:.1f} min.", ""]
     for part in PARTS:
         entry = state.get(part)
-        if not entry:
+        if not entry and part not in partial:
             continue
-        report = out / part / entry["report"]
+        report = out / part / (entry["report"] if entry else "REPORT.md")
         body = report.read_text() if report.exists() else f"(missing: {report})\n"
         # demote the part's headings one level under its section
         body = "\n".join("#" + line if line.startswith("#") else line for line in body.splitlines())
