@@ -3,8 +3,10 @@
     python benchmarks/particle_filter_step.py [--particles 6400] [--repeats 50]
 
 The timed call is the public ``pf_step`` (inputs checked, one compiled call) on the AlphaPilot course, 6 m
-before gate 3 with the gate in view, a hover IMU sample and a noisy geometric detection; the filter state
-changes every call as in the loop. Compilation happens before the timed region; every call is blocked on.
+before gate 3 with the gate in view, a hover tick of preintegrated IMU samples (what the closed loop feeds
+it) and a noisy geometric detection; the filter state changes every call as in the loop. ``pf_rows`` gives
+the same measurement as rows of the harness (``pixelmpc bench``). Compilation happens before the timed
+region; every call is blocked on.
 The paper runs its filter on a GPU and reports no time for it; the baseline measured in the same run is the
 motion update alone (``pf_predict``), to show what the sensor update, estimate and resampling add.
 """
@@ -15,12 +17,11 @@ import argparse
 import json
 
 import jax
-import jax.numpy as jnp
 
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import particle_filter as pf
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.plant import IMU
+from pixelmpc_jax.sim.plant import hover_tick_imu
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 from pixelmpc_jax.world import track as track_lib
@@ -31,20 +32,15 @@ except ImportError:  # run as a script from the benchmarks folder
     from measure import measure
 
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--particles", type=int, default=6400)
-    parser.add_argument("--repeats", type=int, default=50)
-    args = parser.parse_args(argv)
-
-    config = pf.PFConfig(num_particles=args.particles)
+def _problem(particles: int):
+    config = pf.PFConfig(num_particles=particles)
     track = track_lib.load_course()
     camera = camera_lib.default_camera()
     gate_index = 2
     x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)
     detection = detector_lib.detect_from_geometry(
         track.gate(gate_index), x_true, camera, jax.random.PRNGKey(1), 0.5, 0.0, gate_index)
-    imu = IMU(accel=jnp.asarray([0.0, 0.0, 9.81], jnp.float32), gyro=jnp.zeros(3, jnp.float32))
+    imu = hover_tick_imu(0.025)
     holder = {"state": pf.pf_init(jax.random.PRNGKey(0), x_true, config, spread=(0.5, 0.03, 0.2))}
 
     def step():
@@ -55,10 +51,35 @@ def main(argv=None) -> dict:
         holder["state"] = pf.pf_predict(holder["state"], imu, config)
         return holder["state"].particles
 
-    jax.block_until_ready(step())  # compile outside the timed region (measure also warms up)
+    return step, predict
+
+
+def measure_pf(particles: int = 6400, repeats: int = 30) -> tuple[dict, dict]:
+    """(full step, motion update alone) timings; compilation outside the timed region."""
+    step, predict = _problem(particles)
+    jax.block_until_ready(step())
     jax.block_until_ready(predict())
-    result = measure(step, repeats=args.repeats)
-    baseline = measure(predict, repeats=args.repeats)
+    return measure(step, repeats=repeats), measure(predict, repeats=repeats)
+
+
+def pf_rows(particles: int = 6400, repeats: int = 30) -> list[dict]:
+    """Harness rows (group "estimator"): the filter tick and its motion update alone."""
+    try:
+        from benchmarks.measure import make_row
+    except ImportError:
+        from measure import make_row
+    full, predict = measure_pf(particles, repeats)
+    return [make_row("estimator", "particle filter tick (predict + update + estimate + resample)", particles, None,
+                     full),
+            make_row("estimator", "particle filter motion update alone", particles, None, predict)]
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--particles", type=int, default=6400)
+    parser.add_argument("--repeats", type=int, default=50)
+    args = parser.parse_args(argv)
+    result, baseline = measure_pf(args.particles, args.repeats)
     device = device_line()
     result.update(num_particles=args.particles, device=device, predict_only=baseline)
     print(f"device: {device}")

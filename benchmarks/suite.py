@@ -4,9 +4,10 @@ peers on identical work and the hardware limit, written to ``DIR/bench.json``, `
 
     python -m benchmarks.suite --out DIR [--quick | --smoke]
 
-Modes: full (everything, ~20-30 min on 2 CPU cores); ``quick`` (the paper-size controller rows, the
-roofline and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke`` (every code path at N=16,
-T=8, 3 repeats: a schema check, seconds). CPU by default; JAX's default device where it finds a GPU.
+Modes: full (everything, ~10 min on 2 CPU cores); ``quick`` (the paper-size controller rows, the
+roofline, the particle filter tick and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke``
+(every code path at N=16, T=8, 3 repeats: a schema check, seconds). CPU by default; JAX's default device
+where it finds a GPU.
 
 bench.json: ``device`` (platform, device kind, CPU model, cores), ``versions`` (jax, jaxlib, numpy, torch,
 pytorch-mppi, python), ``mode``, ``rows`` (each with at least group, name, num_samples, horizon, median_ms,
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import controller, peers, table1
+from benchmarks import controller, particle_filter_step, peers, table1
 from benchmarks.measure import fmt_ms
 from pixelmpc_jax.platform_info import device_description
 
@@ -86,6 +87,9 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
     _log("controller at the paper's sizes + roofline", start)
     rows += controller.paper_size_rows(repeats=repeats, smoke=smoke)
     paper_row = rows[0]
+
+    _log("particle filter tick", start)
+    rows += particle_filter_step.pf_rows(particles=256 if smoke else 6400, repeats=repeats)
 
     _log("pytorch-mppi peer", start)
     if smoke:
@@ -233,6 +237,14 @@ def markdown(result: dict) -> str:
                   f"{roof['step_fraction_of_matmul_rate_min']:.1%}, "
                   f"DOF alone {roof['dof_alone_fraction_min']:.1%}.",
                   ""]
+    est = [r for r in rows if r["group"] == "estimator"]
+    if est:
+        lines += ["## Particle filter (Section V-D)", "",
+                  "| row | particles | median | mean ± 2σ (max) | min | repeats |", "|---|---|---|---|---|---|"]
+        for r in est:
+            lines.append(f"| {r['name']} | {r['num_samples']} | {_num(r['median_ms'])} | {fmt_ms(r)} | "
+                         f"{_num(r['min_ms'])} | {r['repeats']} |")
+        lines.append("")
     peer = [r for r in rows if r["group"] == "peer"]
     if peer:
         lines += ["## Peers on identical work: pytorch-mppi (PixelMPC problem ported to torch)", "",

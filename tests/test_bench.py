@@ -200,7 +200,9 @@ def test_smoke_run_writes_the_schema(tmp_path):
     for key in ("jax", "jaxlib", "torch", "pytorch_mppi"):
         assert key in written["versions"]
     groups = {r["group"] for r in written["rows"]}
-    assert {"controller", "roofline", "peer", "mppi_generic", "table1", "scaling"} <= groups
+    assert {"controller", "roofline", "estimator", "peer", "mppi_generic", "table1", "scaling"} <= groups
+    pf_rows = [r for r in written["rows"] if r["group"] == "estimator"]
+    assert all(r["median_ms"] > 0 and r["num_samples"] == 256 for r in pf_rows) and len(pf_rows) == 2
     for row in written["rows"]:
         for field in suite.REQUIRED_ROW_FIELDS:
             assert field in row, (row["name"], field)
