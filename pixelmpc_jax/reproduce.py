@@ -110,7 +110,8 @@ def write_report(out: Path, state: dict) -> Path:
             lines.append(f"| [{TITLES[part]}](#{part}) | - | - | no: interrupted, resume with "
                          f"`pixelmpc reproduce {part} --out {out}` |")
     total = sum(entry["wall_time_s"] for entry in state.values())
-    lines += ["", f"Total wall time of the parts: {total / 60:.1f} min.", ""]
+    lines += ["", f"Total wall time of the finished parts: {total / 60:.1f} min (an unfinished part reports the "
+              "wall time of its finished cells in its own section).", ""]
     for part in PARTS:
         entry = state.get(part)
         if not entry and part not in partial:

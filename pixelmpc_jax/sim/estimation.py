@@ -128,14 +128,24 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
 
 
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
-                          dof_params=None, straight: bool = True) -> dict:
-    """Table IV (14 and 16 m/s; ``quick``: 16 m/s only), the straight lane and Fig. 9 into ``out``."""
+                          dof_params=None, straight: bool = True, run: bool = True) -> dict:
+    """Table IV (14 and 16 m/s; ``quick``: 16 m/s only), the straight lane and Fig. 9 into ``out``; with
+    ``run=False`` only the report of the cells already finished in ``out`` is written."""
     out = Path(out)
     cells = race_cells((16.0,) if quick else RACE_SPEEDS)
     lanes = straight_cells() if straight else []
-    results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
+    if run:
+        results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
+    else:
+        path = out / "results.json"
+        results = json.loads(path.read_text()) if path.exists() else {}
     race_rows, straight_rows = summarise(results, cells), summarise(results, lanes)
+    missing = [cell.name for cell in cells + lanes if cell.name not in results]
+    report = markdown_report(race_rows, straight_rows, device_line())
+    if missing:
+        report += f"\nNot yet run (the experiment resumes with them): {', '.join(missing)}.\n"
+    figures = plot_fig9(out, cells + lanes)
+    report += "".join(f"\n![{path.stem}]({path.name})\n" for path in figures)
     (out / "summary.json").write_text(json.dumps({"table_iv": race_rows, "straight_lane": straight_rows}, indent=2))
-    (out / "REPORT.md").write_text(markdown_report(race_rows, straight_rows, device_line()))
-    plot_fig9(out, cells + lanes)
+    (out / "REPORT.md").write_text(report)
     return {"table_iv": race_rows, "straight_lane": straight_rows}

@@ -174,6 +174,8 @@ def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: 
     if rows:
         plot_visibility(rows, out / "visibility.png", title)
         plot_smoothness(rows, out / "smoothness.png")
+        with open(out / "REPORT.md", "a") as report:
+            report.write("\n![visibility and lap time](visibility.png)\n\n![Fig. 8](smoothness.png)\n")
     return rows
 
 
