@@ -215,22 +215,9 @@ def rollout_cost(
     params: Any,
     prefix: Prefix | None = None,
 ) -> jax.Array:
-    """Total cost of one control sequence from x0. controls: (T, m) -> scalar."""
-    x = x0
-    total = jnp.zeros((), controls.dtype)
-    for first, steps, dyn, cost in _segments(dynamics, running_cost, prefix, controls.shape[0]):
-
-        def body(x, inputs, dyn=dyn, cost=cost):
-            t, u = inputs
-            x_next = dyn(x, u, params)
-            return x_next, cost(x_next, u, t, params)
-
-        ts = jnp.arange(first, first + steps)
-        x, stage_costs = jax.lax.scan(body, x, (ts, controls[first:first + steps]))
-        total = total + jnp.sum(stage_costs)
-    if terminal_cost is not None:
-        total = total + terminal_cost(x, params)
-    return total
+    """Total cost of one control sequence from x0. controls: (T, m) -> scalar (:func:`rollout_costs` of a
+    batch of one)."""
+    return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls[None], params, prefix)[0]
 
 
 def rollout_costs(

@@ -368,7 +368,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         "created": (previous or {}).get("created", datetime.datetime.now().isoformat(timespec="seconds")),
         "complete": False,
     }
-    manifest = _make_json_safe(manifest)
+    manifest = race.json_safe(manifest)
     done: dict[int, dict] = {}
     bar = frames_bar = None
     if progress:
@@ -423,16 +423,6 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
     return manifest
 
 
-def _make_json_safe(value):
-    if isinstance(value, dict):
-        return {str(k): _make_json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_make_json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def _lap_entry(lap: int, path: Path, split: str, meta: dict) -> dict:
     entry = {k.removeprefix("meta_"): v for k, v in meta.items()}
     entry.update({"lap": lap, "file": path.name, "split": split, "bytes": path.stat().st_size})
@@ -448,7 +438,7 @@ def _write_manifest(root: Path, manifest: dict, done: dict[int, dict], config: C
     manifest["bytes"] = int(sum(e["bytes"] for e in manifest["laps"]))
     manifest["complete"] = bool(complete)
     manifest["updated"] = datetime.datetime.now().isoformat(timespec="seconds")
-    race.write_json_atomic(root / MANIFEST, _make_json_safe(manifest))
+    race.write_json_atomic(root / MANIFEST, race.json_safe(manifest))
     return manifest
 
 

@@ -19,7 +19,6 @@ import dataclasses
 import datetime
 import functools
 import json
-import math
 import os
 import shutil
 import time
@@ -325,19 +324,6 @@ def heldout_dataset(cache_dir=None, config: dataset_lib.CollectConfig = HELDOUT_
     return root
 
 
-def _json_safe(value):
-    """Non-finite floats -> None (strict JSON), numpy scalars -> Python, recursively."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="runs/dof_eval", *, horizon: int = 80,
              bins_per_angle: int = 4, cache_dir=None, heldout_config: dataset_lib.CollectConfig = HELDOUT_CONFIG,
              figures: bool = True, progress: bool = True) -> dict:
@@ -416,7 +402,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         results["figures"] = ["dof_flow_fields.png", "dof_multistep.png"]
         results["figure_frame"] = {"lap": lap.info.get("lap"), "frame": t}
     results["wall_s"] = time.perf_counter() - t0
-    results = _json_safe(results)
+    results = race.json_safe(results)
     race.write_json_atomic(out / "dof_eval.json", results)
     return results
 

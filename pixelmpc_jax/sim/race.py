@@ -7,6 +7,7 @@ atomically, so an interrupted run keeps the laps it finished.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -30,6 +31,19 @@ def make_course(course: str = "alphapilot") -> track_lib.Track:
     if course == "straight":
         return track_lib.straight_course()
     raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)}")
+
+
+def json_safe(value):
+    """Non-finite floats -> None (strict JSON), numpy scalars -> Python, dict keys -> str, recursively."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def write_json_atomic(path: Path, data) -> None:
