@@ -77,6 +77,16 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
             "table2_projection": lambda folder: table2(folder, "projection"), "table4": table4}
 
 
+def _part_wall_time(folder: Path, measured: float) -> float:
+    """A part's wall time: this run's, or, for a grid resumed over several runs, the sum of its cells'."""
+    path = folder / "results.json"
+    if not path.exists():
+        return measured
+    cells = json.loads(path.read_text())
+    total = sum(cell.get("wall_time_s", 0.0) for cell in cells.values() if isinstance(cell, dict))
+    return max(measured, total)
+
+
 def _dof_report(results: dict) -> str:
     from pixelmpc_jax.learn.evaluate import summarise
 
@@ -148,8 +158,10 @@ def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool =
         folder.mkdir(parents=True, exist_ok=True)
         start = time.perf_counter()
         report = runners[part](folder)
-        state[part] = {"quick": quick, "wall_time_s": time.perf_counter() - start, "report": report,
-                       "finished": datetime.datetime.now().isoformat(timespec="seconds")}
+        entry = {"quick": quick, "wall_time_s": _part_wall_time(folder, time.perf_counter() - start),
+                 "report": report, "finished": datetime.datetime.now().isoformat(timespec="seconds")}
+        # re-read: another process may have finished other parts into the same folder meanwhile
+        state = {**(json.loads(state_path.read_text()) if state_path.exists() else {}), part: entry}
         write_json_atomic(state_path, state)
         write_report(out, state)
         print(f"[{part}] done in {state[part]['wall_time_s'] / 60:.1f} min", flush=True)

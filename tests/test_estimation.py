@@ -53,3 +53,13 @@ def test_courses_by_name():
     np.testing.assert_allclose(np.diff(np.asarray(straight.gates.centre)[:, 0]), 20.0)
     with pytest.raises(ValueError, match="unknown course"):
         make_course("monza")
+
+
+def test_cpu_cells_fly_in_small_batches():
+    import jax
+
+    from pixelmpc_jax.sim import grid
+
+    assert jax.default_backend() == "cpu"
+    assert grid.default_batch_size(25) == grid.CPU_BATCH < 25
+    assert grid.default_batch_size(1) == 1

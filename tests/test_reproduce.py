@@ -61,3 +61,14 @@ def test_cli_rejects_an_unknown_part():
     with pytest.raises(SystemExit) as exc:
         main(["reproduce", "table9"])
     assert exc.value.code == 2
+
+
+def test_a_resumed_grid_part_reports_the_wall_time_of_all_its_cells(tmp_path):
+    import json
+
+    from pixelmpc_jax import reproduce as R
+
+    assert R._part_wall_time(tmp_path, 12.0) == 12.0  # no grid in the folder: this run's time
+    (tmp_path / "results.json").write_text(json.dumps({"a": {"wall_time_s": 100.0}, "b": {"wall_time_s": 200.0}}))
+    assert R._part_wall_time(tmp_path, 12.0) == 300.0
+    assert R._part_wall_time(tmp_path, 400.0) == 400.0
