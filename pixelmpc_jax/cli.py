@@ -169,6 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="pixelmpc",
         description="PixelMPC in JAX: perception-aware MPPI with Deep Optical Flow dynamics.",
     )
+    parser.add_argument("--distributed", action="store_true",
+                        help="join a multi-host run (jax.distributed.initialize: the cluster is detected under "
+                             "SLURM, Open MPI or on TPU; elsewhere set JAX_COORDINATOR_ADDRESS, "
+                             "JAX_NUM_PROCESSES, JAX_PROCESS_ID); run the same command on every host")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("version", help="print the package, JAX version and devices")
@@ -265,7 +269,28 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
+    if args.distributed:
+        _initialize_distributed()
     return int(args.func(args) or 0)
+
+
+def _initialize_distributed() -> None:
+    """``jax.distributed.initialize`` from the cluster's environment, or from the JAX_* variables."""
+    import os
+
+    import jax
+
+    kwargs = {}
+    if os.environ.get("JAX_COORDINATOR_ADDRESS"):
+        missing = [name for name in ("JAX_NUM_PROCESSES", "JAX_PROCESS_ID") if name not in os.environ]
+        if missing:
+            raise SystemExit(f"--distributed with JAX_COORDINATOR_ADDRESS also needs {' and '.join(missing)}")
+        kwargs = {"coordinator_address": os.environ["JAX_COORDINATOR_ADDRESS"],
+                  "num_processes": int(os.environ["JAX_NUM_PROCESSES"]),
+                  "process_id": int(os.environ["JAX_PROCESS_ID"])}
+    jax.distributed.initialize(**kwargs)
+    print(f"process {jax.process_index()} of {jax.process_count()}: {jax.local_device_count()} local and "
+          f"{jax.device_count()} global device(s)", flush=True)
 
 
 if __name__ == "__main__":

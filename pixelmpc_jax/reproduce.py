@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -132,7 +133,7 @@ def write_report(out: Path, state: dict) -> Path:
         body = "\n".join("#" + line if line.startswith("#") else line for line in body.splitlines())
         lines += [f'<a id="{part}"></a>', "", f"## {TITLES[part]}", "", _relink(body, part), ""]
     path = out / "REPORT.md"
-    tmp = path.with_suffix(".md.tmp")
+    tmp = path.with_suffix(f".md.{os.getpid()}.tmp")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(path)
     return path

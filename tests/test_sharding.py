@@ -1,5 +1,6 @@
 """Scale-out: batched episodes split over 4 (forced) CPU devices equal the single-device run."""
 
+import functools
 import json
 import os
 import subprocess
@@ -22,6 +23,7 @@ print(json.dumps({"devices": jax.device_count(), "states": np.asarray(logs.state
 """
 
 
+@functools.cache
 def run(device_count: int) -> dict:
     env = dict(os.environ)
     env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={device_count}"
@@ -30,11 +32,41 @@ def run(device_count: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def run_two_processes(devices_per_process: int = 2) -> list[dict]:
+    """The same script as two JAX processes (jax.distributed on localhost), as on two hosts."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    init = ("from pixelmpc_jax.cli import _initialize_distributed\n_initialize_distributed()\n")
+    procs = []
+    for pid in range(2):
+        env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"localhost:{port}",
+                   JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(pid),
+                   XLA_FLAGS=f"--xla_force_host_platform_device_count={devices_per_process}")
+        procs.append(subprocess.Popen([sys.executable, "-c", init + SCRIPT], env=env, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True))
+    outs = []
+    for proc in procs:
+        stdout, stderr = proc.communicate(timeout=600)
+        assert proc.returncode == 0, stderr[-2000:]
+        outs.append(json.loads(stdout.strip().splitlines()[-1]))
+    return outs
+
+
 def test_four_device_run_equals_one_device_run():
     one, four = run(1), run(4)
     assert one["devices"] == 1 and four["devices"] == 4
     assert one["ticks"] == four["ticks"] == [20] * 6  # 6 episodes: padded to 8 over 4 devices, cut back
     np.testing.assert_allclose(np.asarray(four["states"]), np.asarray(one["states"]), atol=1e-4)
+
+
+def test_two_processes_of_two_devices_equal_one_device_run():
+    one = run(1)
+    for out in run_two_processes(2):  # every process gets every episode back
+        assert out["devices"] == 4 and out["ticks"] == one["ticks"]
+        np.testing.assert_allclose(np.asarray(out["states"]), np.asarray(one["states"]), atol=1e-4)
 
 
 TRAIN_SCRIPT = r"""

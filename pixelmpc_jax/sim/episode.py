@@ -411,9 +411,12 @@ class Runner(NamedTuple):
 
 
 def shard_batch(tree, devices=None):
-    """Place a batch (leading axis B on every leaf) across ``devices`` (default: all JAX devices) with a
-    1-D ``Mesh`` and ``NamedSharding``, padding B to a multiple of the device count by repeating the last
-    element. Returns ``(sharded tree, B)``; with one device the tree is returned as it is."""
+    """Place a batch (leading axis B on every leaf) across ``devices`` (default: all JAX devices, of every
+    process) with a 1-D ``Mesh`` and ``NamedSharding``, padding B to a multiple of the device count by
+    repeating the last element. Returns ``(sharded tree, B)``; with one device the tree is returned as it is.
+
+    With several processes (``jax.distributed``), every process holds the whole batch (the laps are built
+    from seeds, the same everywhere) and places the rows of its own devices."""
     import numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -425,18 +428,36 @@ def shard_batch(tree, devices=None):
     if padded != size:
         tree = jax.tree_util.tree_map(
             lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - size, axis=0)]), tree)
-    mesh = Mesh(np.asarray(devices), ("batch",))
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("batch"))), size
+    sharding = NamedSharding(Mesh(np.asarray(devices), ("batch",)), PartitionSpec("batch"))
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding), size
+
+    def place(leaf):
+        host = np.asarray(leaf)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree_util.tree_map(place, tree), size
+
+
+def gather_batch(tree):
+    """Bring a batch computed over the devices of several processes back whole to every process (with one
+    process it is returned as it is)."""
+    if jax.process_count() == 1:
+        return tree
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(tree, tiled=True)
 
 
 def make_runner(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Runner:
-    """Compiled runners; ``batch`` splits its episodes over every device present (see :func:`shard_batch`)."""
+    """Compiled runners; ``batch`` splits its episodes over every device present, across processes too
+    (see :func:`shard_batch`), and returns them whole."""
     run = episode_fn(policy, config)
     batch_jit = jax.jit(jax.vmap(run))
 
     def batch(worlds: World, keys: jax.Array) -> EpisodeLog:
         (worlds, keys), size = shard_batch((worlds, keys))
-        logs = batch_jit(worlds, keys)
+        logs = gather_batch(batch_jit(worlds, keys))
         return jax.tree_util.tree_map(lambda a: a[:size], logs)
 
     return Runner(single=jax.jit(run), batch=batch)
