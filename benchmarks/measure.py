@@ -6,8 +6,13 @@ A row is a flat dict with the fields of ``bench.json`` (see ``benchmarks/suite.p
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -77,3 +82,33 @@ def fmt_ms(row: dict) -> str:
     if row.get("median_ms") is None:
         return str(row.get("status"))
     return f"{row['mean_ms']:.2f} ± {row['two_sigma_ms']:.2f} (max {row['max_ms']:.2f})"
+
+
+_CHILD = """
+import importlib, json, sys
+module, name, args = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
+result = getattr(importlib.import_module(module), name)(*args)
+print("RESULT " + json.dumps(result))
+"""
+
+
+def run_in_child(module: str, function: str, args: list, timeout_s: float = 1800.0) -> tuple[bool, object]:
+    """Call ``module.function(*args)`` (JSON in, JSON out) in a fresh Python process.
+
+    A row that may not fit in memory runs this way: XLA on the CPU answers an allocation it cannot make with
+    ``std::bad_alloc``, which aborts the whole process, and the kernel's OOM killer does the same; in a child
+    that ends the row, not the harness. Returns ``(True, result)`` or ``(False, why)``.
+    """
+    root = str(Path(__file__).resolve().parent.parent)  # the checkout, so ``benchmarks`` imports
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
+    try:
+        done = subprocess.run([sys.executable, "-c", _CHILD, module, function, json.dumps(args)], env=env,
+                              capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return False, f"timed out after {timeout_s:.0f} s"
+    lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+    if done.returncode == 0 and lines:
+        return True, json.loads(lines[-1][len("RESULT "):])
+    tail = [line for line in done.stderr.strip().splitlines() if line.strip()][-1:] or [""]
+    cause = f"signal {-done.returncode}" if done.returncode < 0 else f"exit {done.returncode}"
+    return False, f"{cause}: {tail[0][:120]}"

@@ -214,3 +214,11 @@ def test_smoke_run_writes_the_schema(tmp_path):
     assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
     assert set(written["summary"]["targets"]) == {"pixelmpc_step_ms <= 12", "ratio_vs_pytorch_mppi <= 0.35",
                                                   "dof_fraction >= 0.70"}
+
+
+def test_a_row_that_aborts_its_process_is_reported_not_fatal():
+    from benchmarks.measure import run_in_child
+
+    assert run_in_child("math", "sqrt", [4.0]) == (True, 2.0)
+    ok, why = run_in_child("os", "abort", [])  # what std::bad_alloc in XLA does to the process
+    assert not ok and why.startswith("signal 6")
