@@ -245,11 +245,8 @@ def spynet_peak_bytes(batch: int, wh=SPYNET_WH) -> int:
 
 
 def spynet_rows(smoke: bool = False, repeats: int = 30, max_call_s: float = 60.0) -> list[dict]:
-    model = SpyNet()
     wh = (64, 32) if smoke else SPYNET_WH
-    key_init = jax.random.split(jax.random.PRNGKey(2), 3)[0]
-    variables = model.init(key_init, jnp.zeros((1, wh[1], wh[0], 3)), jnp.zeros((1, wh[1], wh[0], 3)))
-    num_params = int(sum(np.size(x) for x in jax.tree_util.tree_leaves(variables)))
+    num_params = int(sum(np.size(x) for x in jax.tree_util.tree_leaves(_spynet(wh)[1])))
     rows, per_image_ms = [], None
     for batch in ((1,) if smoke else (1, 512)):
         name = f"SpyNet-sized flow network {wh[0]}x{wh[1]}, batch {batch}"
@@ -276,12 +273,17 @@ def spynet_rows(smoke: bool = False, repeats: int = 30, max_call_s: float = 60.0
     return rows
 
 
-def _spynet_stats(batch: int, wh, repeats: int) -> dict:
-    """Timing of the SpyNet-sized network on a batch of image pairs (a child process for large batches)."""
+def _spynet(wh):
+    """(jitted apply, variables, two input keys) of the SpyNet-sized network at image size ``wh``."""
     model = SpyNet()
     key_init, key_a, key_b = jax.random.split(jax.random.PRNGKey(2), 3)
     variables = model.init(key_init, jnp.zeros((1, wh[1], wh[0], 3)), jnp.zeros((1, wh[1], wh[0], 3)))
-    apply = jax.jit(model.apply)
+    return jax.jit(model.apply), variables, (key_a, key_b)
+
+
+def _spynet_stats(batch: int, wh, repeats: int) -> dict:
+    """Timing of the SpyNet-sized network on a batch of image pairs (a child process for large batches)."""
+    apply, variables, (key_a, key_b) = _spynet(wh)
     a = jax.random.uniform(key_a, (batch, wh[1], wh[0], 3))
     b = jax.random.uniform(key_b, (batch, wh[1], wh[0], 3))
     return measure(lambda: apply(variables, a, b), repeats=repeats)

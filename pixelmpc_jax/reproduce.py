@@ -80,12 +80,10 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
 
 def _part_wall_time(folder: Path, measured: float) -> float:
     """A part's wall time: this run's, or, for a grid resumed over several runs, the sum of its cells'."""
-    path = folder / "results.json"
-    if not path.exists():
-        return measured
-    cells = json.loads(path.read_text())
-    total = sum(cell.get("wall_time_s", 0.0) for cell in cells.values() if isinstance(cell, dict))
-    return max(measured, total)
+    from pixelmpc_jax.sim.grid import load_results
+
+    cells = load_results(folder)
+    return max(measured, sum(cell.get("wall_time_s", 0.0) for cell in cells.values() if isinstance(cell, dict)))
 
 
 def _dof_report(results: dict) -> str:
@@ -139,6 +137,10 @@ def write_report(out: Path, state: dict) -> Path:
     return path
 
 
+def _read_state(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
 def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool = True) -> dict:
     """Run the named parts (aliases allowed) into ``out`` and write ``out/REPORT.md``; returns the state."""
     from pixelmpc_jax.sim.race import write_json_atomic
@@ -147,7 +149,7 @@ def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool =
     out.mkdir(parents=True, exist_ok=True)
     names = resolve_parts(parts, quick)
     state_path = out / "reproduce.json"
-    state: dict = json.loads(state_path.read_text()) if state_path.exists() else {}
+    state = _read_state(state_path)
     runners = _runners(quick, progress)
     for part in names:
         entry = state.get(part)
@@ -162,7 +164,7 @@ def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool =
         entry = {"quick": quick, "wall_time_s": _part_wall_time(folder, time.perf_counter() - start),
                  "report": report, "finished": datetime.datetime.now().isoformat(timespec="seconds")}
         # re-read: another process may have finished other parts into the same folder meanwhile
-        state = {**(json.loads(state_path.read_text()) if state_path.exists() else {}), part: entry}
+        state = {**_read_state(state_path), part: entry}
         write_json_atomic(state_path, state)
         write_report(out, state)
         print(f"[{part}] done in {state[part]['wall_time_s'] / 60:.1f} min", flush=True)

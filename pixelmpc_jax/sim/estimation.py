@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.grid import Cell, fmt, run_grid
+from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
 
 # Table IV of the paper: (success rate, lap time mean, lap time 2 sigma) per (controller, target speed).
 PAPER_TABLE_IV = {("mppi", 14.0): (0.80, 31.8, 0.7), ("pixelmpc", 14.0): (0.80, 33.0, 0.8),
@@ -137,8 +137,7 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
     if run:
         results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
     else:
-        path = out / "results.json"
-        results = json.loads(path.read_text()) if path.exists() else {}
+        results = load_results(out)
     race_rows, straight_rows = summarise(results, cells), summarise(results, lanes)
     missing = [cell.name for cell in cells + lanes if cell.name not in results]
     report = markdown_report(race_rows, straight_rows, device_line())

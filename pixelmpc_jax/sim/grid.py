@@ -56,6 +56,12 @@ def default_batch_size(laps: int) -> int:
     return laps
 
 
+def load_results(out: Path) -> dict:
+    """``{cell name: race results}`` finished so far in ``out/results.json`` (empty if none)."""
+    path = Path(out) / "results.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
              progress: bool = True, dof_params=None) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
@@ -68,7 +74,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.json"
-    results: dict = json.loads(path.read_text()) if path.exists() else {}
+    results = load_results(out)
     batch_size = batch_size or default_batch_size(laps)
     for cell in cells:
         done = results.get(cell.key())

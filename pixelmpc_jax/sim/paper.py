@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.grid import Cell, fmt, run_grid
+from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
 
 # The paper's Tables II and III (14 m/s, 10 races per cell, mean +- 2 sigma), keyed by (t_f, c_pixel).
 PAPER_VIS_BELOW_50 = {(0.0, 0.0): (13.6, 3.6), (1.0, 3e6): (3.6, 0.6), (1.0, 6e6): (1.9, 0.6), (1.0, 9e6): (1.5, 0.2),
@@ -190,6 +190,5 @@ def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", q
     if run:
         results = run_grid(cells, out, laps=laps, progress=progress, dof_params=dof_params)
     else:
-        path = out / "results.json"
-        results = json.loads(path.read_text()) if path.exists() else {}
+        results = load_results(out)
     return visibility_report(out, cells, results, pixel_model)
