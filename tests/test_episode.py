@@ -131,6 +131,33 @@ def test_visibility_loss_counts_only_after_first_seen():
     assert below == pytest.approx(3 * dt) and zero == pytest.approx(1 * dt)
 
 
+def test_unavoidable_low_visibility_is_only_where_a_pointed_camera_fails(straight):
+    """Flying head-on at a gate with the camera pitched 80 deg down, the whole approach has low visibility,
+    but only the last ~1 m (the gate no longer fits the field of view) is unavoidable."""
+    from pixelmpc_jax.dynamics import quadrotor
+    from pixelmpc_jax.world import camera as C
+
+    camera = E.make_world(straight).camera
+    gate = straight.gate(0)
+    distances = np.linspace(10.0, 0.05, 200)
+    positions = np.asarray(gate.centre)[None] - distances[:, None] * np.asarray(gate.normal)[None]
+    yaw = float(np.arctan2(gate.normal[1], gate.normal[0]))
+    pitched = np.asarray(quadrotor.quat_from_euler(0.0, np.deg2rad(80.0), yaw))
+    states = np.concatenate([positions, np.tile(pitched, (200, 1)), np.zeros((200, 3))], axis=1).astype(np.float32)
+    visibility = np.array(jax.vmap(lambda x: C.gate_visibility(gate, x, camera))(jnp.asarray(states)))
+    visibility[0] = 1.0  # seen once, so every later tick counts
+    target = np.zeros(200, np.int32)
+    best = np.asarray(M.pointed_visibility(jax.tree_util.tree_map(lambda a: a[target], straight.gates),
+                                           jnp.asarray(positions, jnp.float32), camera))
+    assert best[distances > 2.0].min() == 1.0 and best[distances < 0.5].max() < 0.5
+    dt = 0.025
+    below, _ = M.visibility_loss_times(visibility, target, dt)
+    unavoidable = M.unavoidable_loss_time(states, visibility, target, straight, camera, dt)
+    assert below == pytest.approx(199 * dt)  # pitched away: nothing but the first tick is seen
+    expected = np.sum(best[1:] < 0.5) * dt
+    assert unavoidable == pytest.approx(expected) and 0.0 < unavoidable < 0.25 * below
+
+
 def test_aggregate_mean_two_sigma_and_success_rate():
     laps = [
         {"success": True, "lap_time_s": 20.0, "gates_passed": 11, "crash": None},

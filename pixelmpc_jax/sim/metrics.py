@@ -7,13 +7,17 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim.episode import CONTROL_DT, END_NAMES, EpisodeLog
+from pixelmpc_jax.world import camera as camera_lib
 
 LAP_KEYS = (
     "success", "gates_passed", "lap_time_s", "crash", "time_vis_below_50_s", "time_vis_zero_s",
+    "time_vis_below_50_unavoidable_s",
     "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
     "mean_angular_acc", "mean_speed", "flight_time_s",
 )
@@ -35,29 +39,70 @@ def total_variation(angles: np.ndarray) -> float:
     return float(np.sum(np.abs(steps)))
 
 
-def visibility_loss_times(visibility: np.ndarray, target: np.ndarray, dt: float = CONTROL_DT) -> tuple[float, float]:
-    """Time (s) with the target's visibility below 50 % and at 0 %, counted per target gate only after it
-    was first seen (visibility > 0) while being the target, as the paper counts a 'loss'.
+def low_visibility_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Masks (S,) of the ticks with the target's visibility below 50 % and at 0 %, counted per target gate only
+    after it was first seen (visibility > 0) while being the target, as the paper counts a 'loss'.
 
     Args:
         visibility: (S,) visibility of the current target at each tick.
         target: (S,) index of the target gate at each tick.
     """
-    below_50 = zero = 0.0
+    below_50 = np.zeros(visibility.shape, bool)
+    zero = np.zeros(visibility.shape, bool)
     for gate in np.unique(target):
         ticks = np.nonzero(target == gate)[0]
-        vis = visibility[ticks]
-        seen = np.nonzero(vis > 0.0)[0]
+        seen = np.nonzero(visibility[ticks] > 0.0)[0]
         if seen.size == 0:
             continue
-        after = vis[seen[0]:]
-        below_50 += float(np.sum(after < 0.5)) * dt
-        zero += float(np.sum(after <= 0.0)) * dt
+        after = ticks[seen[0]:]
+        below_50[after] = visibility[after] < 0.5
+        zero[after] = visibility[after] <= 0.0
     return below_50, zero
 
 
-def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT) -> dict:
-    """The metrics of one episode (host arrays or device arrays of an unbatched log)."""
+def visibility_loss_times(visibility: np.ndarray, target: np.ndarray, dt: float = CONTROL_DT) -> tuple[float, float]:
+    """Time (s) with the target's visibility below 50 % and at 0 % (see :func:`low_visibility_ticks`)."""
+    below_50, zero = low_visibility_ticks(visibility, target)
+    return float(np.sum(below_50)) * dt, float(np.sum(zero)) * dt
+
+
+@jax.jit
+def pointed_visibility(gates, positions: jax.Array, camera: camera_lib.Camera) -> jax.Array:
+    """(S,) visibility of gate s from position s with the camera pointed at the gate's centre, without roll.
+
+    That is about the most any attitude shows from there: below 50 % the gate is too close (or too far
+    off to the side of its opening) to fit the field of view however the vehicle turns, so no controller
+    can avoid that low visibility at that position; low visibility elsewhere comes from the attitude.
+    """
+
+    def one(gate, position):
+        to_gate = gate.centre - position
+        yaw = jnp.arctan2(to_gate[1], to_gate[0])
+        pitch = -jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))  # body +x (the optical axis) at it
+        q = quadrotor.quat_from_euler(jnp.zeros_like(yaw), pitch, yaw)
+        x = jnp.concatenate([position, q, jnp.zeros_like(position)])
+        return camera_lib.gate_visibility(gate, x, camera)
+
+    return jax.vmap(one)(gates, positions)
+
+
+def unavoidable_loss_time(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, track, camera,
+                          dt: float = CONTROL_DT) -> float:
+    """The part (s) of the time with visibility below 50 % that no attitude could have avoided: ticks at which
+    even a camera pointed at the target gate (:func:`pointed_visibility`) sees less than half of it."""
+    below_50, _ = low_visibility_ticks(visibility, target)
+    if not below_50.any():
+        return 0.0
+    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
+    best = np.asarray(pointed_visibility(gates, jnp.asarray(states[:, quadrotor.POS]), camera))
+    return float(np.sum(below_50 & (best < 0.5))) * dt
+
+
+def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None) -> dict:
+    """The metrics of one episode (host arrays or device arrays of an unbatched log).
+
+    Given the lap's ``track`` and ``camera``, the metrics also split off the low-visibility time no attitude
+    could avoid (``time_vis_below_50_unavoidable_s``, see :func:`unavoidable_loss_time`)."""
     n = int(log.num_ticks)
     states = np.asarray(log.states)[: n + 1]
     rates = np.asarray(log.body_rates)[: n + 1]
@@ -70,6 +115,13 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT) -> dict:
     linear_acc = np.linalg.norm(np.diff(velocity, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
     angular_acc = np.linalg.norm(np.diff(rates, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
     below_50, zero = visibility_loss_times(visibility, target, dt)
+    unavoidable = None
+    if track is not None and camera is not None:
+        # the whole fixed-length log is evaluated (ticks past the end count as visible), so every lap of a
+        # run shares one compiled pointed_visibility
+        visibility_all = np.where(np.arange(len(log.visibility)) <= n, np.asarray(log.visibility), 1.0)
+        unavoidable = unavoidable_loss_time(np.asarray(log.states), visibility_all, np.asarray(log.target),
+                                            track, camera, dt)
     return {
         "success": finished,
         "gates_passed": int(log.gates_passed),
@@ -77,6 +129,7 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT) -> dict:
         "crash": None if finished else END_NAMES.get(cause, str(cause)),
         "time_vis_below_50_s": below_50,
         "time_vis_zero_s": zero,
+        "time_vis_below_50_unavoidable_s": unavoidable,
         "total_variation_roll": total_variation(euler[:, 0]),
         "total_variation_pitch": total_variation(euler[:, 1]),
         "total_variation_yaw": total_variation(euler[:, 2]),

@@ -148,12 +148,13 @@ def run_laps(
             worlds = lap_worlds(base, chunk, perturb)
             keys = jax.vmap(jax.random.PRNGKey)(np.asarray(chunk))
             logs = metrics_lib.unbatch(runner.batch(worlds, keys))
-            for lap_seed, log in zip(chunk, logs):
+            for lane, (lap_seed, log) in enumerate(zip(chunk, logs)):
                 if video and out is not None and lap_seed == seed:
                     from pixelmpc_jax.sim.video import write_onboard_video
 
                     write_onboard_video(base.track, log, Path(out) / "onboard.mp4", base.camera)
-                lap = metrics_lib.lap_metrics(log)
+                lap_track = jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], worlds.track)
+                lap = metrics_lib.lap_metrics(log, track=lap_track, camera=base.camera)
                 if estimator == "pf":
                     n = int(log.num_ticks)
                     lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
