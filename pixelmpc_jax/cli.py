@@ -138,7 +138,8 @@ def _cmd_train(args) -> int:
     from pixelmpc_jax.learn.evaluate import run_train
 
     run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
-              learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship)
+              learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship,
+              loss=args.loss)
     return 0
 
 
@@ -207,6 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--learning-rate", type=_positive_float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
+    p.add_argument("--loss", choices=["polar", "endpoint"], default="polar",
+                   help="polar: the paper's MSE on (l, theta) (default); endpoint: squared flow-vector error")
     p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
     p.set_defaults(func=_cmd_train)
 

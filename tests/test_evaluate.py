@@ -54,6 +54,9 @@ def test_evaluate_writes_the_required_finite_figures(results):
     assert all(math.isfinite(v) and v >= 0 for v, c in zip(ms["mean_px"], ms["count"]) if c)
     for name in ("dof_flow_fields.png", "dof_multistep.png"):
         assert (out / name).stat().st_size > 10_000
+    gain = res["control_gain"]
+    assert np.shape(gain["data"]) == (2, 3) and np.shape(gain["dof"]) == (2, 3)
+    assert np.all(np.isfinite(gain["dof"]))
 
 
 def test_aee_figures_match_the_training_module(results, tiny_dir, shipped):
@@ -98,3 +101,16 @@ def test_shipped_weights_load_and_predict_finite_flows(shipped):
     record = E.shipped_dof_record()
     assert record["train_config"]["steps"] >= 1000 and record["calls"]
     assert record["results"]["test_aee_px"] < record["results"]["test_zero_flow_aee_px"]
+
+
+def test_control_gain_recovers_known_slopes():
+    rng = np.random.default_rng(0)
+    u = np.concatenate([rng.normal(0.0, 0.3, (500, 3)), rng.normal(12.0, 2.0, (500, 1))], axis=1)
+    slopes = np.array([[0.1, -0.2, 1.5], [0.3, -2.5, 0.0]])  # rows du, dv; columns wx, wy, wz
+    data = u[:, :3] @ slopes.T + 0.05 * u[:, 3:] + 0.7 + rng.normal(0.0, 0.2, (500, 2))
+    gain = E.control_gain(u, data, 0.5 * (data - 0.7))  # a "network" with half the gain everywhere
+    np.testing.assert_allclose(gain["data"], slopes, atol=0.05)
+    np.testing.assert_allclose(gain["dof"], 0.5 * slopes, atol=0.03)
+    assert gain["yaw_to_u"]["ratio"] == pytest.approx(0.5, abs=0.02)
+    assert gain["pitch_to_v"]["data"] == pytest.approx(-2.5, abs=0.05)
+    assert all(0.8 < r < 1.0 for r in gain["r2_data"])

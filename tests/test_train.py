@@ -4,6 +4,7 @@ and the AEE evaluation and baselines."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -115,6 +116,36 @@ def test_loss_wraps_the_angle_and_ignores_direction_of_zero_flow():
     p, b = _batch_with_prediction(params, 1.0, 0.01, 1.0, 0.0)
     loss, _ = train_mod.dof_loss(p.weights, p, b, None)
     np.testing.assert_allclose(loss, (2 * np.sin(0.005)) ** 2 / s2, rtol=1e-3)
+
+
+def test_endpoint_loss_is_the_flow_vector_error_and_its_minimiser_is_the_mean_vector():
+    params = dof.init_dof_params(jax.random.key(0), output_std=[1.0, 1.0])
+    # (l_hat, theta_hat) = (1, 0) against (1, pi/2): the vectors are (1, 0) and (0, 1), |error|^2 = 2.
+    p, b = _batch_with_prediction(params, 1.0, 0.0, 1.0, np.pi / 2)
+    loss, _ = train_mod.dof_loss(p.weights, p, b, None, "endpoint")
+    np.testing.assert_allclose(loss, 2.0 / 2.0, rtol=1e-5)  # / rms(l)^2 = 1 + 1
+    # Two equally likely flows for the same input, (2, 1) and (-2, 1) (a translation of unknown sign plus a
+    # common shift): the endpoint loss is lowest at their mean (0, 1), the polar loss is not.
+    targets_l = jnp.asarray([np.hypot(2, 1)] * 2, jnp.float32)
+    targets_theta = jnp.asarray([np.arctan2(1, 2), np.arctan2(1, -2)], jnp.float32)
+
+    zero = jax.tree_util.tree_map(jnp.zeros_like, params.weights)
+    batch = Batch(jnp.zeros((2, 10)), targets_l, targets_theta)
+
+    def loss_at(kind, l_hat, theta_hat):  # the output through the last bias, so the loss scale stays rms 1
+        weights = {**zero, "Dense_3": {**zero["Dense_3"], "bias": jnp.stack([l_hat, theta_hat])}}
+        return train_mod.dof_loss(weights, params, batch, None, kind)[0]
+
+    lh, th = np.meshgrid(np.linspace(0.0, 3.0, 61), np.linspace(-np.pi, np.pi, 73), indexing="ij")
+    lh, th = jnp.asarray(lh.ravel(), jnp.float32), jnp.asarray(th.ravel(), jnp.float32)
+    best = {}
+    for kind in ("endpoint", "polar"):
+        i = int(jnp.argmin(jax.jit(jax.vmap(functools.partial(loss_at, kind)))(lh, th)))
+        best[kind] = (float(lh[i]), float(th[i]))
+    np.testing.assert_allclose(dof.polar_to_euler(*best["endpoint"]), [0.0, 1.0], atol=0.06)
+    assert best["polar"][0] > 2.0  # the polar minimiser keeps the mean LENGTH (sqrt 5), overshooting (0, 1)
+    with pytest.raises(ValueError, match="loss"):
+        small_config(loss="vector")
 
 
 def test_normalisation_constants(train_data):

@@ -10,6 +10,11 @@
   u_k)``, and compared with where the gate centre really projects. Each start tick where the gate is
   detected with its centre in the image starts one prediction; step ``k`` counts while the true centre
   has stayed in the image and the gate detected on every tick up to ``k``.
+* Control gain: how much the flow at the image centre moves per rad/s of commanded body rate. A linear
+  least-squares fit of the central patch's mean flow on ``[wx, wy, wz, thrust, 1]`` over the held-out
+  frames, once for the Farneback labels and once for the DOF's prediction at the same frames: the DOF's
+  slopes against the data's say whether the network learned what the controls do to the pixel (the only
+  thing PixelMPC's pixel cost can act through), separately from its overall AEE.
 * Figures: a Fig. 2-like panel (image, exact, Farneback and DOF flow in colour) and the multi-step curve.
 """
 
@@ -122,6 +127,7 @@ def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
     """AEE (pixels per frame) of the DOF and the baselines on ``laps``, against Farneback (every pixel)
     and against the exact flow (valid pixels, laps that store it)."""
     names = ("dof", "zero", "mean")
+    patch_fb, patch_dof, controls = [], [], []
     vs_fb = {n: _Mean() for n in names}
     vs_exact = {n: _Mean() for n in (*names, "farneback")}
     total = sum(lap.q.shape[0] for lap in laps)
@@ -142,6 +148,10 @@ def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
                 u = np.concatenate([u, np.repeat(u[-1:], chunk_frames - count, 0)])
             pred = np.asarray(predict_flow_fields(dof_params, q, u, W, H, float(dt)))[:count]
             fb = lap.flow[start:stop].astype(np.float32)
+            patch = (slice(None), slice(3 * H // 8, 5 * H // 8), slice(3 * W // 8, 5 * W // 8))
+            patch_fb.append(fb[patch].mean(axis=(1, 2)))
+            patch_dof.append(pred[patch].mean(axis=(1, 2)))
+            controls.append(lap.u[start:stop])
             mean_pred = baseline.mean_flow[bins[start:stop]]
             zero = np.zeros_like(fb)
             for name, p in (("dof", pred), ("zero", zero), ("mean", mean_pred)):
@@ -165,7 +175,35 @@ def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
         "farneback_vs_exact_aee_px": vs_exact["farneback"].value,
         "frames": total,
         "exact_valid_pixels": vs_exact["dof"].count,
+        "control_gain": control_gain(np.concatenate(controls), np.concatenate(patch_fb), np.concatenate(patch_dof))
+        if controls else None,
     }
+
+
+def control_gain(u: np.ndarray, flow_data: np.ndarray, flow_dof: np.ndarray) -> dict:
+    """Least-squares slopes (px per frame per rad/s) of the central flow on the commanded body rates.
+
+    Args:
+        u: (F, 4) commands ``[wx, wy, wz, thrust]``; flow_data, flow_dof: (F, 2) the central patch's mean
+            flow (px/frame), Farneback and DOF.
+
+    Returns:
+        ``data`` and ``dof``: (2, 3) slopes, rows (du, dv), columns (wx, wy, wz); ``r2_data``: (2,) the share
+        of the labels' variance the linear fit explains; ``yaw_to_u`` and ``pitch_to_v``: the dominant
+        couplings as ``{"data", "dof", "ratio"}`` (ratio = DOF / data).
+    """
+    X = np.concatenate([u.astype(np.float64), np.ones((u.shape[0], 1))], axis=1)
+    fit = lambda y: np.linalg.lstsq(X, y.astype(np.float64), rcond=None)[0]  # noqa: E731  (5, 2)
+    data, net = fit(flow_data), fit(flow_dof)
+    residual = flow_data - X @ data
+    r2 = 1.0 - residual.var(axis=0) / np.maximum(flow_data.var(axis=0), 1e-12)
+
+    def coupling(axis: int, rate: int) -> dict:
+        d, n = float(data[rate, axis]), float(net[rate, axis])
+        return {"data": d, "dof": n, "ratio": n / d if abs(d) > 1e-9 else None}
+
+    return {"data": data[:3].T.tolist(), "dof": net[:3].T.tolist(), "r2_data": r2.tolist(),
+            "yaw_to_u": coupling(0, 2), "pitch_to_v": coupling(1, 1)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -420,7 +458,11 @@ def summarise(results: dict) -> str:
         f"  baselines vs Farneback: zero flow {fmt(results['baseline_zero_aee_px'])}, orientation-bin mean "
         f"{fmt(results['baseline_mean_aee_px'])}",
         f"  multi-step gate-centre error: {steps}",
-    ])
+    ] + ([] if not results.get("control_gain") else [
+        "  control gain at the image centre, px/frame per rad/s (DOF / data): yaw -> u "
+        f"{fmt(results['control_gain']['yaw_to_u']['dof'])} / {fmt(results['control_gain']['yaw_to_u']['data'])}, "
+        f"pitch -> v {fmt(results['control_gain']['pitch_to_v']['dof'])} / "
+        f"{fmt(results['control_gain']['pitch_to_v']['data'])}"]))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -430,7 +472,7 @@ def summarise(results: dict) -> str:
 
 def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
               learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
-              ship: bool = False) -> dict:
+              ship: bool = False, loss: str = "polar") -> dict:
     """Train the DOF on ``data_dir``'s train laps (train.py, Algorithm 1), report the test-lap AEE, and
     write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
     (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
@@ -445,7 +487,7 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
     checkpoint = out / "checkpoint.msgpack"
     config = train_lib.TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed,
                                    width=W, height=H, dt=float(manifest["frame_dt_s"]),
-                                   checkpoint_path=str(checkpoint), progress=progress)
+                                   checkpoint_path=str(checkpoint), progress=progress, loss=loss)
     t0 = time.perf_counter()
     dof_params, history = train_lib.train(config, train_data, test_data,
                                           resume_from=checkpoint if (resume and checkpoint.exists()) else None)
@@ -472,7 +514,7 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
             f"pixelmpc_jax.learn.dataset.collect({str(data_dir)!r}, "
             f"CollectConfig(**{json.dumps(manifest['config'])}))",
             f"pixelmpc_jax.learn.evaluate.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
-            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed})",
+            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r})",
         ],
         "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
