@@ -138,6 +138,7 @@ def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
         bar = tqdm(total=total, desc="AEE", unit="frame", leave=False)
     for lap in laps:
         H, W = lap.flow.shape[1:3]
+        patch = (slice(None), slice(3 * H // 8, 5 * H // 8), slice(3 * W // 8, 5 * W // 8))  # the central quarter
         bins = train_lib._bin_index(baseline.edges, train_lib._euler(lap.q))  # (F,)
         for start in range(0, lap.q.shape[0], chunk_frames):
             stop = min(start + chunk_frames, lap.q.shape[0])
@@ -148,7 +149,6 @@ def flow_accuracy(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap],
                 u = np.concatenate([u, np.repeat(u[-1:], chunk_frames - count, 0)])
             pred = np.asarray(predict_flow_fields(dof_params, q, u, W, H, float(dt)))[:count]
             fb = lap.flow[start:stop].astype(np.float32)
-            patch = (slice(None), slice(3 * H // 8, 5 * H // 8), slice(3 * W // 8, 5 * W // 8))
             patch_fb.append(fb[patch].mean(axis=(1, 2)))
             patch_dof.append(pred[patch].mean(axis=(1, 2)))
             controls.append(lap.u[start:stop])

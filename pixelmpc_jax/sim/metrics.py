@@ -86,16 +86,21 @@ def pointed_visibility(gates, positions: jax.Array, camera: camera_lib.Camera) -
     return jax.vmap(one)(gates, positions)
 
 
+def _unavoidable(states: np.ndarray, below_50: np.ndarray, target: np.ndarray, track, camera) -> np.ndarray:
+    """(S,) the ticks of the ``below_50`` mask at which a camera pointed at the target sees under half of it."""
+    if not below_50.any():
+        return below_50
+    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
+    best = np.asarray(pointed_visibility(gates, jnp.asarray(states[:, quadrotor.POS]), camera))
+    return below_50 & (best < 0.5)
+
+
 def unavoidable_loss_time(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, track, camera,
                           dt: float = CONTROL_DT) -> float:
     """The part (s) of the time with visibility below 50 % that no attitude could have avoided: ticks at which
     even a camera pointed at the target gate (:func:`pointed_visibility`) sees less than half of it."""
     below_50, _ = low_visibility_ticks(visibility, target)
-    if not below_50.any():
-        return 0.0
-    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
-    best = np.asarray(pointed_visibility(gates, jnp.asarray(states[:, quadrotor.POS]), camera))
-    return float(np.sum(below_50 & (best < 0.5))) * dt
+    return float(np.sum(_unavoidable(states, below_50, target, track, camera))) * dt
 
 
 def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None) -> dict:
@@ -106,22 +111,21 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
     n = int(log.num_ticks)
     states = np.asarray(log.states)[: n + 1]
     rates = np.asarray(log.body_rates)[: n + 1]
-    visibility = np.asarray(log.visibility)[: n + 1]
-    target = np.asarray(log.target)[: n + 1]
     finished = bool(log.finished)
     cause = int(log.end_cause)
     euler = _euler(states[:, quadrotor.QUAT])
     velocity = states[:, quadrotor.VEL]
     linear_acc = np.linalg.norm(np.diff(velocity, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
     angular_acc = np.linalg.norm(np.diff(rates, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
-    below_50, zero = visibility_loss_times(visibility, target, dt)
+    # The masks span the whole fixed-length log, its unflown ticks marked fully visible (so never counted),
+    # and every lap of a run shares one compiled pointed_visibility.
+    target = np.asarray(log.target)
+    visibility = np.where(np.arange(target.shape[0]) <= n, np.asarray(log.visibility), 1.0)
+    low_50, low_zero = low_visibility_ticks(visibility, target)
+    below_50, zero = float(np.sum(low_50)) * dt, float(np.sum(low_zero)) * dt
     unavoidable = None
     if track is not None and camera is not None:
-        # the whole fixed-length log is evaluated (ticks past the end count as visible), so every lap of a
-        # run shares one compiled pointed_visibility
-        visibility_all = np.where(np.arange(len(log.visibility)) <= n, np.asarray(log.visibility), 1.0)
-        unavoidable = unavoidable_loss_time(np.asarray(log.states), visibility_all, np.asarray(log.target),
-                                            track, camera, dt)
+        unavoidable = float(np.sum(_unavoidable(np.asarray(log.states), low_50, target, track, camera))) * dt
     return {
         "success": finished,
         "gates_passed": int(log.gates_passed),
