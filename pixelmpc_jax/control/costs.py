@@ -88,6 +88,11 @@ class RacingCostConfig:
             counts as a crash (h = crash_value). Beyond acos(m g / f_max) = 74.6 deg no thrust holds the
             altitude, and the laps that failed in our closed loop all flipped past 90 deg first; the paper's
             cost has no such term. None disables it.
+        heading_weight: the share of the attitude term (c2) that pins the heading to the path tangent. 1 (the
+            paper's): q_d faces along the path. Below 1 the term is ``w |q_d - q|^2 + (1 - w) |q_lvl - q|^2``
+            with q_lvl level at the vehicle's own heading, so the tilt is held as before while the heading is
+            left (partly) to other terms, e.g. PixelMPC's pixel cost: a quadrotor can yaw without changing
+            its translational dynamics.
     """
 
     c1: float = 400.0
@@ -104,6 +109,11 @@ class RacingCostConfig:
     curvature_lookaround_m: float = 3.0
     max_tilt_deg: float | None = 75.0
     progress_weight: float = 0.25
+    heading_weight: float = 1.0
+
+    def __post_init__(self):
+        if not (0.0 <= self.heading_weight <= 1.0):
+            raise ValueError(f"RacingCostConfig.heading_weight must lie in [0, 1], got {self.heading_weight!r}")
 
     def window_length(self, path_spacing: float = 0.25) -> int:
         """Number of path samples in each step's window (static)."""
@@ -261,6 +271,11 @@ def desired_attitude(tangent: jax.Array) -> jax.Array:
     return jnp.stack([jnp.cos(half_yaw), zero, zero, jnp.sin(half_yaw)])
 
 
+def attitude_distance(q_d: jax.Array, q: jax.Array) -> jax.Array:
+    """min(|q_d - q|^2, |q_d + q|^2) over the leading (4,) axis: q and -q are one attitude."""
+    return jnp.minimum(jnp.sum((q_d - q) ** 2, axis=0), jnp.sum((q_d + q) ** 2, axis=0))
+
+
 def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
     """Eq. (19) for a batch of states at horizon step t: ``X`` (N, >= 10) -> (N,).
 
@@ -278,8 +293,12 @@ def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: 
         cos_tilt = 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2)  # R_33: body z against world z
         crash = crash | (cos_tilt < math.cos(math.radians(config.max_tilt_deg)))
     h = jnp.where(crash, config.crash_value, h)
-    q_d = desired_attitude(tangent)
-    attitude_error = jnp.minimum(jnp.sum((q_d - q) ** 2, axis=0), jnp.sum((q_d + q) ** 2, axis=0))
+    attitude_error = attitude_distance(desired_attitude(tangent), q)
+    if config.heading_weight < 1.0:
+        own_heading = jnp.stack([2.0 * (q[0] * q[3] + q[1] * q[2]), 1.0 - 2.0 * (q[2] ** 2 + q[3] ** 2)])  # yaw
+        level = desired_attitude(jnp.stack([own_heading[1], own_heading[0]]))
+        attitude_error = (config.heading_weight * attitude_error
+                          + (1.0 - config.heading_weight) * attitude_distance(level, q))
     velocity_error = jnp.sum((jnp.minimum(params.target_speed, cap) * tangent - v) ** 2, axis=0)
     return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
 

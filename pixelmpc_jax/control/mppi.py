@@ -52,6 +52,10 @@ class MPPIConfig:
         u_min, u_max: per-channel control bounds (length m), or None for unbounded.
         control_cost_weight: gamma of the ``gamma * U^T Sigma^-1 eps`` term (0 disables it).
         nominal_sample: sample 0 uses zero noise, so the current plan is always among the candidates.
+        noise_exponent: beta of time-correlated ("coloured") sampling noise with power spectrum 1/f^beta
+            along the horizon, as in iCEM and MPPI-Generic's coloured sampler: 0 (the paper's) samples white
+            noise, 1 pink, 2 red (smooth, slowly varying). Every step's marginal std stays ``noise_sigma``;
+            see :func:`coloured_noise_filter`.
     """
 
     num_samples: int = 512
@@ -64,6 +68,7 @@ class MPPIConfig:
     u_max: tuple[float, ...] | None = None
     control_cost_weight: float = 0.0
     nominal_sample: bool = True
+    noise_exponent: float = 0.0
 
     def __post_init__(self):
         for name in ("num_samples", "horizon", "iterations"):
@@ -99,6 +104,8 @@ class MPPIConfig:
                 bad = np.nonzero(lo > hi)[0].tolist()
                 raise ValueError(
                     f"MPPIConfig: u_min > u_max in channels {bad} (u_min={self.u_min}, u_max={self.u_max})")
+        if not (isinstance(self.noise_exponent, (int, float)) and 0.0 <= self.noise_exponent <= 4.0):
+            raise ValueError(f"MPPIConfig.noise_exponent (beta) must lie in [0, 4], got {self.noise_exponent!r}")
         if not (isinstance(self.control_cost_weight, (int, float)) and self.control_cost_weight >= 0):
             raise ValueError(f"MPPIConfig.control_cost_weight must be >= 0, got {self.control_cost_weight!r}")
 
@@ -293,6 +300,28 @@ def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array,
     return jnp.where(any_finite, weights, 0.0), finite
 
 
+def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
+    """(T, T) matrix L such that ``L @ w``, w white unit noise along the horizon, has the power spectrum 1/f^beta
+    (beta = ``exponent``) and unit variance at every step.
+
+    The covariance of a stationary process with that spectrum on a circle of T steps is circulant,
+    ``C[s, t] = c(|s - t|)`` with ``c(tau) = sum_f S_f cos(2 pi f tau / T)``, ``S_f = max(f, 1)^-beta`` over the
+    integer frequencies (the zero frequency gets the lowest nonzero one's power, as iCEM does); L is its
+    symmetric square root, scaled to unit diagonal. beta = 0 gives the identity (white noise).
+    """
+    if exponent == 0.0:
+        return np.eye(horizon, dtype=np.float32)
+    freqs = np.fft.fftfreq(horizon) * horizon  # integer frequencies, both signs
+    power = np.maximum(np.abs(freqs), 1.0) ** (-float(exponent))
+    lags = np.arange(horizon)
+    autocov = np.real(np.fft.ifft(power))  # c(tau), tau = 0 .. T-1 (circular)
+    cov = autocov[np.abs(lags[:, None] - lags[None, :]) % horizon]
+    values, vectors = np.linalg.eigh(cov)
+    root = (vectors * np.sqrt(np.maximum(values, 0.0))) @ vectors.T
+    root = root / np.sqrt(np.sum(root**2, axis=1, keepdims=True))  # unit variance at every step
+    return root.astype(np.float32)
+
+
 def make_mppi(
     config: MPPIConfig,
     dynamics: Callable,
@@ -314,6 +343,7 @@ def make_mppi(
     lo = None if config.u_min is None else jnp.asarray(config.u_min, jnp.float32)
     hi = None if config.u_max is None else jnp.asarray(config.u_max, jnp.float32)
     gamma = float(config.control_cost_weight)
+    colour = None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent))
     lam = float(config.temperature)
 
     def clip(u):
@@ -328,7 +358,10 @@ def make_mppi(
 
     def iteration(carry, key_iter, x0, params):
         plan, any_all_nonfinite = carry
-        noise = jax.random.normal(key_iter, (N, T, m), dtype=plan.dtype) * sigma  # (N, T, m)
+        white = jax.random.normal(key_iter, (N, T, m), dtype=plan.dtype)
+        if colour is not None:
+            white = jnp.einsum("ts,nsm->ntm", colour, white)  # time-correlated, unit variance per step
+        noise = white * sigma  # (N, T, m)
         if config.nominal_sample:
             noise = noise.at[0].set(0.0)
         controls = clip(plan[None] + noise)  # (N, T, m)

@@ -32,6 +32,8 @@ from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as camera_lib
 
 PIXEL_MODELS = ("dof", "projection")
+PIXEL_COSTS = ("l1", "border")
+BEHIND_CAMERA_OFFSET = 1e3  # a target behind the camera sits this far off the image (before any clip)
 STATE_DIM = quadrotor.STATE_DIM + 2
 IMAGE_CENTRE = (0.5, 0.5)
 
@@ -71,6 +73,14 @@ class PixelMPCConfig:
         pixel_deadzone: the error of each axis is counted only beyond this distance from the centre (0, the
             paper's cost, by default). A dead zone of 0.3 charges only a pixel near or past the image border:
             a cost on keeping the target in view rather than centred.
+        pixel_cost: the form of the per-step pixel cost. "l1" (the paper's Eq. 18): the L1 distance of the
+            pixel from the image centre. "border": a barrier on the image border, zero while the pixel is
+            more than ``border_margin`` inside the image and ``((e - (0.5 - m)) / m)^2`` per axis beyond,
+            e = |uv - 0.5| (clipped), m = ``border_margin``: 1 at the border, growing past it. It charges
+            what the visibility metric counts (the gate leaving the view), not the distance from the
+            centre, so it brakes only where the view is at stake. Either model (DOF or projection)
+            drives it.
+        border_margin: m of the "border" cost, as a fraction of the image width / height.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -81,6 +91,8 @@ class PixelMPCConfig:
     pixel_model: str = "dof"
     pixel_error_clip: float | None = 1.0
     pixel_deadzone: float = 0.0
+    pixel_cost: str = "l1"
+    border_margin: float = 0.15
 
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
@@ -91,6 +103,10 @@ class PixelMPCConfig:
             raise ValueError(f"c_pixel must be >= 0, got {self.c_pixel!r}")
         if not (0.0 <= self.pixel_deadzone < 0.5):
             raise ValueError(f"pixel_deadzone must lie in [0, 0.5), got {self.pixel_deadzone!r}")
+        if self.pixel_cost not in PIXEL_COSTS:
+            raise ValueError(f"pixel_cost must be one of {PIXEL_COSTS}, got {self.pixel_cost!r}")
+        if not (0.0 < self.border_margin <= 0.5):
+            raise ValueError(f"border_margin must lie in (0, 0.5], got {self.border_margin!r}")
         if self.pixel_error_clip is not None and not (self.pixel_error_clip > 0.0):
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
 
@@ -125,12 +141,30 @@ class PixelMPCParams:
 
 
 def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
-    """Eq. (18)'s integrand per step: c_pixel * scale * (|u - 0.5| + |v - 0.5|), each axis less the dead zone
-    (at least 0) and clipped to ``pixel_error_clip``."""
-    error = jnp.maximum(jnp.abs(uv - jnp.asarray(IMAGE_CENTRE, uv.dtype)) - config.pixel_deadzone, 0.0)
+    """Eq. (18)'s integrand per step for a pixel ``uv`` (2,), of the form ``config.pixel_cost``.
+
+    "l1": c_pixel * scale * (|u - 0.5| + |v - 0.5|), each axis less the dead zone (at least 0);
+    "border": c_pixel * scale * sum_axes (max(e - (0.5 - m), 0) / m)^2 with e = |uv - 0.5|, m the margin.
+    Each axis's distance from the centre is first clipped to ``pixel_error_clip``, so the pixel of a target
+    behind the camera (placed :data:`BEHIND_CAMERA_OFFSET` off the image) costs the most any pixel can.
+    """
+    error = jnp.abs(uv - jnp.asarray(IMAGE_CENTRE, uv.dtype))
     if config.pixel_error_clip is not None:
-        error = jnp.minimum(error, config.pixel_error_clip)
-    return config.c_pixel * config.pixel_cost_scale * jnp.sum(error)
+        error = jnp.minimum(error, config.pixel_error_clip + config.pixel_deadzone)
+    if config.pixel_cost == "border":
+        margin = config.border_margin
+        excess = jnp.maximum(error - (0.5 - margin), 0.0) / margin
+        per_axis = excess**2
+    else:
+        per_axis = jnp.maximum(error - config.pixel_deadzone, 0.0)
+    return config.c_pixel * config.pixel_cost_scale * jnp.sum(per_axis)
+
+
+def behind_camera_pixel(dtype=jnp.float32) -> jax.Array:
+    """(2,) the pixel given to a target behind the camera: far outside the image on both axes, so that after
+    the clip it costs at least as much as any pixel in front (a gate just past the image border must never
+    cost more than turning away from it altogether)."""
+    return jnp.full((2,), IMAGE_CENTRE[0] - BEHIND_CAMERA_OFFSET, dtype)
 
 
 def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
@@ -193,8 +227,8 @@ def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u)
             uv, _, in_front = camera_lib.project(p.target_centre, x_next, p.camera)
-            # behind the camera the projection means nothing: place the pixel at a corner (the worst L1)
-            uv = jnp.where(in_front, uv, jnp.zeros_like(uv))
+            # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
+            uv = jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
             return jnp.concatenate([x_next, uv])
 
     def prefix_cost(X, U, t, p):

@@ -30,6 +30,12 @@ class Cell:
     estimator: str = "truth"
     course: str = "alphapilot"
     max_time_s: float = 60.0
+    options: tuple = ()
+
+    def __post_init__(self):
+        # options: (name, value) pairs of further controller settings (see race.make_policy), kept sorted
+        # so that the same settings always make the same cell
+        object.__setattr__(self, "options", tuple(sorted((str(k), v) for k, v in dict(self.options).items())))
 
     def key(self) -> str:
         return self.name
@@ -56,6 +62,15 @@ def default_batch_size(laps: int) -> int:
     return laps
 
 
+def cell_record(cell: Cell) -> dict:
+    """The cell's settings as stored in results.json (JSON types: the options as a name -> value mapping)."""
+    record = dataclasses.asdict(cell)
+    record["options"] = dict(cell.options)
+    if not record["options"]:
+        del record["options"]  # cells without options keep the record older results files hold
+    return record
+
+
 def load_results(out: Path) -> dict:
     """``{cell name: race results}`` finished so far in ``out/results.json`` (empty if none)."""
     path = Path(out) / "results.json"
@@ -78,7 +93,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     batch_size = batch_size or default_batch_size(laps)
     for cell in cells:
         done = results.get(cell.key())
-        if done and len(done.get("laps", [])) >= laps and done.get("config") == dataclasses.asdict(cell):
+        if done and len(done.get("laps", [])) >= laps and done.get("config") == cell_record(cell):
             if progress:
                 print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
             continue
@@ -86,12 +101,13 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         res = race.run_laps(controller=cell.controller, speed=cell.speed, laps=laps, seed=seed, out=None,
                             batch_size=batch_size, max_time_s=cell.max_time_s, progress=progress,
                             pixel_model=cell.pixel_model, t_f=cell.t_f, c_pixel=cell.c_pixel,
-                            dof_params=dof_params, estimator=cell.estimator, course=cell.course)
+                            dof_params=dof_params, estimator=cell.estimator, course=cell.course,
+                            options=dict(cell.options))
         trajectories = res.pop("trajectories")
         covariances = res.pop("covariances")
         if len(res["laps"]) < laps:  # interrupted inside the cell: keep what is finished, stop here
             break
-        res["config"] = dataclasses.asdict(cell)
+        res["config"] = cell_record(cell)
         res["wall_time_s"] = time.perf_counter() - start
         results[cell.key()] = res
         race.write_json_atomic(path, results)

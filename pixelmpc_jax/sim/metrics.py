@@ -18,6 +18,7 @@ from pixelmpc_jax.world import camera as camera_lib
 LAP_KEYS = (
     "success", "gates_passed", "lap_time_s", "crash", "time_vis_below_50_s", "time_vis_zero_s",
     "time_vis_below_50_unavoidable_s",
+    *(f"time_vis_below_50_{cause}_s" for cause in ("above", "below", "left", "right", "behind", "inside")),
     "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
     "mean_angular_acc", "mean_speed", "flight_time_s",
 )
@@ -103,11 +104,53 @@ def unavoidable_loss_time(states: np.ndarray, visibility: np.ndarray, target: np
     return float(np.sum(_unavoidable(states, below_50, target, track, camera))) * dt
 
 
+LOSS_CAUSES = ("unavoidable", "above", "below", "left", "right", "behind", "inside")
+
+
+@jax.jit
+def _target_projection(gates, states: jax.Array, camera: camera_lib.Camera):
+    """(S, 2) normalised pixel and (S,) in-front flag of gate s's centre seen from state s."""
+
+    def one(gate, x):
+        uv, _, in_front = camera_lib.project(gate.centre, x, camera)
+        return uv, in_front
+
+    return jax.vmap(one)(gates, states)
+
+
+def loss_causes(states: np.ndarray, below_50: np.ndarray, unavoidable: np.ndarray, target: np.ndarray, track,
+                camera) -> np.ndarray:
+    """(S,) int: for each tick of the ``below_50`` mask, why the target gate was not in view, as an index into
+    :data:`LOSS_CAUSES` (-1 on the other ticks).
+
+    ``unavoidable`` ticks (no attitude shows half the gate) come first; every other low-visibility tick is
+    classified by where the target gate's centre projects at the true pose: behind the camera, past the top,
+    bottom, left or right border of the image (the axis that is furthest out wins), or inside the image (the
+    centre in view but under half of the outline, e.g. a gate seen at a grazing angle).
+    """
+    causes = np.full(below_50.shape, -1, np.int32)
+    if not below_50.any():
+        return causes
+    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
+    uv, in_front = (np.asarray(a) for a in _target_projection(gates, jnp.asarray(states), camera))
+    u_out = np.maximum(-uv[:, 0], uv[:, 0] - 1.0)  # > 0: past the left or right border
+    v_out = np.maximum(-uv[:, 1], uv[:, 1] - 1.0)
+    side = np.where(uv[:, 0] < 0.5, LOSS_CAUSES.index("left"), LOSS_CAUSES.index("right"))
+    vertical = np.where(uv[:, 1] < 0.5, LOSS_CAUSES.index("above"), LOSS_CAUSES.index("below"))
+    where = np.where((u_out <= 0) & (v_out <= 0), LOSS_CAUSES.index("inside"), np.where(u_out > v_out, side, vertical))
+    where = np.where(in_front, where, LOSS_CAUSES.index("behind"))
+    causes[below_50] = where[below_50]
+    causes[below_50 & unavoidable] = LOSS_CAUSES.index("unavoidable")
+    return causes
+
+
 def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None) -> dict:
     """The metrics of one episode (host arrays or device arrays of an unbatched log).
 
     Given the lap's ``track`` and ``camera``, the metrics also split off the low-visibility time no attitude
-    could avoid (``time_vis_below_50_unavoidable_s``, see :func:`unavoidable_loss_time`)."""
+    could avoid (``time_vis_below_50_unavoidable_s``, see :func:`unavoidable_loss_time`) and split the rest by
+    cause (``time_vis_below_50_<cause>_s``, see :func:`loss_causes`): the unavoidable part and the causes add up
+    to ``time_vis_below_50_s``."""
     n = int(log.num_ticks)
     states = np.asarray(log.states)[: n + 1]
     rates = np.asarray(log.body_rates)[: n + 1]
@@ -124,8 +167,13 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
     low_50, low_zero = low_visibility_ticks(visibility, target)
     below_50, zero = float(np.sum(low_50)) * dt, float(np.sum(low_zero)) * dt
     unavoidable = None
+    causes = dict.fromkeys(LOSS_CAUSES[1:])
     if track is not None and camera is not None:
-        unavoidable = float(np.sum(_unavoidable(np.asarray(log.states), low_50, target, track, camera))) * dt
+        all_states = np.asarray(log.states)
+        unavoidable_mask = _unavoidable(all_states, low_50, target, track, camera)
+        unavoidable = float(np.sum(unavoidable_mask)) * dt
+        tick_cause = loss_causes(all_states, low_50, unavoidable_mask, target, track, camera)
+        causes = {name: float(np.sum(tick_cause == i)) * dt for i, name in enumerate(LOSS_CAUSES) if i > 0}
     return {
         "success": finished,
         "gates_passed": int(log.gates_passed),
@@ -134,6 +182,7 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
         "time_vis_below_50_s": below_50,
         "time_vis_zero_s": zero,
         "time_vis_below_50_unavoidable_s": unavoidable,
+        **{f"time_vis_below_50_{name}_s": value for name, value in causes.items()},
         "total_variation_roll": total_variation(euler[:, 0]),
         "total_variation_pitch": total_variation(euler[:, 1]),
         "total_variation_yaw": total_variation(euler[:, 2]),

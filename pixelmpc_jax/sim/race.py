@@ -6,6 +6,7 @@ atomically, so an interrupted run keeps the laps it finished.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -60,20 +61,59 @@ def write_json_atomic(path: Path, data) -> None:
         raise
 
 
+OPTION_PREFIXES = ("mppi.", "racing.")
+
+
+def split_options(options: dict | None) -> tuple[dict, dict, dict]:
+    """Split controller options into (PixelMPCConfig fields, MPPIConfig fields, RacingCostConfig fields).
+
+    A key ``"mppi.NAME"`` sets ``MPPIConfig.NAME``, ``"racing.NAME"`` sets ``RacingCostConfig.NAME``, any
+    other key a field of :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`. Unknown names raise a
+    ValueError naming them and the accepted fields.
+    """
+    from pixelmpc_jax.control.costs import RacingCostConfig
+    from pixelmpc_jax.control.mppi import MPPIConfig
+    from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+
+    groups: tuple[dict, dict, dict] = ({}, {}, {})
+    kinds = ((PixelMPCConfig, ""), (MPPIConfig, "mppi."), (RacingCostConfig, "racing."))
+    for key, value in (options or {}).items():
+        index = 1 if key.startswith("mppi.") else 2 if key.startswith("racing.") else 0
+        cls, prefix = kinds[index]
+        name = key[len(prefix):]
+        fields = {f.name for f in dataclasses.fields(cls)} - {"mppi", "racing"}
+        if name not in fields:
+            raise ValueError(f"unknown controller option {key!r}: {cls.__name__} has the fields "
+                             f"{', '.join(sorted(prefix + f for f in fields))}")
+        groups[index][name] = value
+    return groups
+
+
 def make_policy(controller: str, temperature: float | None = None, num_samples: int = 512,
-                pixel_model: str = "dof", t_f: float = 1.0, c_pixel: float = 9e6):
-    """The named controller as an episode Policy ("mppi": nominal MPPI; "pixelmpc": PixelMPC)."""
+                pixel_model: str = "dof", t_f: float = 1.0, c_pixel: float = 9e6, options: dict | None = None):
+    """The named controller as an episode Policy ("mppi": nominal MPPI; "pixelmpc": PixelMPC).
+
+    ``options`` sets further configuration fields by name (see :func:`split_options`); the MPPI and racing
+    options apply to nominal MPPI too, the PixelMPC ones only to PixelMPC.
+    """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}; choose one of {', '.join(CONTROLLERS)}")
+    pixel_options, mppi_options, racing_options = split_options(options)
+    if controller == "mppi" and pixel_options:
+        raise ValueError(f"options {sorted(pixel_options)} configure PixelMPC, not nominal MPPI")
     kwargs = {"num_samples": num_samples}
     if temperature is not None:
         kwargs["temperature"] = temperature
-    mppi_config = episode_lib.paper_mppi_config(**kwargs)
+    mppi_config = dataclasses.replace(episode_lib.paper_mppi_config(**kwargs), **mppi_options)
+    from pixelmpc_jax.control.costs import RacingCostConfig
+
+    racing_config = RacingCostConfig(**racing_options)
     if controller == "mppi":
-        return episode_lib.nominal_mppi_policy(mppi_config)
+        return episode_lib.nominal_mppi_policy(mppi_config, racing_config)
     from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 
-    config = PixelMPCConfig(mppi=mppi_config, t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
+    config = PixelMPCConfig(mppi=mppi_config, racing=racing_config, t_f=t_f, c_pixel=c_pixel,
+                            pixel_model=pixel_model, **pixel_options)
     return episode_lib.pixelmpc_policy(config)
 
 
@@ -108,12 +148,13 @@ def run_laps(
     estimator: str = "truth",
     video: bool = False,
     course: str = "alphapilot",
+    options: dict | None = None,
 ) -> dict:
     """Fly ``laps`` laps (seeds ``seed .. seed + laps - 1``) and return ``{"laps": [...], "aggregate": {...}}``.
 
     Lap i uses PRNG key ``seed + i`` for the plant noise and the controller, so a lap is reproducible on
     its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
-    :func:`make_course`). The result also holds, per lap, the flown states (``trajectories``) and, with the
+    :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also holds, per lap, the flown states (``trajectories``) and, with the
     particle filter, the trace of its position covariance at each tick (``covariances``).
     """
     if not (isinstance(speed, (int, float)) and speed > 0):
@@ -122,7 +163,7 @@ def run_laps(
         raise ValueError(f"laps must be a positive integer, got {laps!r}")
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-    policy = make_policy(controller, temperature, num_samples, pixel_model, t_f, c_pixel)
+    policy = make_policy(controller, temperature, num_samples, pixel_model, t_f, c_pixel, options)
     episode_config = episode_lib.EpisodeConfig(max_time_s=max_time_s, detector=detector, estimator=estimator)
     runner = episode_lib.make_runner(policy, episode_config)
     if controller == "pixelmpc" and pixel_model == "dof" and dof_params is None:
@@ -134,6 +175,8 @@ def run_laps(
                      "detector": detector, "estimator": estimator, "course": course, "laps": [], "aggregate": {}}
     if controller == "pixelmpc":
         results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
+    if options:
+        results["options"] = dict(options)
     trajectories: list[np.ndarray] = []
     covariances: list[np.ndarray] = []
     seeds = list(range(seed, seed + laps))
