@@ -6,7 +6,8 @@ Parts (each in its own folder under ``out``, each resumable on its own):
 - ``dof``: the DOF network's accuracy on held-out flights (AEE, baselines, multi-step error, figures);
 - ``table2``: Tables II and III and Fig. 8 (visibility, lap time, smoothness) with the DOF pixel model;
 - ``table2_projection``: the same grid with the PAMPC-style projection pixel model (not in the paper);
-- ``table4``: Table IV, the straight lane and Fig. 9 (racing on the particle filter's estimate).
+- ``table4``: Table IV, the straight lane and Fig. 9 (racing on the particle filter's estimate);
+- ``frontier``: PixelMPC against nominal MPPI flown slower (the speed frontier, not in the paper).
 
 ``out/reproduce.json`` records each finished part (its wall time, mode, device); a finished part is kept
 on the next run (and the grids inside a part keep their finished cells), so an interrupted run resumes
@@ -22,14 +23,15 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-PARTS = ("bench", "dof", "table2", "table2_projection", "table4")
+PARTS = ("bench", "dof", "table2", "table2_projection", "table4", "frontier")
 ALIASES = {"all": PARTS, "table1": ("bench",), "table3": ("table2",), "fig8": ("table2",), "fig9": ("table4",),
            "projection": ("table2_projection",)}
 QUICK_PARTS = ("bench", "dof", "table2", "table4")  # --quick all: the paper's tables only
 CHOICES = tuple(ALIASES) + PARTS
 TITLES = {"bench": "Table I and the runtime harness", "dof": "DOF accuracy (Section V-A)",
           "table2": "Tables II-III and Fig. 8", "table2_projection": "Tables II-III with the projection pixel model",
-          "table4": "Table IV, the straight lane and Fig. 9"}
+          "table4": "Table IV, the straight lane and Fig. 9",
+          "frontier": "The speed frontier: PixelMPC against flying slower"}
 
 
 def resolve_parts(names: list[str], quick: bool = False) -> list[str]:
@@ -74,8 +76,16 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
         estimation_experiment(folder, laps=2 if quick else 25, quick=quick, progress=progress)
         return "REPORT.md"
 
+    def frontier(folder: Path) -> str:
+        from pixelmpc_jax.sim.frontier import default_spec, quick_spec, run_frontier
+
+        spec = quick_spec() if quick else default_spec()
+        run_frontier(spec.nominal_speeds, spec.cells, folder, laps=spec.laps, progress=progress)
+        return "REPORT.md"
+
     return {"bench": bench, "dof": dof, "table2": table2,
-            "table2_projection": lambda folder: table2(folder, "projection"), "table4": table4}
+            "table2_projection": lambda folder: table2(folder, "projection"), "table4": table4,
+            "frontier": frontier}
 
 
 def _part_wall_time(folder: Path, measured: float) -> float:

@@ -1,0 +1,299 @@
+"""The speed frontier: perception-aware control measured against simply flying slower (issue 15).
+
+Nominal MPPI flies the course at several target speeds; each speed gives a point (lap time, avoidable
+low-visibility time), where the avoidable time is the time with the target gate's visibility below 50 %
+less the part no attitude could avoid (``time_vis_below_50_unavoidable_s``). The points, sorted by lap
+time and joined linearly, are the frontier: what flying slower buys. A PixelMPC cell is worth having when
+it keeps the gate in view better than the frontier at its own lap time; its ``frontier_gain`` is the
+frontier's avoidable time at the cell's lap time over the cell's (above 1: better than flying slower).
+The frontier is never extrapolated: a cell whose lap time lies outside the nominal lap times gets no gain
+and the report names the nominal speed to add. All per-lap figures are means over the *completed* laps (a
+lost lap also ends its low visibility early); a cell that lost laps is flagged.
+
+Files in ``out``: ``results.json`` (the grid, resumable per cell), ``frontier.json`` (strict JSON),
+``REPORT.md`` and ``frontier.png``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import math
+from pathlib import Path
+
+import numpy as np
+
+from pixelmpc_jax.sim import grid, race
+from pixelmpc_jax.sim.episode import CONTROL_DT
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+
+PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
+AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
+DEFAULT_SPEEDS = (5.0, 6.0, 7.0, 8.0, 10.0, 14.0)
+QUICK_SPEEDS = (6.0, 8.0, 10.0)  # 40.7 s .. about 27 s: brackets the paper's pace and slowed cells to ~40 s
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontierSpec:
+    """A frontier run: nominal MPPI at ``nominal_speeds`` and the PixelMPC ``cells``, ``laps`` laps each."""
+
+    nominal_speeds: tuple = DEFAULT_SPEEDS
+    cells: tuple = ()
+    laps: int = 10
+
+
+def pixel_cell(model: str, cost: str = "l1", c_pixel: float = 9e6, speed: float = 8.0, t_f: float = 1.0,
+               **options) -> grid.Cell:
+    """A PixelMPC grid cell named after its pixel model, pixel cost and weight (``options``: further settings)."""
+    if cost != "l1":
+        options["pixel_cost"] = cost
+    extra = "".join(f"_{k.replace('.', '-')}{v:g}" if isinstance(v, float) else f"_{k}{v}"
+                    for k, v in sorted(options.items()) if k != "pixel_cost")
+    weight = f"{c_pixel:.0e}".replace("e+0", "e").replace("e+", "e")  # 9e6
+    return grid.Cell(f"pixelmpc_{model}_{cost}_c{weight}_tf{t_f:g}_v{speed:g}{extra}", "pixelmpc",
+                     t_f=t_f, c_pixel=c_pixel, pixel_model=model, speed=speed, options=options)
+
+
+def default_cells() -> tuple:
+    """The paper's L1 cost and the border cost, c_pixel 9e6, each with the projection and the DOF, 8 m/s."""
+    return tuple(pixel_cell(model, cost) for cost in ("l1", "border") for model in ("projection", "dof"))
+
+
+def default_spec() -> FrontierSpec:
+    return FrontierSpec(DEFAULT_SPEEDS, default_cells(), laps=10)
+
+
+def quick_spec() -> FrontierSpec:
+    """Three nominal speeds around the paper's pace and the border-cost cells (projection, DOF), 4 laps."""
+    return FrontierSpec(QUICK_SPEEDS, tuple(pixel_cell(model, "border") for model in ("projection", "dof")), laps=4)
+
+
+def nominal_cell(speed: float, max_time_s: float = 60.0) -> grid.Cell:
+    return grid.Cell(f"nominal_{speed:g}", "mppi", speed=float(speed), max_time_s=max_time_s)
+
+
+def _stats(values: list[float]) -> tuple[float | None, float | None]:
+    if not values:
+        return None, None
+    arr = np.asarray(values, dtype=float)
+    return float(arr.mean()), float(2 * arr.std())
+
+
+def summarise(result: dict) -> dict:
+    """Means (and two sigma) over the completed laps of one cell's race results."""
+    laps = result.get("laps", [])
+    done = [lap for lap in laps if lap.get("success") and lap.get("lap_time_s") is not None]
+    below = [lap for lap in done if lap.get("time_vis_below_50_unavoidable_s") is not None]
+    lap_time, lap_sigma = _stats([lap["lap_time_s"] for lap in done])
+    avoidable, avoidable_sigma = _stats([lap["time_vis_below_50_s"] - lap["time_vis_below_50_unavoidable_s"]
+                                         for lap in below])
+    vis, _ = _stats([lap["time_vis_below_50_s"] for lap in done])
+    causes = {}
+    for cause in LOSS_CAUSES:
+        key = f"time_vis_below_50_{cause}_s"
+        causes[cause] = _stats([lap[key] for lap in done if lap.get(key) is not None])[0]
+    return {"lap_time_s": lap_time, "lap_time_two_sigma_s": lap_sigma, "avoidable_s": avoidable,
+            "avoidable_two_sigma_s": avoidable_sigma, "vis_below_50_s": vis,
+            "success_rate": len(done) / len(laps) if laps else None, "laps": len(laps), "laps_completed": len(done),
+            "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes}
+
+
+def _curve(nominal: list[dict], y: str) -> tuple[np.ndarray, np.ndarray]:
+    points = sorted((p["lap_time_s"], p[y]) for p in nominal if p["lap_time_s"] is not None and p[y] is not None)
+    return np.asarray([p[0] for p in points]), np.asarray([p[1] for p in points])
+
+
+def interpolate(nominal: list[dict], lap_time: float | None, y: str = "avoidable_s") -> float | None:
+    """The nominal curve's ``y`` at ``lap_time`` (linear between the points sorted by lap time); None when the
+    lap time lies outside the nominal lap times (no extrapolation) or is None."""
+    xs, ys = _curve(nominal, y)
+    if lap_time is None or len(xs) == 0 or not xs[0] <= lap_time <= xs[-1]:
+        return None
+    return float(np.interp(lap_time, xs, ys))
+
+
+def suggest_speed(nominal: list[dict], lap_time: float) -> float | None:
+    """A nominal target speed to add so that ``lap_time`` is bracketed (lap time taken as inversely
+    proportional to the target speed from the nearest nominal point, rounded outward to 0.5 m/s)."""
+    points = sorted((p["lap_time_s"], p["speed"]) for p in nominal if p["lap_time_s"] is not None)
+    if not points:
+        return None
+    if lap_time > points[-1][0]:
+        return max(0.5, math.floor(2 * points[-1][1] * points[-1][0] / lap_time) / 2)
+    return math.ceil(2 * points[0][1] * points[0][0] / lap_time) / 2
+
+
+def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = 60.0) -> dict:
+    """The frontier from the grid's results (``{cell name: race results}``); cells not run yet are listed
+    under ``missing``."""
+    nominal, missing = [], []
+    for speed in nominal_speeds:
+        cell = nominal_cell(speed, max_time_s)
+        if cell.name not in results:
+            missing.append(cell.name)
+            continue
+        nominal.append({"name": cell.name, "speed": float(speed), **summarise(results[cell.name])})
+    nominal.sort(key=lambda p: p["speed"])
+    rows = []
+    for cell in cells:
+        if cell.name not in results:
+            missing.append(cell.name)
+            continue
+        row = {"name": cell.name, "pixel_model": cell.pixel_model, "speed": cell.speed, "t_f": cell.t_f,
+               "c_pixel": cell.c_pixel, "options": dict(cell.options), "estimator": cell.estimator,
+               **summarise(results[cell.name])}
+        frontier = interpolate(nominal, row["lap_time_s"])
+        row["bracketed"] = frontier is not None
+        row["frontier_avoidable_s"] = frontier
+        row["frontier_gain"] = None
+        if frontier is not None and row["avoidable_s"] is not None:
+            row["frontier_gain"] = frontier / max(row["avoidable_s"], AVOIDABLE_FLOOR_S)
+        row["suggested_nominal_speed"] = (None if row["bracketed"] or row["lap_time_s"] is None
+                                          else suggest_speed(nominal, row["lap_time_s"]))
+        rows.append(row)
+    from pixelmpc_jax.platform_info import device_description
+
+    return {"nominal": nominal, "cells": rows, "paper_lap_time_s": PAPER_LAP_TIME_S,
+            "paper_pace": interpolate(nominal, PAPER_LAP_TIME_S, "speed"), "missing": missing,
+            "measured": {"laps": laps, "seeds": [seed, seed + laps - 1], "device": device_description(),
+                         "written": datetime.datetime.now().isoformat(timespec="seconds"),
+                         "avoidable_floor_s": AVOIDABLE_FLOOR_S}}
+
+
+def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
+                 dof_params=None, max_time_s: float = 60.0) -> dict:
+    """Fly nominal MPPI at each of ``nominal_speeds`` (episodes of at most ``max_time_s``) and every PixelMPC
+    cell with :func:`grid.run_grid` (resumable per cell), then write ``frontier.json``, ``REPORT.md`` and
+    ``frontier.png`` into ``out``; returns the frontier.
+
+    Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
+    KeyboardInterrupt is raised again."""
+    out = Path(out)
+    all_cells = [nominal_cell(speed, max_time_s) for speed in nominal_speeds] + list(cells)
+    names = [cell.name for cell in all_cells]
+    if len(set(names)) != len(names):
+        raise ValueError(f"cell names repeat: {sorted(n for n in set(names) if names.count(n) > 1)}")
+    interrupted = False
+    try:
+        results = grid.run_grid(all_cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params)
+    except KeyboardInterrupt:
+        interrupted = True
+        results = grid.load_results(out)
+    # run_grid stops at a cell interrupted inside; a cell from another configuration does not count
+    results = {cell.name: results[cell.name] for cell in all_cells if cell.name in results
+               and results[cell.name].get("config") == grid.cell_record(cell)}
+    frontier = build(results, nominal_speeds, cells, laps, seed, max_time_s)
+    write(frontier, out)
+    if interrupted or frontier["missing"]:
+        raise KeyboardInterrupt(f"interrupted: {len(frontier['missing'])} cell(s) not finished; run again to resume")
+    return frontier
+
+
+def write(frontier: dict, out: Path) -> None:
+    out = Path(out)
+    race.write_json_atomic(out / "frontier.json", race.json_safe(frontier))
+    plot(frontier, out / "frontier.png")
+    (out / "REPORT.md").write_text(report(frontier))
+
+
+def _f(value, digits: int = 2, sigma=None) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.{digits}f}" + ("" if sigma is None else f" ± {sigma:.{digits}f}")
+
+
+def _done(p: dict) -> str:
+    return f"{p['laps_completed']}/{p['laps']}"
+
+
+def report(frontier: dict) -> str:
+    """Markdown: the nominal frontier, the PixelMPC cells against it, the causes, how it was measured."""
+    causes = " | ".join(LOSS_CAUSES)
+    lines = ["# The speed frontier: PixelMPC against flying slower", "",
+             "Avoidable: time with visibility < 50 % less the part no attitude could avoid; means ± 2σ over the "
+             "completed laps. Frontier gain: the nominal curve's avoidable time at the cell's lap time over the "
+             "cell's (above 1: better than flying slower).", "",
+             "## Nominal MPPI", "", "| target [m/s] | laps done | lap time [s] | vis < 50 % [s] | avoidable [s] |",
+             "|---|---|---|---|---|"]
+    for p in frontier["nominal"]:
+        lines.append(f"| {p['speed']:g} | {_done(p)} | {_f(p['lap_time_s'], 1, p['lap_time_two_sigma_s'])} | "
+                     f"{_f(p['vis_below_50_s'])} | {_f(p['avoidable_s'], 2, p['avoidable_two_sigma_s'])} |")
+    pace = frontier["paper_pace"]
+    lines += ["", f"Paper's pace (nominal lap of {frontier['paper_lap_time_s']:g} s): "
+              + (f"{pace:.2f} m/s." if pace is not None else "not bracketed by the nominal speeds."), "",
+              "## PixelMPC cells", "",
+              "| cell | model | options | target [m/s] | laps done | lap time [s] | vis < 50 % [s] | avoidable [s] "
+              "| frontier at its lap time [s] | frontier gain |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in frontier["cells"]:
+        options = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "-"
+        gain = _f(c["frontier_gain"]) if c["bracketed"] else "not bracketed"
+        if c["frontier_gain"] is not None and c["avoidable_s"] < AVOIDABLE_FLOOR_S:
+            gain += " (no avoidable time: over the floor)"
+        if c["frontier_gain"] is not None and not c["all_laps_completed"]:
+            gain += " (laps lost)"
+        lines.append(f"| {c['name']} | {c['pixel_model']} | {options} | {c['speed']:g} | {_done(c)} | "
+                     f"{_f(c['lap_time_s'], 1, c['lap_time_two_sigma_s'])} | {_f(c['vis_below_50_s'])} | "
+                     f"{_f(c['avoidable_s'], 2, c['avoidable_two_sigma_s'])} | {_f(c['frontier_avoidable_s'])} | "
+                     f"{gain} |")
+    for c in frontier["cells"]:
+        if c["lap_time_s"] is None:
+            lines += ["", f"`{c['name']}` completed no lap: no lap time, no gain."]
+        elif not c["bracketed"]:
+            lines += ["", f"`{c['name']}` (lap {c['lap_time_s']:.1f} s) lies outside the nominal lap times: add a "
+                      f"nominal speed of about {c['suggested_nominal_speed']:g} m/s (`--speeds`)."]
+        if c["lap_time_s"] is not None and not c["all_laps_completed"]:
+            lines += ["", f"`{c['name']}` lost laps: its figures are over the completed laps only (a lost lap also "
+                      "ends its low visibility early)."]
+    lines += ["", "## Where the low-visibility time goes (s per lap)", "", f"| point | {causes} |",
+              "|---|" + "---|" * len(LOSS_CAUSES)]
+    for p in frontier["nominal"] + frontier["cells"]:
+        label = f"nominal {p['speed']:g} m/s" if p["name"].startswith("nominal_") else p["name"]
+        lines.append(f"| {label} | " + " | ".join(_f(p["causes"].get(k)) for k in LOSS_CAUSES) + " |")
+    m, d = frontier["measured"], frontier["measured"]["device"]
+    states = sorted({"ground-truth" if c.get("estimator", "truth") == "truth" else c["estimator"]
+                     for c in frontier["cells"]} | {"ground-truth"})
+    lines += ["", "## How it was measured", "",
+              f"{m['laps']} laps per point (seeds {m['seeds'][0]}-{m['seeds'][1]}), "
+              f"{' and '.join(states)} state, on "
+              f"{d['platform']} ({d['device_kind']}; CPU {d['cpu_model']}, {d['cpu_count']} cores; jax {d['jax']}), "
+              f"written {m['written']}. A cell with no avoidable time is divided by {m['avoidable_floor_s']:g} s.",
+              "", "![avoidable low-visibility time against lap time](frontier.png)"]
+    if frontier["missing"]:
+        lines += ["", f"Not yet run (the experiment resumes with them): {', '.join(frontier['missing'])}."]
+    return "\n".join(lines) + "\n"
+
+
+def plot(frontier: dict, path: Path) -> None:
+    """Avoidable low-visibility time against lap time: the nominal curve, the frontier / 1.5, the cells."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    xs, ys = _curve(frontier["nominal"], "avoidable_s")
+    if len(xs):
+        ax.plot(xs, ys, "k-s", ms=5, label="nominal MPPI (flying slower)")
+        ax.plot(xs, ys / 1.5, "k--", lw=1, label="frontier / 1.5")
+        for p in frontier["nominal"]:
+            if p["lap_time_s"] is not None and p["avoidable_s"] is not None:
+                ax.annotate(f"{p['speed']:g} m/s", (p["lap_time_s"], p["avoidable_s"]), fontsize=7,
+                            xytext=(4, 4), textcoords="offset points")
+    markers = {"projection": "o", "dof": "^"}
+    for c in frontier["cells"]:
+        if c["lap_time_s"] is None or c["avoidable_s"] is None:
+            continue
+        label = c["name"] + ("" if c["all_laps_completed"] else f" ({_done(c)} laps; faded)")
+        alpha = 1.0 if c["all_laps_completed"] else 0.35  # lost laps end their low visibility early: faded
+        bars = ax.errorbar(c["lap_time_s"], c["avoidable_s"], xerr=c["lap_time_two_sigma_s"],
+                           yerr=c["avoidable_two_sigma_s"], fmt=markers.get(c["pixel_model"], "D"), capsize=3,
+                           label=label, alpha=alpha)
+        ax.annotate(c["name"], (c["lap_time_s"], c["avoidable_s"]), fontsize=6, xytext=(4, -10),
+                    textcoords="offset points", color=bars[0].get_color(), alpha=alpha)
+    ax.axvline(frontier["paper_lap_time_s"], color="grey", ls=":", lw=1, label="paper's nominal lap")
+    ax.set(xlabel="lap time [s]", ylabel="avoidable time with visibility < 50 % [s per lap]",
+           title="PixelMPC against flying slower (mean ± 2σ)")
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

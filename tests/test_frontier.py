@@ -1,0 +1,188 @@
+"""The speed frontier: interpolation and gain, strict JSON, report and plot, the CLI, a tiny flight."""
+
+import dataclasses
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pixelmpc_jax.sim import frontier as F
+from pixelmpc_jax.sim import grid
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+
+
+def lap(lap_time, vis, unavoidable, above=None, success=True):
+    """A lap's metrics: ``vis`` s below 50 %, ``unavoidable`` of it unavoidable, the rest above the image."""
+    causes = dict.fromkeys(LOSS_CAUSES[1:], 0.0)
+    causes["above"] = vis - unavoidable if above is None else above
+    return {"success": success, "lap_time_s": lap_time if success else None, "time_vis_below_50_s": vis,
+            "time_vis_below_50_unavoidable_s": unavoidable,
+            **{f"time_vis_below_50_{k}_s": v for k, v in causes.items()}}
+
+
+def nominal_results():
+    # avoidable 1 s at 40 s laps (6 m/s), 5 s at 32 s (8 m/s), 8 s at 26 s (10 m/s)
+    return {"nominal_6": {"laps": [lap(39.0, 3.0, 2.0), lap(41.0, 3.0, 2.0)]},
+            "nominal_8": {"laps": [lap(32.0, 7.5, 2.5), lap(32.0, 7.5, 2.5)]},
+            "nominal_10": {"laps": [lap(26.0, 10.0, 2.0), lap(26.0, 10.0, 2.0)]}}
+
+
+CELL_IN = F.pixel_cell("projection", "border")
+CELL_OUT = F.pixel_cell("projection", "l1", c_pixel=3e7)
+CELL_ZERO = F.pixel_cell("dof", "border")
+CELL_LOST = F.pixel_cell("dof", "l1")
+CELLS = (CELL_IN, CELL_OUT, CELL_ZERO, CELL_LOST)
+
+
+def hand_made():
+    results = nominal_results()
+    results[CELL_IN.name] = {"laps": [lap(35.0, 4.0, 2.5), lap(37.0, 4.0, 2.5)]}  # lap 36 s, avoidable 1.5 s
+    results[CELL_OUT.name] = {"laps": [lap(45.0, 4.0, 3.0)]}  # slower than every nominal lap
+    results[CELL_ZERO.name] = {"laps": [lap(34.0, 2.0, 2.0)]}  # nothing avoidable
+    results[CELL_LOST.name] = {"laps": [lap(33.0, 5.0, 2.0), lap(None, 1.0, 0.5, success=False)]}
+    return F.build(results, (6.0, 8.0, 10.0), CELLS, laps=2, seed=0)
+
+
+def by_name(frontier):
+    return {c["name"]: c for c in frontier["cells"]}
+
+
+def test_a_cell_between_two_nominal_points_gets_the_interpolated_frontier_and_gain():
+    frontier = hand_made()
+    assert [p["speed"] for p in frontier["nominal"]] == [6.0, 8.0, 10.0]
+    assert frontier["nominal"][0]["lap_time_s"] == pytest.approx(40.0)
+    assert frontier["nominal"][0]["avoidable_s"] == pytest.approx(1.0)
+    assert frontier["nominal"][0]["causes"]["above"] == pytest.approx(1.0)
+    cell = by_name(frontier)[CELL_IN.name]
+    assert cell["lap_time_s"] == pytest.approx(36.0) and cell["lap_time_two_sigma_s"] == pytest.approx(2.0)
+    assert cell["avoidable_s"] == pytest.approx(1.5)
+    # halfway between (40 s, 1 s) and (32 s, 5 s): 3 s; gain 3 / 1.5
+    assert cell["frontier_avoidable_s"] == pytest.approx(3.0)
+    assert cell["frontier_gain"] == pytest.approx(2.0)
+    assert cell["bracketed"] and cell["all_laps_completed"] and cell["success_rate"] == 1.0
+    assert cell["options"] == {"pixel_cost": "border"} and cell["c_pixel"] == 9e6 and cell["t_f"] == 1.0
+
+
+def test_a_cell_outside_the_nominal_range_is_not_extrapolated():
+    cell = by_name(hand_made())[CELL_OUT.name]
+    assert cell["bracketed"] is False
+    assert cell["frontier_avoidable_s"] is None and cell["frontier_gain"] is None
+    assert cell["suggested_nominal_speed"] == 5.0  # 6 m/s * 40 s / 45 s = 5.3, rounded down to 0.5 m/s
+    assert F.interpolate(hand_made()["nominal"], 25.0) is None  # faster than the fastest nominal lap
+
+
+def test_no_avoidable_time_uses_the_floor_and_lost_laps_are_flagged():
+    cells = by_name(hand_made())
+    zero = cells[CELL_ZERO.name]
+    assert zero["avoidable_s"] == 0.0
+    assert zero["frontier_avoidable_s"] == pytest.approx(5.0 - 4.0 * 2 / 8)  # at 34 s between 32 s and 40 s
+    assert zero["frontier_gain"] == pytest.approx(zero["frontier_avoidable_s"] / F.AVOIDABLE_FLOOR_S)
+    lost = cells[CELL_LOST.name]
+    assert lost["all_laps_completed"] is False and lost["success_rate"] == 0.5 and lost["laps_completed"] == 1
+    assert lost["avoidable_s"] == pytest.approx(3.0)  # from the completed lap only
+    assert lost["frontier_gain"] == pytest.approx((5.0 - 4.0 / 8) / 3.0)
+
+
+def test_paper_pace_interpolates_the_speed_on_the_lap_time():
+    frontier = hand_made()
+    # 31.8 s lies between 32 s (8 m/s) and 26 s (10 m/s)
+    assert frontier["paper_pace"] == pytest.approx(8.0 + 2.0 * 0.2 / 6.0)
+    slow = F.build(nominal_results(), (6.0, 8.0), (), laps=2, seed=0)
+    assert slow["paper_pace"] is None  # 32-40 s laps do not bracket 31.8 s
+
+
+def test_frontier_json_is_strict_and_the_report_and_plot_are_written(tmp_path):
+    frontier = hand_made()
+    frontier["cells"][0]["two_sigma_nan"] = math.nan  # a non-finite value must not reach the file
+    F.write(frontier, tmp_path)
+
+    def reject(name):
+        raise ValueError(f"non-strict JSON constant {name}")
+
+    loaded = json.loads((tmp_path / "frontier.json").read_text(), parse_constant=reject)
+    assert loaded["cells"][0]["two_sigma_nan"] is None
+    assert {"nominal", "cells", "paper_pace", "measured"} <= set(loaded)
+    for key in ("speed", "lap_time_s", "avoidable_s", "vis_below_50_s", "success_rate"):
+        assert key in loaded["nominal"][0]
+    for key in ("name", "pixel_model", "speed", "lap_time_s", "avoidable_s", "vis_below_50_s", "success_rate",
+                "frontier_avoidable_s", "frontier_gain", "bracketed", "all_laps_completed", "causes", "options"):
+        assert key in loaded["cells"][0]
+    assert loaded["measured"]["device"]["platform"]
+    text = (tmp_path / "REPORT.md").read_text()
+    assert "![avoidable low-visibility time against lap time](frontier.png)" in text
+    assert "not bracketed" in text and "about 5 m/s" in text and "lost laps" in text
+    assert "| 2.00 |" in text  # the gain of the bracketed cell
+    assert (tmp_path / "frontier.png").stat().st_size > 10_000
+
+
+def test_an_interrupted_run_writes_what_finished_and_raises_again(tmp_path, monkeypatch):
+    def interrupted(cells, out, **kwargs):
+        first = cells[0]
+        results = {first.name: {"laps": nominal_results()["nominal_6"]["laps"], "config": grid.cell_record(first)}}
+        (Path(out) / "results.json").parent.mkdir(parents=True, exist_ok=True)
+        (Path(out) / "results.json").write_text(json.dumps(results))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(grid, "run_grid", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        F.run_frontier((6.0, 8.0), (CELL_IN,), tmp_path, laps=2, seed=0, progress=False)
+    saved = json.loads((tmp_path / "frontier.json").read_text())
+    assert [p["speed"] for p in saved["nominal"]] == [6.0]
+    assert saved["missing"] == ["nominal_8", CELL_IN.name]
+    assert "Not yet run" in (tmp_path / "REPORT.md").read_text()
+
+
+def load_cli():
+    path = Path(__file__).resolve().parent.parent / "experiments" / "visibility_frontier.py"
+    spec = importlib.util.spec_from_file_location("visibility_frontier", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("args", [["--laps", "0"], ["--speeds", "8", "nan"], ["--speeds", "8", "-1"],
+                                  ["--speeds", "8", "inf"], ["--speeds", "8"], ["--seed", "-1"]])
+def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, capsys):
+    with pytest.raises(SystemExit) as exc:
+        load_cli().main(["--out", str(tmp_path / "out"), *args])
+    assert exc.value.code == 2
+    assert not (tmp_path / "out").exists()
+    assert "error:" in capsys.readouterr().err
+
+
+def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch):
+    cli = load_cli()
+    seen = {}
+
+    def stop(speeds, cells, out, laps, seed):
+        seen.update(speeds=speeds, cells=cells, laps=laps)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.frontier_lib, "run_frontier", stop)
+    assert cli.main(["--out", str(tmp_path), "--quick"]) == 130
+    assert seen["speeds"] == F.QUICK_SPEEDS and seen["laps"] == 4
+    assert [c.options for c in seen["cells"]] == [(("pixel_cost", "border"),)] * 2
+    assert {c.pixel_model for c in seen["cells"]} == {"projection", "dof"}
+    assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
+
+
+def test_reproduce_has_a_frontier_part():
+    from pixelmpc_jax import reproduce as R
+
+    assert R.resolve_parts(["frontier"]) == ["frontier"]
+    assert "frontier" in R._runners(quick=True, progress=False) and "frontier" in R.TITLES
+
+
+def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
+    cell = dataclasses.replace(F.pixel_cell("projection", "border"), max_time_s=0.2)
+    frontier = F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=False, max_time_s=0.2)
+    assert [p["speed"] for p in frontier["nominal"]] == [8.0] and frontier["missing"] == []
+    row = frontier["cells"][0]
+    assert row["success_rate"] == 0.0 and row["lap_time_s"] is None and row["frontier_gain"] is None
+    json.loads((tmp_path / "frontier.json").read_text(), parse_constant=lambda name: 1 / 0)
+    assert (tmp_path / "frontier.png").exists() and "completed no lap" in (tmp_path / "REPORT.md").read_text()
+    capsys.readouterr()
+    F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=True, max_time_s=0.2)
+    assert capsys.readouterr().out.count("kept from") == 2  # resumed: nothing flown again
