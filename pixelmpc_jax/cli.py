@@ -130,7 +130,8 @@ def _cmd_collect(args) -> int:
     from pixelmpc_jax.learn.dataset import run_collect
 
     run_collect(args.out, laps=args.laps, seed=args.seed, max_lap_time_s=args.max_lap_time,
-                supersample=args.supersample, paper=args.paper)
+                supersample=args.supersample, paper=args.paper, excitation=args.excitation,
+                excitation_pulse_rad_s=args.excitation_pulse, excitation_dither_rad_s=args.excitation_dither)
     return 0
 
 
@@ -198,6 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-lap-time", type=_positive_float, default=10.0, help="seconds flown per lap (default 10)")
     p.add_argument("--supersample", type=_positive_int, default=1, help="render supersampling (default 1)")
     p.add_argument("--paper", action="store_true", help="the paper's size: 10 laps of up to 30 s")
+    p.add_argument("--excitation", action="store_true",
+                   help="train laps add held body-rate pulses and dither to the nominal MPPI's command")
+    p.add_argument("--excitation-pulse", type=_positive_float, default=1.5,
+                   help="pulse amplitude, uniform in +- this per axis, rad/s (default 1.5)")
+    p.add_argument("--excitation-dither", type=_positive_float, default=0.3,
+                   help="std of the per-tick rate dither, rad/s (default 0.3)")
     p.set_defaults(func=_cmd_collect)
 
     p = sub.add_parser("train", help="train the DOF network on a collected dataset (resumable)")

@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.learn import dataset as D
+from pixelmpc_jax.learn import train as T
 from pixelmpc_jax.learn.train import FlowData
 from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.sim import episode as episode_lib
 
 H, W = 153, 204
 # Two 1 s laps (40 ticks each) with a small MPPI: lap 0 train at 6 m/s, lap 1 test at 14 m/s.
@@ -147,3 +153,134 @@ def test_clear_errors_for_missing_or_damaged_data(tiny_dir, tmp_path):
         D.load_dataset(damaged, "train")
     with pytest.raises(FileNotFoundError, match="lap_001.npz"):
         D.load_dataset(damaged, "test")
+
+
+# --------------------------------------------------------------------------------------------------
+# Flown rates, old datasets, excitation.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_flown_rates_of_a_constant_rate_rotation_are_that_rate():
+    params = quadrotor.QuadParams()
+    x = quadrotor.hover_state((0.0, 0.0, 2.0), yaw=0.4)
+    u = jnp.asarray([0.7, -1.1, 2.5, 9.0])
+    states = [np.asarray(x)]
+    for _ in range(3):  # three frames of 24 substeps each, as the plant integrates the attitude
+        for _ in range(24):
+            x = quadrotor.step(x, u, episode_lib.CONTROL_DT / 24, params)
+        states.append(np.asarray(x))
+    w = D.flown_rates(np.stack(states), episode_lib.CONTROL_DT)
+    assert w.shape == (3, 3) and w.dtype == np.float32
+    np.testing.assert_allclose(w, np.tile(np.asarray(u[:3]), (3, 1)), atol=1e-4)
+    # q and -q are the same attitude: the shorter rotation is taken
+    flipped = np.stack(states)
+    flipped[1, 3:7] *= -1
+    np.testing.assert_allclose(D.flown_rates(flipped, episode_lib.CONTROL_DT), w, atol=1e-4)
+
+
+def test_lap_files_store_the_rates_flown_over_each_frame(tiny_dir):
+    manifest = json.loads((tiny_dir / D.MANIFEST).read_text())
+    assert manifest["format_version"] == 2 and "w_flown" in manifest["flown_rates"]
+    assert manifest["excited_laps"] == []
+    with np.load(tiny_dir / "lap_001.npz") as lap:
+        w, rates, u = lap["w_flown"], lap["rates"], lap["u"]
+        assert w.shape == (FRAMES, 3) and rates.shape == (FRAMES + 1, 3)
+        np.testing.assert_allclose(w, D.flown_rates(lap["states"]), atol=1e-6)
+    # The mean rate over a tick lies between the true rates at its two ends (the rate loop is smooth).
+    trapezoid = 0.5 * (rates[:-1] + rates[1:])
+    assert np.max(np.abs(w - trapezoid)) < 0.05 + 0.05 * np.max(np.abs(trapezoid))
+    assert np.max(np.abs(w - u[:, :3])) > 0.05  # and it is not the command
+    test = D.load_dataset(tiny_dir, "test", input="flown")
+    np.testing.assert_array_equal(test.u[:, :3], w)
+    np.testing.assert_array_equal(test.u[:, 3], u[:, 3])  # the commanded thrust
+    np.testing.assert_array_equal(D.load_dataset(tiny_dir, "test", input="command").u, u)
+    assert D.load_laps(tiny_dir, "test")[0].info["w_flown_source"] == "stored"
+    with pytest.raises(ValueError, match="input"):
+        D.load_dataset(tiny_dir, "test", input="gyro")
+
+
+def _strip_to_format_1(src, dst):
+    """A copy of a dataset as format 1 wrote it: no flown rates in the lap files, no excitation fields."""
+    dst.mkdir()
+    manifest = json.loads((src / D.MANIFEST).read_text())
+    manifest["format_version"] = 1
+    for key in [k for k in manifest["config"] if k.startswith("excitation")]:
+        del manifest["config"][key]
+    for key in ("flown_rates", "excited_laps"):
+        manifest.pop(key)
+    for entry in manifest["laps"]:
+        entry.pop("excited")
+        with np.load(src / entry["file"]) as data:
+            arrays = {k: data[k] for k in data.files if k not in D.FLOWN_KEYS and k != "meta_excited"}
+        np.savez_compressed(dst / entry["file"], **arrays)
+        entry["bytes"] = (dst / entry["file"]).stat().st_size
+    (dst / D.MANIFEST).write_text(json.dumps(manifest))
+    return manifest
+
+
+def test_old_datasets_without_flown_rates_load_train_and_resume(tiny_dir, tmp_path):
+    old = tmp_path / "old"
+    _strip_to_format_1(tiny_dir, old)
+    with zipfile.ZipFile(old / "lap_000.npz") as archive:
+        assert not {"w_flown.npy", "rates.npy"} & set(archive.namelist())
+    for split in ("train", "test"):
+        for input in T.INPUTS:  # the flown rates are derived from the stored states: the same numbers
+            np.testing.assert_array_equal(D.load_dataset(old, split, input=input).u,
+                                          D.load_dataset(tiny_dir, split, input=input).u)
+    assert D.load_laps(old, "train")[0].info["w_flown_source"] == "states"
+    config = T.TrainConfig(steps=3, batch_size=64, log_every=1, checkpoint_every=0, probe_size=64,
+                           progress=False, input="flown")
+    params, history = T.train(config, D.load_dataset(old, "train", input="flown"),
+                              D.load_dataset(old, "test", input="flown"))
+    assert history["step"] == [1, 2, 3] and np.isfinite(history["test_aee_px"])
+    # Collecting into it again with the config it was made with reuses it (the new fields at their defaults).
+    before = {p.name: p.stat().st_mtime_ns for p in old.glob("lap_*.npz")}
+    manifest = D.collect(old, TINY, progress=False)
+    assert manifest["complete"] and manifest["format_version"] == 1
+    assert {p.name: p.stat().st_mtime_ns for p in old.glob("lap_*.npz")} == before
+    with pytest.raises(ValueError, match="another config"):
+        D.collect(old, D.CollectConfig(**{**TINY.to_json(), "test_laps": (1,), "excitation": True}),
+                  progress=False)
+
+
+def _constant_policy(u):
+    return episode_lib.Policy(init=lambda key: jnp.zeros(()),
+                              act=lambda state, obs, world: (jnp.asarray(u), state, jnp.zeros((2, 10))),
+                              name="constant")
+
+
+def test_excited_policy_adds_held_pulses_within_the_rate_bounds():
+    base_u = jnp.asarray([5.5, 0.0, -1.0, 9.0])
+    policy = D.excited_policy(_constant_policy(base_u), pulse_rad_s=1.5, hold_s=0.3, gap_s=0.5, dither_rad_s=0.0)
+    state = policy.init(jax.random.key(3))
+    act = jax.jit(lambda s: policy.act(s, None, None))
+    us = []
+    for _ in range(400):
+        u, state, _ = act(state)
+        us.append(np.asarray(u))
+    us = np.stack(us)
+    np.testing.assert_array_equal(us[:, 3], 9.0)  # thrust untouched
+    offset = us[:, :3] - np.asarray(base_u[:3])
+    assert np.all(us[:, :3] <= 6.0 + 1e-6) and np.all(us[:, :3] >= -6.0 - 1e-6)  # the MPPI's rate bounds
+    for axis in (1, 2):  # unclipped axes: pulses of at most 1.5 rad/s, held for 4-12 ticks, off between
+        on = np.abs(offset[:, axis]) > 1e-6
+        assert 0.15 < on.mean() < 0.7
+        assert np.max(np.abs(offset[:, axis])) <= 1.5 + 1e-6
+        changes = np.nonzero(np.diff(offset[:, axis]))[0]
+        runs = np.diff(changes)
+        assert runs.min() >= 1 and np.median(runs) >= 3
+    assert np.max(offset[:, 0]) <= 0.5 + 1e-6  # clipped at 6 rad/s
+    dithered = D.excited_policy(_constant_policy(base_u), pulse_rad_s=0.0, dither_rad_s=0.3)
+    state = dithered.init(jax.random.key(0))
+    u, _, _ = dithered.act(state, None, None)
+    assert 0 < np.max(np.abs(np.asarray(u[1:3]) - np.asarray(base_u[1:3]))) < 1.5
+
+
+def test_collect_with_excitation_excites_the_train_laps_only(tmp_path):
+    config = D.CollectConfig(laps=2, max_lap_time_s=0.5, num_samples=64, test_laps=(1,), render_batch=16,
+                             excitation=True)
+    assert [config.excited(i) for i in range(2)] == [True, False]
+    manifest = D.collect(tmp_path, config, progress=False)
+    assert manifest["excited_laps"] == [0] and [e["excited"] for e in manifest["laps"]] == [True, False]
+    train = D.load_laps(tmp_path, "train", with_flow=False)[0]
+    assert np.all(np.isfinite(train.w_flown)) and np.all(np.abs(train.u[:, :3]) <= 6.0 + 1e-6)

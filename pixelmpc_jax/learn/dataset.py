@@ -4,7 +4,20 @@ Nominal MPPI laps (the racing cost only, ground-truth state) are flown on the Al
 speeds spread over 6-14 m/s across laps. Every 1/40 s tick of a lap is rendered (``render_batch``, one
 compiled chunk size), Farneback flow (the paper's parameters) is computed between consecutive grey
 frames, and each flow frame ``t`` is stored with the orientation ``q_t``, the control ``u_t`` applied
-between ``t`` and ``t + 1``, the full state and the target gate.
+between ``t`` and ``t + 1``, the body rates actually flown between ``t`` and ``t + 1``, the full state and
+the target gate.
+
+The command is not what the camera turns by: the plant's rate loop flies it with a slope of about 0.65 and
+a lag of about 0.11 s, so a frame's flow paired with its tick's command shows a diluted, delayed response.
+``w_flown[t]`` is the mean body rate over the frame interval, ``2 log(q_t^-1 q_{t+1}) / dt``: the rotation
+the camera made between the two frames, which is the noise-free gyro preintegrated over the tick (the
+plant integrates the attitude with the true rates, the filter preintegrates the gyro the same way). The
+MPC's robot model assumes the commanded rates are flown at once, so a pixel model trained on ``w_flown``
+(``input="flown"``) answers the question the MPC asks of it.
+
+With ``CollectConfig.excitation`` the TRAIN laps add held rate pulses and dither to the nominal MPPI's
+body-rate command (:func:`excited_policy`, within the rate bounds), so the flown rates vary independently
+of the attitude and the place on the course; the test laps stay nominal (the flight the DOF serves).
 
 On disk, one directory::
 
@@ -12,6 +25,8 @@ On disk, one directory::
     lap_000.npz ...        one lap each, written atomically (temp file + os.replace):
         flow         (F, H, W, 2) float16  Farneback flow t -> t+1, pixels per frame, flow[y, x] = (du, dv)
         q, u         (F, 4) float32        orientation at t, control applied between t and t+1
+        w_flown      (F, 3) float32        mean body rate flown between t and t+1 (rad/s; format 2)
+        rates        (F + 1, 3) float32    true body rates at every rendered frame (rad/s; format 2)
         states       (F + 1, 10) float32   true state at every rendered frame
         target       (F + 1,) int32        target gate index at every rendered frame
         exact_flow   (F, H, W, 2) float16  exact flow from depth + poses (test laps only by default)
@@ -23,7 +38,8 @@ storing it for every lap would more than double the dataset for nothing. It is c
 reprojection of the rendered depth), so ``"all"`` is there for experiments that want it.
 
 A lap file that exists is complete (atomic writes), so ``collect`` resumes: laps already on disk are
-skipped, and Ctrl-C loses at most the lap in progress.
+skipped, and Ctrl-C loses at most the lap in progress. Lap files of format 1 (no ``w_flown``) still load:
+their flown rates are derived from the stored states, which is the same computation.
 """
 
 from __future__ import annotations
@@ -45,7 +61,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pixelmpc_jax.learn.train import FlowData
+from pixelmpc_jax.learn.train import INPUTS, FlowData
 from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
@@ -54,9 +70,12 @@ from pixelmpc_jax.world import render as render_lib
 from pixelmpc_jax.world import track as track_lib
 
 DATASET_FORMAT = "pixelmpc_jax.flow_dataset"
-DATASET_VERSION = 1
+DATASET_VERSION = 2
 MANIFEST = "manifest.json"
-LAP_KEYS = ("flow", "q", "u", "states", "target")
+LAP_KEYS = ("flow", "q", "u", "states", "target")  # format 1 and later; format 2 adds FLOWN_KEYS
+FLOWN_KEYS = ("w_flown", "rates")
+FLOWN_RATES = ("w_flown[t] = 2 log(q_t^-1 q_{t+1}) / dt: the mean body rate flown over the frame interval "
+               "(the noise-free gyro, preintegrated over the tick)")
 EXACT_KEYS = ("exact_flow", "exact_valid")
 # End causes after which the last logged state lies past the impact (its frame pair is dropped).
 _COLLISION_CAUSES = (track_lib.CRASH_GATE, track_lib.CRASH_GROUND, track_lib.CRASH_WALL)
@@ -81,6 +100,12 @@ class CollectConfig:
         render_batch: poses per compiled ``render_batch`` call (the last chunk is padded: one compile).
         exact_flow: ``"test"`` (exact flow for test laps only) or ``"all"``.
         num_samples: MPPI samples of the nominal controller (``race.make_policy("mppi", ...)``).
+        excitation: add held rate pulses and dither to the body-rate command of the TRAIN laps
+            (:func:`excited_policy`); test laps stay nominal.
+        excitation_pulse_rad_s: a pulse's amplitude is uniform in +- this, per axis (rad/s).
+        excitation_hold_s: a pulse is held for a time uniform in [hold / 3, hold] (s).
+        excitation_gap_s: mean time between the end of one pulse and the start of the next, per axis (s).
+        excitation_dither_rad_s: std of the white dither added every tick, per axis (rad/s).
     """
 
     laps: int = 4
@@ -94,6 +119,11 @@ class CollectConfig:
     render_batch: int = 32
     exact_flow: str = "test"
     num_samples: int = 512
+    excitation: bool = False
+    excitation_pulse_rad_s: float = 1.5
+    excitation_hold_s: float = 0.3
+    excitation_gap_s: float = 0.5
+    excitation_dither_rad_s: float = 0.3
 
     def __post_init__(self):
         if int(self.laps) < 1:
@@ -115,6 +145,10 @@ class CollectConfig:
             raise ValueError("CollectConfig.render_batch and num_samples must be >= 1")
         if self.exact_flow not in ("test", "all"):
             raise ValueError(f"CollectConfig.exact_flow must be 'test' or 'all', got {self.exact_flow!r}")
+        if not (self.excitation_pulse_rad_s >= 0 and self.excitation_dither_rad_s >= 0
+                and self.excitation_hold_s >= 3 * episode_lib.CONTROL_DT and self.excitation_gap_s > 0):
+            raise ValueError("CollectConfig excitation: pulse and dither amplitudes must be >= 0, the hold at "
+                             f"least {3 * episode_lib.CONTROL_DT:g} s and the gap > 0")
 
     @classmethod
     def paper(cls, **overrides) -> CollectConfig:
@@ -146,6 +180,23 @@ class CollectConfig:
         data["test_laps"] = None if self.test_laps is None else list(self.test_laps)
         return data
 
+    def excited(self, lap: int) -> bool:
+        """Lap ``lap`` is flown with excitation (train laps of an excited collection)."""
+        return bool(self.excitation) and self.split_of(lap) == "train"
+
+    def excitation_params(self) -> tuple[float, float, float, float]:
+        return (float(self.excitation_pulse_rad_s), float(self.excitation_hold_s), float(self.excitation_gap_s),
+                float(self.excitation_dither_rad_s))
+
+
+def _same_config(recorded: dict | None, config: CollectConfig) -> bool:
+    """A manifest's recorded config equals ``config``; fields added since it was written count at their
+    defaults (a format-1 dataset, collected without excitation, still resumes and is reused)."""
+    if recorded is None:
+        return False
+    defaults = {f.name: f.default for f in dataclasses.fields(CollectConfig)}
+    return {**race.json_safe(defaults), **recorded} == race.json_safe(config.to_json())
+
 
 class Lap(NamedTuple):
     """One stored lap (host arrays; ``None`` for fields not loaded or not stored). F flow frames.
@@ -156,7 +207,9 @@ class Lap(NamedTuple):
         states: (F + 1, 10) float32, true state at each rendered frame.
         target: (F + 1,) int32 target gate index.
         exact_flow: (F, H, W, 2) float16 or None; exact_valid: (F, H, W) bool or None.
-        info: the lap's manifest entry (index, split, speed, seed, frames, end, ...).
+        info: the lap's manifest entry (index, split, speed, seed, frames, end, ...); ``w_flown_source`` is
+            "stored" or "states" (a format-1 file: derived from the states).
+        w_flown: (F, 3) float32, the mean body rates flown over each frame interval (rad/s).
     """
 
     flow: np.ndarray | None
@@ -167,6 +220,47 @@ class Lap(NamedTuple):
     exact_flow: np.ndarray | None
     exact_valid: np.ndarray | None
     info: dict
+    w_flown: np.ndarray | None = None
+
+
+def flown_rates(states: np.ndarray, dt: float = episode_lib.CONTROL_DT) -> np.ndarray:
+    """Mean body rates (F, 3) rad/s flown between consecutive states (F + 1, 10): ``2 log(q_t^-1 q_{t+1}) / dt``.
+
+    The body-frame rotation vector of the attitude change over the interval, divided by its length. The model
+    integrates ``q_dot = q (x) [0, w] / 2`` with body rates ``w``, so for rates constant over the interval
+    this is exactly them; for changing rates it is the rotation the camera actually made (the preintegrated
+    gyro), which sets the rotational flow between the frames.
+    """
+    q = np.asarray(states, np.float64)[:, 3:7]
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    a, b = q[:-1], q[1:]
+    aw, ax, ay, az = a[:, 0], -a[:, 1], -a[:, 2], -a[:, 3]  # conjugate of q_t
+    bw, bx, by, bz = b.T
+    d = np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                  aw * bx + ax * bw + ay * bz - az * by,
+                  aw * by - ax * bz + ay * bw + az * bx,
+                  aw * bz + ax * by - ay * bx + az * bw], axis=1)
+    d = d * np.where(d[:, :1] < 0, -1.0, 1.0)  # the shorter of the two rotations
+    s = np.linalg.norm(d[:, 1:], axis=1)
+    angle = 2.0 * np.arctan2(s, d[:, 0])
+    scale = np.where(s > 1e-12, angle / np.maximum(s, 1e-300), 2.0)
+    return (d[:, 1:] * scale[:, None] / float(dt)).astype(np.float32)
+
+
+def control_input(u: np.ndarray, w_flown: np.ndarray, input: str = "command") -> np.ndarray:
+    """The DOF's 4-vector control input per frame (F, 4): the command ``u`` ("command", the paper's), or
+    the rates flown over the frame with the commanded thrust ``[w_flown, u_thrust]`` ("flown")."""
+    if input not in INPUTS:
+        raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
+    u = np.asarray(u, np.float32)
+    if input == "command":
+        return u
+    return np.concatenate([np.asarray(w_flown, np.float32), u[:, 3:4]], axis=1)
+
+
+def lap_input(lap: Lap, input: str = "command") -> np.ndarray:
+    """:func:`control_input` of a loaded lap."""
+    return control_input(lap.u, lap.w_flown, input)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -179,10 +273,61 @@ def lap_filename(index: int) -> str:
 
 
 @functools.lru_cache(maxsize=4)
-def _cached_runner(num_samples: int, max_time_s: float) -> episode_lib.Runner:
-    """The nominal MPPI episode runner (current ``race.make_policy`` defaults), compiled once per size."""
-    return episode_lib.make_runner(race.make_policy("mppi", num_samples=num_samples),
-                                   episode_lib.EpisodeConfig(max_time_s=max_time_s))
+def _cached_runner(num_samples: int, max_time_s: float, excitation: tuple | None = None) -> episode_lib.Runner:
+    """The nominal MPPI episode runner (current ``race.make_policy`` defaults), compiled once per size;
+    with ``excitation`` (``CollectConfig.excitation_params()``) wrapped in :func:`excited_policy`."""
+    policy = race.make_policy("mppi", num_samples=num_samples)
+    if excitation is not None:
+        policy = excited_policy(policy, *excitation, num_samples=num_samples)
+    return episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s))
+
+
+class ExcitationState(NamedTuple):
+    """Per-axis held pulse (3,) rad/s, ticks it has left (3,) int32, and the key."""
+
+    pulse: jax.Array
+    remaining: jax.Array
+    key: jax.Array
+
+
+def excited_policy(base: episode_lib.Policy, pulse_rad_s: float = 1.5, hold_s: float = 0.3, gap_s: float = 0.5,
+                   dither_rad_s: float = 0.3, num_samples: int = 512) -> episode_lib.Policy:
+    """``base`` with held rate pulses and dither added to its body-rate command (thrust untouched).
+
+    Per axis and tick: an idle axis starts a pulse with probability ``dt / gap_s``, of amplitude uniform in
+    ``+-pulse_rad_s``, held for a time uniform in ``[hold_s / 3, hold_s]``; white dither of std
+    ``dither_rad_s`` is added on top. The result is clipped to the MPPI's rate bounds. The controller keeps
+    acting on the true state, so it flies the perturbation out; the data see the rates move independently of
+    the attitude and the place on the course.
+    """
+    dt = episode_lib.CONTROL_DT
+    bounds = episode_lib.paper_mppi_config(num_samples=num_samples)
+    lo, hi = jnp.asarray(bounds.u_min[:3], jnp.float32), jnp.asarray(bounds.u_max[:3], jnp.float32)
+    hold_max = max(int(round(hold_s / dt)), 3)
+    hold_min = max(hold_max // 3, 1)
+    start_probability = min(dt / gap_s, 1.0)
+
+    def init(key):
+        key_base, key_exc = jax.random.split(key)
+        return (base.init(key_base),
+                ExcitationState(jnp.zeros(3, jnp.float32), jnp.zeros(3, jnp.int32), key_exc))
+
+    def act(state, obs, world):
+        base_state, exc = state
+        u, base_state, prediction = base.act(base_state, obs, world)
+        key, key_start, key_amp, key_hold, key_dither = jax.random.split(exc.key, 5)
+        start = (exc.remaining <= 0) & (jax.random.uniform(key_start, (3,)) < start_probability)
+        amplitude = jax.random.uniform(key_amp, (3,), minval=-pulse_rad_s, maxval=pulse_rad_s)
+        hold = jax.random.randint(key_hold, (3,), hold_min, hold_max + 1)
+        remaining = jnp.where(start, hold, jnp.maximum(exc.remaining - 1, 0))
+        pulse = jnp.where(start, amplitude, jnp.where(remaining > 0, exc.pulse, 0.0))
+        dither = dither_rad_s * jax.random.normal(key_dither, (3,))
+        rates = jnp.clip(u[:3] + (pulse + dither).astype(u.dtype), lo.astype(u.dtype), hi.astype(u.dtype))
+        u = jnp.concatenate([rates, u[3:]])
+        return u, (base_state, ExcitationState(pulse.astype(jnp.float32), remaining.astype(jnp.int32), key)), \
+            prediction
+
+    return episode_lib.Policy(init=init, act=act, name=f"{base.name}+excitation")
 
 
 def _versions() -> dict:
@@ -236,7 +381,8 @@ def _lap_summary(path: Path) -> dict:
 
 def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> tuple[np.ndarray, np.ndarray,
                                                                                     np.ndarray, dict]:
-    """Fly one lap; returns states (F + 1, 10), controls (F, 4), targets (F + 1,) and a summary.
+    """Fly one lap; returns states (F + 1, 10), controls (F, 4), targets (F + 1,) and a summary (its
+    ``rates`` entry: the true body rates (F + 1, 3) at each state).
 
     After a collision the last state lies past the impact: that tick is dropped.
     """
@@ -252,6 +398,7 @@ def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> 
         "end": "finished" if bool(log.finished) else episode_lib.END_NAMES.get(cause, str(cause)),
         "gates_passed": int(log.gates_passed),
         "finished": bool(log.finished),
+        "rates": np.asarray(log.body_rates[: frames + 1], np.float32),
     }
     return (np.asarray(log.states[: frames + 1], np.float32), np.asarray(log.controls[:frames], np.float32),
             np.asarray(log.target[: frames + 1], np.int32), summary)
@@ -285,15 +432,19 @@ _exact_flow_batch = jax.jit(jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, No
 
 
 def lap_arrays(world: episode_lib.World, states: np.ndarray, controls: np.ndarray, targets: np.ndarray,
-               config: CollectConfig, with_exact: bool, bar=None) -> dict:
-    """Render a flown lap and compute its flows: the arrays of one lap file (see the module docstring)."""
+               config: CollectConfig, with_exact: bool, bar=None, rates: np.ndarray | None = None) -> dict:
+    """Render a flown lap and compute its flows: the arrays of one lap file (see the module docstring).
+    ``rates``: the true body rates (F + 1, 3) at each state, stored when given."""
     frames = controls.shape[0]
     grey, depth = render_lap(world, states, config, with_exact, bar)
     H, W = grey.shape[1:]
     flow = np.empty((frames, H, W, 2), np.float16)
     for t in range(frames):
         flow[t] = flow_lib.farneback(grey[t], grey[t + 1], shape=None)
-    arrays = {"flow": flow, "q": states[:frames, 3:7].copy(), "u": controls, "states": states, "target": targets}
+    arrays = {"flow": flow, "q": states[:frames, 3:7].copy(), "u": controls, "states": states, "target": targets,
+              "w_flown": flown_rates(states, episode_lib.CONTROL_DT)}
+    if rates is not None:
+        arrays["rates"] = np.asarray(rates, np.float32)
     if with_exact:
         exact = np.empty((frames, H, W, 2), np.float16)
         valid = np.empty((frames, H, W), bool)
@@ -341,11 +492,27 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
     root.mkdir(parents=True, exist_ok=True)
     previous = _read_manifest(root)
     policy_name = policy.name if policy is not None else "mppi"
-    if previous is not None and (previous.get("config") != config.to_json() or previous.get("policy") != policy_name):
+    if previous is not None and (not _same_config(previous.get("config"), config)
+                                 or previous.get("policy") != policy_name):
         raise ValueError(f"{root} holds a dataset collected with another config ({previous.get('config')}, policy "
                          f"{previous.get('policy')!r}); use a new directory or the same config to resume")
-    runner = (episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
-              if policy is not None else _cached_runner(int(config.num_samples), float(config.max_lap_time_s)))
+    if policy is not None:
+        nominal = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
+        excitation = config.excitation_params()
+        runners = {False: nominal,
+                   True: episode_lib.make_runner(excited_policy(policy, *excitation,
+                                                                num_samples=config.num_samples),
+                                                 episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
+                   if config.excitation else None}
+    else:
+        runners = {False: None, True: None}
+
+    def runner_for(lap: int) -> episode_lib.Runner:
+        excited = config.excited(lap)
+        if runners[excited] is None:
+            runners[excited] = _cached_runner(int(config.num_samples), float(config.max_lap_time_s),
+                                              config.excitation_params() if excited else None)
+        return runners[excited]
     base = episode_lib.make_world()
     speeds, seeds = config.speeds(), config.seeds()
     manifest = {
@@ -357,6 +524,8 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         if policy is None else None,
         "image_size_wh": [int(base.camera.width), int(base.camera.height)],
         "frame_dt_s": episode_lib.CONTROL_DT,
+        "flown_rates": FLOWN_RATES,
+        "excited_laps": [i for i in range(config.laps) if config.excited(i)],
         "farneback": {k: v for k, v in flow_lib.FARNEBACK_PARAMS.items()},
         "split": {"train": [i for i in range(config.laps) if config.split_of(i) == "train"],
                   "test": config.test_indices()},
@@ -368,6 +537,8 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         "created": (previous or {}).get("created", datetime.datetime.now().isoformat(timespec="seconds")),
         "complete": False,
     }
+    if previous is not None and previous.get("format_version", 1) != DATASET_VERSION:
+        manifest["format_version"] = previous.get("format_version", 1)  # laps of mixed formats: the oldest
     manifest = race.json_safe(manifest)
     done: dict[int, dict] = {}
     bar = frames_bar = None
@@ -389,7 +560,8 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
             world = base.replace(target_speed=jnp.asarray(speeds[lap], jnp.float32))
             if bar is not None:
                 bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="fly")
-            states, controls, targets, summary = fly_lap(world, seeds[lap], runner)
+            states, controls, targets, summary = fly_lap(world, seeds[lap], runner_for(lap))
+            rates = summary.pop("rates")
             if summary["frames"] < 1:
                 raise RuntimeError(f"lap {lap} (seed {seeds[lap]}, {speeds[lap]:.1f} m/s) ended before a single "
                                    f"frame pair ({summary['end']}); nothing to store")
@@ -399,11 +571,12 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
                 bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="render+flow")
                 frames_bar = tqdm(total=states.shape[0], desc=f"lap {lap} frames", unit="frame", leave=False)
             with_exact = config.exact_flow == "all" or split == "test"
-            arrays = lap_arrays(world, states, controls, targets, config, with_exact, frames_bar)
+            arrays = lap_arrays(world, states, controls, targets, config, with_exact, frames_bar, rates)
             if frames_bar is not None:
                 frames_bar.close()
                 frames_bar = None
-            meta = {"lap": lap, "split": split, "speed": speeds[lap], "seed": seeds[lap], **summary}
+            meta = {"lap": lap, "split": split, "speed": speeds[lap], "seed": seeds[lap],
+                    "excited": config.excited(lap), **summary}
             arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
             _save_npz_atomic(path, arrays)
             done[lap] = _lap_entry(lap, path, split, _lap_summary(path))
@@ -480,12 +653,16 @@ def load_lap(path, with_flow: bool = True, with_exact: bool = True, info: dict |
                 raise ValueError(f"missing arrays {missing}")
             meta = {k.removeprefix("meta_"): data[k].item() for k in data.files if k.startswith("meta_")}
             has_exact = all(k in data.files for k in EXACT_KEYS)
+            stored = "w_flown" in data.files
+            states = data["states"]
+            w_flown = data["w_flown"] if stored else flown_rates(states, episode_lib.CONTROL_DT)
             lap = Lap(
                 flow=data["flow"] if with_flow else None,
-                q=data["q"], u=data["u"], states=data["states"], target=data["target"],
+                q=data["q"], u=data["u"], states=states, target=data["target"],
                 exact_flow=data["exact_flow"] if (with_exact and has_exact) else None,
                 exact_valid=data["exact_valid"] if (with_exact and has_exact) else None,
-                info={**meta, **(info or {})},
+                info={**meta, **(info or {}), "w_flown_source": "stored" if stored else "states"},
+                w_flown=w_flown,
             )
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: lap file listed in the manifest is missing; run collect again to "
@@ -495,7 +672,7 @@ def load_lap(path, with_flow: bool = True, with_exact: bool = True, info: dict |
                          f"that lap") from err
     frames = lap.q.shape[0]
     if (lap.u.shape != (frames, 4) or lap.states.shape != (frames + 1, 10) or lap.target.shape != (frames + 1,)
-            or (lap.flow is not None and lap.flow.shape[0] != frames)):
+            or lap.w_flown.shape != (frames, 3) or (lap.flow is not None and lap.flow.shape[0] != frames)):
         raise ValueError(f"{path}: inconsistent lap arrays (q {lap.q.shape}, u {lap.u.shape}, states "
                          f"{lap.states.shape}, target {lap.target.shape}); delete it and collect again")
     return lap
@@ -508,11 +685,15 @@ def load_laps(data_dir, split: str = "test", with_flow: bool = True, with_exact:
     return [load_lap(root / e["file"], with_flow, with_exact, info=e) for e in _split_laps(manifest, split, root)]
 
 
-def load_dataset(data_dir, split: str = "train") -> FlowData:
+def load_dataset(data_dir, split: str = "train", input: str = "command") -> FlowData:
     """The ``split`` frames as train.py's :class:`FlowData`: q (F, 4) f32, u (F, 4) f32, flow (F, H, W, 2) f16.
 
-    Filled lap by lap into one preallocated array (no transient second copy of the flows).
+    ``u`` is the DOF's control input of the variant ``input`` (:func:`control_input`): the command, or the
+    rates flown over the frame with the commanded thrust. Datasets of format 1 (no stored flown rates) load
+    either way. Filled lap by lap into one preallocated array (no transient second copy of the flows).
     """
+    if input not in INPUTS:
+        raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
     root = Path(data_dir)
     manifest = read_manifest(root)
     entries = _split_laps(manifest, split, root)
@@ -528,7 +709,7 @@ def load_dataset(data_dir, split: str = "train") -> FlowData:
         if n != entry["frames"] or lap.flow.shape[1:] != (H, W, 2):
             raise ValueError(f"{root / entry['file']}: {n} frames of {lap.flow.shape[1:]} but the manifest says "
                              f"{entry['frames']} of {(H, W, 2)}; delete the lap file and collect again")
-        q[start:start + n], u[start:start + n], flow[start:start + n] = lap.q, lap.u, lap.flow
+        q[start:start + n], u[start:start + n], flow[start:start + n] = lap.q, lap_input(lap, input), lap.flow
         start += n
     return FlowData(q, u, flow)
 
@@ -540,11 +721,15 @@ def load_dataset(data_dir, split: str = "train") -> FlowData:
 
 def run_collect(out_dir, laps: int = 4, seed: int = 0, max_lap_time_s: float = 10.0, speed_min: float = 6.0,
                 speed_max: float = 14.0, supersample: int = 1, test_laps: Sequence[int] | None = None,
-                paper: bool = False, progress: bool = True) -> dict:
+                paper: bool = False, progress: bool = True, excitation: bool = False,
+                excitation_pulse_rad_s: float = 1.5, excitation_dither_rad_s: float = 0.3) -> dict:
     """Collect a dataset and print a short summary. ``paper=True`` starts from :meth:`CollectConfig.paper`
-    (10 laps of 30 s) and ignores ``laps`` and ``max_lap_time_s``."""
+    (10 laps of 30 s) and ignores ``laps`` and ``max_lap_time_s``. ``excitation``: held rate pulses and
+    dither on the train laps (see :func:`excited_policy`)."""
     fields = dict(seed=seed, speed_min=speed_min, speed_max=speed_max, supersample=supersample,
-                  test_laps=None if test_laps is None else tuple(test_laps))
+                  test_laps=None if test_laps is None else tuple(test_laps), excitation=bool(excitation),
+                  excitation_pulse_rad_s=float(excitation_pulse_rad_s),
+                  excitation_dither_rad_s=float(excitation_dither_rad_s))
     config = (CollectConfig.paper(**fields) if paper
               else CollectConfig(laps=laps, max_lap_time_s=max_lap_time_s, **fields))
     manifest = collect(out_dir, config, progress=progress)
@@ -559,5 +744,6 @@ def summarise_manifest(manifest: dict, data_dir=None) -> str:
              f"{manifest.get('bytes', 0) / 1e6:.0f} MB{'' if manifest['complete'] else ' (incomplete: run again)'}"]
     for e in laps:
         lines.append(f"  lap {e['lap']:>2} {e['split']:>5}  {e['speed']:5.1f} m/s  seed {e['seed']:>5}  "
-                     f"{e['frames']:>5} frames  {e['flight_time_s']:5.1f} s  {e['gates_passed']:>2} gates  {e['end']}")
+                     f"{e['frames']:>5} frames  {e['flight_time_s']:5.1f} s  {e['gates_passed']:>2} gates  {e['end']}"
+                     f"{'  excited' if e.get('excited') else ''}")
     return "\n".join(lines)

@@ -57,6 +57,11 @@ PAPER_WIDTH = 204
 PAPER_HEIGHT = 153
 PAPER_DT = 1.0 / 40.0
 LOSSES = ("polar", "endpoint")
+# What the network's control input u (4,) is: "command", the paper's (the body rates and thrust commanded at
+# the frame's tick), or "flown" (the body rates flown over the frame interval, with the commanded thrust;
+# dataset.control_input). The MPC's robot model assumes the commanded rates are flown at once, so "flown"
+# is what PixelMPC means by its control; the network is the same [10, 128, 128, 128, 2] either way.
+INPUTS = ("command", "flown")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -85,6 +90,8 @@ class TrainConfig:
         progress: show the tqdm progress bar.
         loss: ``"polar"`` (the paper's MSE on (l, theta), in the form above) or ``"endpoint"`` (the squared
             endpoint error of the flow vector; see the module docstring).
+        input: what the data's ``u`` is, one of :data:`INPUTS` (recorded with the weights; the training
+            itself is the same: the data loader puts the chosen input in ``u``).
     """
 
     steps: int = 20_000
@@ -103,6 +110,7 @@ class TrainConfig:
     eval_chunk_pixels: int = 1 << 18
     progress: bool = True
     loss: str = "polar"
+    input: str = "command"
 
     def __post_init__(self):
         for name in (
@@ -120,6 +128,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if self.loss not in LOSSES:
             raise ValueError(f"TrainConfig.loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.input not in INPUTS:
+            raise ValueError(f"TrainConfig.input must be one of {INPUTS}, got {self.input!r}")
         if self.schedule not in ("constant", "cosine"):
             raise ValueError(f"TrainConfig.schedule must be 'constant' or 'cosine', got {self.schedule!r}")
         if not (self.learning_rate > 0 and self.dt > 0 and 0 <= self.final_lr_fraction <= 1):
@@ -336,6 +346,7 @@ def _compile_key(config: TrainConfig) -> TrainConfig:
         probe_size=1,
         eval_chunk_pixels=1,
         progress=False,
+        input="command",
     )
 
 
