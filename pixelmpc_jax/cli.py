@@ -140,7 +140,7 @@ def _cmd_train(args) -> int:
 
     run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
               learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship,
-              loss=args.loss)
+              loss=args.loss, input=args.input)
     return 0
 
 
@@ -217,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
     p.add_argument("--loss", choices=["polar", "endpoint"], default="polar",
                    help="polar: the paper's MSE on (l, theta) (default); endpoint: squared flow-vector error")
+    p.add_argument("--input", choices=["command", "flown"], default="command",
+                   help="the network's control input: command, the paper's (the rates commanded at the frame's "
+                        "tick, default), or flown (the rates flown over the frame: what the MPC's model means)")
     p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
     p.set_defaults(func=_cmd_train)
 

@@ -187,3 +187,10 @@ def test_config_must_be_json(dof_params, tmp_path):
     with pytest.raises(TypeError, match="JSON"):
         dof.save_checkpoint(tmp_path / "x.msgpack", dof_params, {"bad": object()})
     assert not list(tmp_path.iterdir())
+
+
+def test_checkpoint_variant_defaults_to_the_papers_for_old_records():
+    assert dof.checkpoint_variant({}) == {"input": "command", "loss": "polar"}
+    assert dof.checkpoint_variant({"train_config": {"loss": "endpoint"}}) == {"input": "command", "loss": "endpoint"}
+    assert dof.checkpoint_variant({"variant": {"input": "flown", "loss": "polar"}}) == {"input": "flown",
+                                                                                        "loss": "polar"}

@@ -276,3 +276,18 @@ def test_zero_flow_and_orientation_bin_baselines(train_data):
     assert train_mod.orientation_bin_aee(exact, q, u, binned_flow) < 1e-6
     # On the rotational data (driven by u, not q) it is no better than predicting the mean flow.
     assert train_mod.orientation_bin_aee(baseline, q, u, flow) > 0.5 * expected
+
+
+def test_input_variant_is_validated_and_recorded_in_the_checkpoint(train_data, tmp_path):
+    with pytest.raises(ValueError, match="input"):
+        small_config(input="gyro")
+    assert TrainConfig().input == "command"  # the paper's by default
+    path = tmp_path / "flown.msgpack"
+    train_mod.train(small_config(steps=2, log_every=1, checkpoint_path=str(path), input="flown",
+                                 loss="endpoint"), train_data)
+    _, record = dof.load_checkpoint(path)
+    assert record["train_config"]["input"] == "flown"
+    assert record["variant"] == {"input": "flown", "loss": "endpoint", "layer_sizes": [10, 128, 128, 128, 2]}
+    assert dof.checkpoint_variant(record) == {"input": "flown", "loss": "endpoint"}
+    # the same compiled step serves both inputs (the input is only what the data's u means)
+    assert train_mod._compile_key(small_config(input="flown")) == train_mod._compile_key(small_config())

@@ -354,6 +354,20 @@ def load_checkpoint(path) -> tuple[DOFParams, dict]:
     return checkpoint.dof_params, checkpoint.config
 
 
+def checkpoint_variant(config: Mapping) -> dict:
+    """How a checkpoint's network was trained, from its config: ``{"input", "loss"}``.
+
+    ``input`` is what the network's control input means: "command" (the paper's: the body rates commanded at
+    the frame's tick) or "flown" (the body rates flown over the frame interval; see learn/dataset.py);
+    ``loss`` "polar" or "endpoint". Files written before the variants were recorded are the paper's
+    (command input) with the loss their training config names (polar by default).
+    """
+    variant = dict(config.get("variant") or {})
+    train_config = config.get("train_config") or {}
+    return {"input": variant.get("input", train_config.get("input", "command")),
+            "loss": variant.get("loss", train_config.get("loss", "polar"))}
+
+
 PACKAGED_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "dof_weights.msgpack"
 
 

@@ -472,22 +472,28 @@ def summarise(results: dict) -> str:
 
 def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
               learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
-              ship: bool = False, loss: str = "polar") -> dict:
+              ship: bool = False, loss: str = "polar", input: str = "command") -> dict:
     """Train the DOF on ``data_dir``'s train laps (train.py, Algorithm 1), report the test-lap AEE, and
     write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
     (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
-    the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record."""
+    the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
+
+    ``loss``: "polar" (the paper's) or "endpoint"; ``input``: the network's control input, "command" (the
+    paper's) or "flown" (the rates flown over the frame; ``train.INPUTS``). The variant is recorded in the
+    weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
+    if input not in train_lib.INPUTS:
+        raise ValueError(f"input must be one of {train_lib.INPUTS}, got {input!r}")
     data_dir, out = Path(data_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     manifest = dataset_lib.read_manifest(data_dir)
     W, H = manifest["image_size_wh"]
-    train_data = dataset_lib.load_dataset(data_dir, "train")
+    train_data = dataset_lib.load_dataset(data_dir, "train", input=input)
     has_test = bool(manifest["split"]["test"]) and manifest["frames"]["test"] > 0
-    test_data = dataset_lib.load_dataset(data_dir, "test") if has_test else None
+    test_data = dataset_lib.load_dataset(data_dir, "test", input=input) if has_test else None
     checkpoint = out / "checkpoint.msgpack"
     config = train_lib.TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed,
                                    width=W, height=H, dt=float(manifest["frame_dt_s"]),
-                                   checkpoint_path=str(checkpoint), progress=progress, loss=loss)
+                                   checkpoint_path=str(checkpoint), progress=progress, loss=loss, input=input)
     t0 = time.perf_counter()
     dof_params, history = train_lib.train(config, train_data, test_data,
                                           resume_from=checkpoint if (resume and checkpoint.exists()) else None)
@@ -496,6 +502,9 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
     record = {
         "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
         "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
+        "variant": {"input": input, "loss": loss, "layer_sizes": list(dof.LAYER_SIZES),
+                    "input_means": "the body rates commanded at the frame's tick (the paper's)" if input == "command"
+                    else "the body rates flown over the frame interval (dataset w_flown), commanded thrust"},
         "train_wall_s": wall,
         "steps_done": history["step"][-1] if history["step"] else 0,
         "interrupted": history["interrupted"],
@@ -503,6 +512,8 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
             "dir": str(data_dir),
             "collect_config": manifest["config"],
             "policy": manifest.get("policy"),
+            "format_version": manifest.get("format_version"),
+            "excited_laps": manifest.get("excited_laps", []),
             "frames": manifest["frames"],
             "bytes": manifest.get("bytes"),
             "laps": [{k: e[k] for k in ("lap", "split", "speed", "seed", "frames", "end", "gates_passed")}
@@ -514,7 +525,7 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
             f"pixelmpc_jax.learn.dataset.collect({str(data_dir)!r}, "
             f"CollectConfig(**{json.dumps(manifest['config'])}))",
             f"pixelmpc_jax.learn.evaluate.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
-            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r})",
+            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r}, input={input!r})",
         ],
         "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -526,7 +537,8 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
         shutil.copyfile(out / SHIPPED_RECORD, target.with_suffix(".json"))
     aee = history.get("test_aee_px")
     zero = history.get("test_zero_flow_aee_px")
-    print(f"trained {record['steps_done']} steps in {wall / 60:.1f} min on {manifest['frames']['train']} frames; "
+    print(f"trained {record['steps_done']} steps ({input} input, {loss} loss) in {wall / 60:.1f} min on "
+          f"{manifest['frames']['train']} frames; "
           f"test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
           f"{'-' if zero is None else f'{zero:.2f}'}); weights: {out / SHIPPED_WEIGHTS}")
     return record

@@ -423,6 +423,7 @@ def init_train_state(config: TrainConfig, train_data: FlowData) -> TrainState:
 def _run_record(config: TrainConfig, data: FlowData) -> dict:
     return {
         "train_config": dataclasses.asdict(config),
+        "variant": {"input": config.input, "loss": config.loss, "layer_sizes": list(dof.LAYER_SIZES)},
         "command": shlex.join(sys.argv),
         "data": {"frames": int(data.q.shape[0]), "height": config.height, "width": config.width},
         "versions": {"jax": jax.__version__, "optax": optax.__version__},
