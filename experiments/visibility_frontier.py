@@ -24,6 +24,8 @@ from pixelmpc_jax.sim import frontier as frontier_lib
 def spec_from_args(args) -> frontier_lib.FrontierSpec:
     spec = frontier_lib.quick_spec() if args.quick else frontier_lib.default_spec()
     changes = {}
+    if args.cells == "best":
+        changes["cells"] = frontier_lib.best_cells()
     if args.speeds:
         changes["nominal_speeds"] = tuple(sorted(set(args.speeds)))
     if args.laps is not None:
@@ -37,6 +39,9 @@ def main(argv=None) -> int:
     parser.add_argument("--laps", type=int, default=None, help="laps per point (default 10; 4 with --quick)")
     parser.add_argument("--seed", type=int, default=0, help="first seed; lap i uses seed + i (default 0)")
     parser.add_argument("--quick", action="store_true", help="3 nominal speeds and the 2 border-cost cells, 4 laps")
+    parser.add_argument("--cells", choices=("all", "best"), default="all",
+                        help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default) or "
+                             "best (the border cost at each model's best weight)")
     parser.add_argument("--speeds", type=float, nargs="+", default=None, metavar="M_S",
                         help="nominal target speeds in m/s (at least 2; default 5 6 7 8 10 14, quick 6 8 10)")
     args = parser.parse_args(argv)

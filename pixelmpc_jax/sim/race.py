@@ -154,8 +154,9 @@ def run_laps(
 
     Lap i uses PRNG key ``seed + i`` for the plant noise and the controller, so a lap is reproducible on
     its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
-    :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also holds, per lap, the flown states (``trajectories``) and, with the
-    particle filter, the trace of its position covariance at each tick (``covariances``).
+    :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also
+    holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its position
+    covariance at each tick (``covariances``).
     """
     if not (isinstance(speed, (int, float)) and speed > 0):
         raise ValueError(f"speed must be a positive number of m/s, got {speed!r}")
