@@ -189,3 +189,5 @@ def test_lap_metrics_causes_add_up_to_the_low_visibility_time():
     parts = [lap[f"time_vis_below_50_{c}_s"] for c in M.LOSS_CAUSES]
     assert lap["time_vis_below_50_above_s"] > 0.5
     assert sum(parts) == pytest.approx(lap["time_vis_below_50_s"])
+    table = M.format_table([lap], M.aggregate([lap]))
+    assert f"above {lap['time_vis_below_50_above_s']:.2f}" in table.splitlines()[-1]

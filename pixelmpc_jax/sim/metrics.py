@@ -240,4 +240,7 @@ def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:
         rows.append(f"success rate {aggregate_row['success_rate'] * 100:.0f}% of {aggregate_row['num_laps']}; "
                     f"lap time {fmt('lap_time_s')} s; vis<50 {fmt('time_vis_below_50_s')} s; "
                     f"vis=0 {fmt('time_vis_zero_s')} s (mean +- 2 sigma)")
+        split = [(name, (aggregate_row.get(f"time_vis_below_50_{name}_s") or {}).get("mean")) for name in LOSS_CAUSES]
+        if all(value is not None for _, value in split):
+            rows.append("vis<50 by cause (mean s): " + ", ".join(f"{name} {value:.2f}" for name, value in split))
     return "\n".join(rows)
