@@ -186,14 +186,16 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     return make_mppi(mppi_config, dynamics, BatchCost(running_cost))
 
 
-def make_pixelmpc(config: PixelMPCConfig = PixelMPCConfig(),
+def make_pixelmpc(config: PixelMPCConfig | None = None,
                   quad_params: quadrotor.QuadParams | None = None) -> Controller:
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.
 
     The controller's state is X = [x (10,); uv (2,)]; ``step(state, X0, params: PixelMPCParams)``.
     The initial pixel ``uv`` is the detector's (normalised) target pixel; with the projection model it
-    is recomputed from the pose at every step.
+    is recomputed from the pose at every step. ``config`` defaults to ``PixelMPCConfig()`` (built here, not at
+    import: building it creates arrays, which would start the JAX backend before ``jax.distributed``).
     """
+    config = PixelMPCConfig() if config is None else config
     quad_params = quad_params or quadrotor.QuadParams()
     dt = config.mppi.dt
     n_f = config.pixel_steps
