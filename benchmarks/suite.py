@@ -18,7 +18,6 @@ figures and the targets).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -29,6 +28,7 @@ import numpy as np
 from benchmarks import controller, particle_filter_step, peers, table1
 from benchmarks.measure import fmt_ms
 from pixelmpc_jax.platform_info import device_description
+from pixelmpc_jax.strict_json import write_json_atomic
 
 REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "mean_ms", "two_sigma_ms", "max_ms")
 TARGETS = {"pixelmpc_step_ms": 12.0, "ratio_vs_pytorch_mppi": 0.35, "dof_fraction_of_matmul_rate": 0.70}
@@ -111,7 +111,7 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
 
     result = {"device": device, "versions": vers, "mode": mode, "rows": rows, "summary": summarize(rows),
               "wall_s": time.perf_counter() - start}
-    (out_dir / "bench.json").write_text(json.dumps(result, indent=1, default=_json_default))
+    write_json_atomic(out_dir / "bench.json", result, indent=1, default=_json_default)
     (out_dir / "bench.md").write_text(markdown(result))
     plot_scaling(rows, out_dir / "scaling.png")
     _log(f"wrote {out_dir / 'bench.json'}, bench.md, scaling.png", start)

@@ -8,11 +8,14 @@ flagged; every JSON file the project writes is strict JSON.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -59,3 +62,46 @@ def test_distributed_version_runs_as_two_local_processes():
         assert code == 0, stderr[-2000:]
         assert f"process {pid} of 2" in stdout and "2 global device(s)" in stdout
         assert "pixelmpc-jax" in stdout
+
+
+# --------------------------------------------------------------------------------------------------
+# Strict JSON everywhere.
+# --------------------------------------------------------------------------------------------------
+
+
+def strict_loads(text: str):
+    """json.loads that fails on NaN, Infinity and -Infinity (what a strict parser rejects)."""
+
+    def reject(constant):
+        raise AssertionError(f"non-strict JSON: {constant}")
+
+    return json.loads(text, parse_constant=reject)
+
+
+def test_json_writer_turns_non_finite_numbers_into_null(tmp_path):
+    from pixelmpc_jax.sim import race
+    from pixelmpc_jax.strict_json import dumps, write_json_atomic
+
+    data = {"speed": float("inf"), "laps": [float("nan"), -float("inf"), np.float32("nan"), np.float64(2.5)],
+            "array": np.asarray([1.0, np.nan]), 3: np.int64(7), "nested": ({"x": np.float32(np.inf)},)}
+    expected = {"speed": None, "laps": [None, None, None, 2.5], "array": [1.0, None], "3": 7,
+                "nested": [{"x": None}]}
+    write_json_atomic(tmp_path / "a.json", data)
+    assert strict_loads((tmp_path / "a.json").read_text()) == expected
+    race.write_json_atomic(tmp_path / "b.json", data)  # the name the rest of the project uses
+    assert strict_loads((tmp_path / "b.json").read_text()) == expected
+    assert strict_loads(dumps(data)) == expected
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]  # no temporary files left
+
+
+def test_checkpoint_config_with_nan_is_stored_as_strict_json(tmp_path):
+    import jax
+    from flax import serialization
+
+    from pixelmpc_jax.dynamics import dof
+
+    params = dof.init_dof_params(jax.random.key(0))
+    dof.save_checkpoint(tmp_path / "w.msgpack", params, {"results": {"test_aee_px": float("nan")}, "lr": 1e-3})
+    payload = serialization.msgpack_restore((tmp_path / "w.msgpack").read_bytes())
+    assert strict_loads(payload["config"]) == {"results": {"test_aee_px": None}, "lr": 1e-3}
+    assert dof.load_checkpoint(tmp_path / "w.msgpack")[1]["results"]["test_aee_px"] is None

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization, struct
 
+from pixelmpc_jax import strict_json
+
 INPUT_NAMES = ("qw", "qx", "qy", "qz", "u", "v", "wx", "wy", "wz", "thrust")
 OUTPUT_NAMES = ("l", "theta")
 INPUT_DIM = len(INPUT_NAMES)
@@ -275,13 +277,13 @@ def save_checkpoint(path, dof_params: DOFParams, config: Mapping, *, extra: Mapp
     to resume (optimizer state, step, key data); they are stored as flax state dicts of numpy arrays.
     """
     try:
-        config_json = json.dumps(dict(config), sort_keys=True)
+        config_json = strict_json.dumps(dict(config), sort_keys=True)
     except (TypeError, ValueError) as err:
         raise TypeError(f"config must be a JSON-serialisable dict: {err}") from err
     payload = {
         "format": CHECKPOINT_FORMAT,
         "format_version": CHECKPOINT_VERSION,
-        "architecture": json.dumps(_architecture_of(dof_params), sort_keys=True),
+        "architecture": strict_json.dumps(_architecture_of(dof_params), sort_keys=True),
         "config": config_json,
         "dof_params": _to_numpy_tree(dof_params),
         "extra": {str(k): _to_numpy_tree(v) for k, v in (extra or {}).items()},

@@ -51,6 +51,7 @@ import optax
 from flax import serialization, struct
 from tqdm.auto import tqdm
 
+from pixelmpc_jax import strict_json
 from pixelmpc_jax.dynamics import dof, quadrotor
 
 PAPER_WIDTH = 204
@@ -437,7 +438,7 @@ def save_train_checkpoint(path, state: TrainState, record: dict, history: dict) 
             "step": np.asarray(state.step),
             "opt_state": serialization.to_state_dict(state.opt_state),
             "key": np.asarray(jax.random.key_data(state.key)),
-            "history": json.dumps(history),
+            "history": strict_json.dumps(history),
         }
     }
     record = {**record, "step": int(state.step)}

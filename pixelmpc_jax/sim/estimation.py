@@ -13,13 +13,13 @@ beside the paper's figures) and PNG figures into its output directory.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.strict_json import write_json_atomic
 
 # Table IV of the paper: (success rate, lap time mean, lap time 2 sigma) per (controller, target speed).
 PAPER_TABLE_IV = {("mppi", 14.0): (0.80, 31.8, 0.7), ("pixelmpc", 14.0): (0.80, 33.0, 0.8),
@@ -145,6 +145,6 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
         report += f"\nNot yet run (the experiment resumes with them): {', '.join(missing)}.\n"
     figures = plot_fig9(out, cells + lanes)
     report += "".join(f"\n![{path.stem}]({path.name})\n" for path in figures)
-    (out / "summary.json").write_text(json.dumps({"table_iv": race_rows, "straight_lane": straight_rows}, indent=2))
+    write_json_atomic(out / "summary.json", {"table_iv": race_rows, "straight_lane": straight_rows})
     (out / "REPORT.md").write_text(report)
     return {"table_iv": race_rows, "straight_lane": straight_rows}

@@ -6,13 +6,13 @@ Each report writes ``results.json`` (every lap), ``summary.json`` (the tables' c
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.strict_json import write_json_atomic
 
 # The paper's Tables II and III (14 m/s, 10 races per cell, mean +- 2 sigma), keyed by (t_f, c_pixel).
 PAPER_VIS_BELOW_50 = {(0.0, 0.0): (13.6, 3.6), (1.0, 3e6): (3.6, 0.6), (1.0, 6e6): (1.9, 0.6), (1.0, 9e6): (1.5, 0.2),
@@ -169,7 +169,7 @@ def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: 
     notes = CALIBRATION_NOTE
     if missing:
         notes += f"\n\nNot yet run (the grid resumes with them): {', '.join(missing)}."
-    (out / "summary.json").write_text(json.dumps(rows, indent=2))
+    write_json_atomic(out / "summary.json", rows)
     (out / "REPORT.md").write_text(markdown_report(rows, title, device_line(), notes=notes))
     if rows:
         plot_visibility(rows, out / "visibility.png", title)

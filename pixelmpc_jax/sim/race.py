@@ -7,10 +7,6 @@ atomically, so an interrupted run keeps the laps it finished.
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import os
-import tempfile
 from pathlib import Path
 
 import jax
@@ -18,6 +14,7 @@ import numpy as np
 
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
+from pixelmpc_jax.strict_json import json_safe, write_json_atomic  # noqa: F401 (json_safe: re-exported)
 from pixelmpc_jax.world import track as track_lib
 
 CONTROLLERS = ("mppi", "pixelmpc")
@@ -32,33 +29,6 @@ def make_course(course: str = "alphapilot") -> track_lib.Track:
     if course == "straight":
         return track_lib.straight_course()
     raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)}")
-
-
-def json_safe(value):
-    """Non-finite floats -> None (strict JSON), numpy scalars -> Python, dict keys -> str, recursively."""
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_json_atomic(path: Path, data) -> None:
-    """Write JSON to ``path`` through a temporary file and ``os.replace`` (never a half-written file)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 OPTION_PREFIXES = ("mppi.", "racing.")
@@ -156,10 +126,11 @@ def run_laps(
     its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
     :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also
     holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its position
-    covariance at each tick (``covariances``).
+    covariance at each tick (``covariances``). ``interrupted`` is True when Ctrl-C stopped the run: the laps
+    finished before it are kept (and in ``out/metrics.json``).
     """
-    if not (isinstance(speed, (int, float)) and speed > 0):
-        raise ValueError(f"speed must be a positive number of m/s, got {speed!r}")
+    if not (isinstance(speed, (int, float)) and 0 < speed < float("inf")):
+        raise ValueError(f"speed must be a positive finite number of m/s, got {speed!r}")
     if not (isinstance(laps, int) and laps > 0):
         raise ValueError(f"laps must be a positive integer, got {laps!r}")
     if batch_size <= 0:
@@ -173,7 +144,8 @@ def run_laps(
         dof_params = dof.load_packaged_dof()
     base = episode_lib.make_world(track=make_course(course), target_speed=float(speed), dof=dof_params)
     results: dict = {"controller": policy.name, "speed": speed, "seed": seed, "perturb": perturb,
-                     "detector": detector, "estimator": estimator, "course": course, "laps": [], "aggregate": {}}
+                     "detector": detector, "estimator": estimator, "course": course, "laps": [], "aggregate": {},
+                     "interrupted": False}
     if controller == "pixelmpc":
         results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
     if options:
@@ -218,6 +190,9 @@ def run_laps(
         if bar is not None:
             bar.close()
             bar = None
+        results["interrupted"] = True
+        if out is not None and results["laps"]:
+            write_json_atomic(Path(out) / "metrics.json", results)
         print(f"\ninterrupted: keeping the {len(results['laps'])} finished lap(s)")
     finally:
         if bar is not None:
