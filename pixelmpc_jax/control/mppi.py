@@ -19,6 +19,12 @@ the horizon (the dynamics ``vmap``-ed over samples at each step), and updates th
 where ``eps_k`` is the noise after clipping the sampled controls to the bounds. A step runs ``K`` such
 iterations (``lax.scan``), returns ``U[0]`` and keeps the plan shifted by one step as the warm start.
 
+Numerics: non-finite sample costs get zero weight; an iteration whose every sample is non-finite keeps the
+plan (``info.all_nonfinite``); a plan holding a non-finite value (carried in, or after the update) is
+replaced by the last finite one, or by the middle of the bounds (``info.plan_reset``), so ``U[0]`` is always
+finite. Settings float32 cannot carry and costs of the wrong shape are refused with a ValueError before
+anything runs.
+
 Usage::
 
     ctrl = make_mppi(config, dynamics, running_cost)
@@ -29,13 +35,20 @@ Usage::
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
+TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
+SIGMA_MIN, SIGMA_MAX = 1e-18, 1e18  # sigma^2 and 1 / sigma^2 (the control cost) stay normal float32 numbers
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,10 +59,11 @@ class MPPIConfig:
         num_samples: N, sampled control sequences per iteration.
         horizon: T, steps per rollout.
         dt: step length (s); informational for the dynamics the user passes (the paper: 0.025).
-        noise_sigma: per-channel standard deviation of the control noise, length m.
-        temperature: lambda > 0 of the softmax weights.
+        noise_sigma: per-channel standard deviation of the control noise, length m; each 0 or in
+            [1e-18, 1e18] (its square and inverse square must be float32 numbers).
+        temperature: lambda of the softmax weights, in [1e-30, 3.4e38] (what float32 carries).
         iterations: K optimisation iterations per step.
-        u_min, u_max: per-channel control bounds (length m), or None for unbounded.
+        u_min, u_max: per-channel control bounds (length m, finite float32 numbers), or None for unbounded.
         control_cost_weight: gamma of the ``gamma * U^T Sigma^-1 eps`` term (0 disables it).
         nominal_sample: sample 0 uses zero noise, so the current plan is always among the candidates.
         noise_exponent: beta of time-correlated ("coloured") sampling noise with power spectrum 1/f^beta
@@ -75,28 +89,39 @@ class MPPIConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
-        if not (isinstance(self.dt, (int, float)) and self.dt > 0 and math.isfinite(self.dt)):
+        if not (_is_number(self.dt) and 0 < self.dt <= FLOAT32_MAX):
             raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {self.dt!r}")
-        if not (isinstance(self.temperature, (int, float)) and self.temperature > 0
-                and math.isfinite(self.temperature)):
-            raise ValueError(f"MPPIConfig.temperature (lambda) must be positive and finite, got {self.temperature!r}")
-        sigma = np.asarray(self.noise_sigma, dtype=np.float64)
+        if not (_is_number(self.temperature) and TEMPERATURE_MIN <= self.temperature <= FLOAT32_MAX):
+            raise ValueError(f"MPPIConfig.temperature (lambda) must be a number in [{TEMPERATURE_MIN:g}, "
+                             f"{FLOAT32_MAX:.4g}] (what float32 carries), got {self.temperature!r}")
+        try:
+            sigma = np.asarray(self.noise_sigma, dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"MPPIConfig.noise_sigma must be numbers, got {self.noise_sigma!r}") from err
         if sigma.ndim != 1 or sigma.size == 0:
             raise ValueError(
                 f"MPPIConfig.noise_sigma must be a 1-D sequence (m,), one std per control channel; "
                 f"got shape {sigma.shape}")
-        if not np.all(np.isfinite(sigma)) or np.any(sigma < 0):
-            raise ValueError(f"MPPIConfig.noise_sigma must be finite and >= 0, got {self.noise_sigma!r}")
+        if not np.all((sigma == 0) | ((sigma >= SIGMA_MIN) & (sigma <= SIGMA_MAX))):
+            raise ValueError(f"MPPIConfig.noise_sigma: each std must be 0 or a number in [{SIGMA_MIN:g}, "
+                             f"{SIGMA_MAX:g}] (its square and inverse square must be float32 numbers), "
+                             f"got {self.noise_sigma!r}")
         object.__setattr__(self, "noise_sigma", tuple(float(s) for s in sigma))
         m = sigma.size
         for name in ("u_min", "u_max"):
             bound = getattr(self, name)
             if bound is None:
                 continue
-            arr = np.asarray(bound, dtype=np.float64)
+            try:
+                arr = np.asarray(bound, dtype=np.float64)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"MPPIConfig.{name} must be numbers, got {bound!r}") from err
             if arr.shape != (m,):
                 raise ValueError(
                     f"MPPIConfig.{name} must have shape ({m},) to match noise_sigma, got shape {arr.shape}")
+            if not np.all(np.abs(arr) <= FLOAT32_MAX):  # also rejects NaN and inf
+                raise ValueError(f"MPPIConfig.{name} must be finite numbers in [-{FLOAT32_MAX:.4g}, "
+                                 f"{FLOAT32_MAX:.4g}] (float32), got {bound!r}; None leaves the controls unbounded")
             object.__setattr__(self, name, tuple(float(b) for b in arr))
         if self.u_min is not None and self.u_max is not None:
             lo, hi = np.asarray(self.u_min), np.asarray(self.u_max)
@@ -106,8 +131,9 @@ class MPPIConfig:
                     f"MPPIConfig: u_min > u_max in channels {bad} (u_min={self.u_min}, u_max={self.u_max})")
         if not (isinstance(self.noise_exponent, (int, float)) and 0.0 <= self.noise_exponent <= 4.0):
             raise ValueError(f"MPPIConfig.noise_exponent (beta) must lie in [0, 4], got {self.noise_exponent!r}")
-        if not (isinstance(self.control_cost_weight, (int, float)) and self.control_cost_weight >= 0):
-            raise ValueError(f"MPPIConfig.control_cost_weight must be >= 0, got {self.control_cost_weight!r}")
+        if not (_is_number(self.control_cost_weight) and 0 <= self.control_cost_weight <= FLOAT32_MAX):
+            raise ValueError(f"MPPIConfig.control_cost_weight must be a finite number >= 0, "
+                             f"got {self.control_cost_weight!r}")
 
     @property
     def control_dim(self) -> int:
@@ -134,6 +160,9 @@ class MPPIInfo(NamedTuple):
         effective_sample_size: 1 / sum w_k^2, in [1, N].
         num_nonfinite: samples whose cost was NaN or inf (excluded from the weights).
         all_nonfinite: True when every sample was non-finite in some iteration (the plan was kept).
+        plan_reset: True when the carried plan or the updated one held a non-finite value: the step then
+            went on from the last finite plan (the carried one if finite, else the reset plan: the middle of
+            the bounds, zero where a channel is unbounded), so ``u0`` is always finite.
         nominal_trajectory: (T+1, n) states predicted under the updated plan, starting at x0.
         costs: (N,) total cost per sample.
     """
@@ -145,6 +174,7 @@ class MPPIInfo(NamedTuple):
     all_nonfinite: jax.Array
     nominal_trajectory: jax.Array
     costs: jax.Array
+    plan_reset: jax.Array
 
 
 class Controller(NamedTuple):
@@ -192,14 +222,28 @@ class BatchCost:
     fn: Callable
 
     def __call__(self, x, u, t, params):
-        return self.fn(x[None], u[None], t, params)[0]
+        return _checked_costs(self.fn(x[None], u[None], t, params), 1, self.fn, batch=True)[0]
+
+
+def _checked_costs(costs, N: int, fn: Callable, batch: bool) -> jax.Array:
+    """``costs`` if it holds one cost per sample, (N,); a ValueError naming ``fn`` otherwise (shapes are known
+    when tracing, so a wrong one is caught before anything runs, never broadcast over the samples)."""
+    shape = tuple(jnp.shape(costs))
+    if shape != (N,):
+        name = getattr(fn, "__qualname__", None) or type(fn).__name__
+        if batch:
+            raise ValueError(f"BatchCost {name} must return one cost per sample, shape (N,) = ({N},); it returned "
+                             f"shape {shape}")
+        raise ValueError(f"cost {name} must return a scalar per sample (shape ()), it returned shape {shape[1:]}")
+    return costs
 
 
 def _stage_costs(cost: Callable, X: jax.Array, U: jax.Array, t, params) -> jax.Array:
     """(N,) running costs of a batch of states (samples on axis 0)."""
+    N = X.shape[0]
     if isinstance(cost, BatchCost):
-        return cost.fn(X, U, t, params)
-    return jax.vmap(cost, in_axes=(0, 0, None, None))(X, U, t, params)
+        return _checked_costs(cost.fn(X, U, t, params), N, cost.fn, batch=True)
+    return _checked_costs(jax.vmap(cost, in_axes=(0, 0, None, None))(X, U, t, params), N, cost, batch=False)
 
 
 def _segments(dynamics, running_cost, prefix: Prefix | None, horizon: int):
@@ -256,7 +300,8 @@ def rollout_costs(
         X, stage_costs = jax.lax.scan(body, X, (ts, per_step[first:first + steps]))
         total = total + jnp.sum(stage_costs, axis=0)
     if terminal_cost is not None:
-        total = total + jax.vmap(terminal_cost, in_axes=(0, None))(X, params)
+        total = total + _checked_costs(jax.vmap(terminal_cost, in_axes=(0, None))(X, params), N, terminal_cost,
+                                       batch=False)
     return total
 
 
@@ -345,6 +390,14 @@ def make_mppi(
     gamma = float(config.control_cost_weight)
     colour = None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent))
     lam = float(config.temperature)
+    # What a non-finite plan is reset to: the middle of the bounds, zero where a channel is unbounded.
+    if lo is not None and hi is not None:
+        reset_control = 0.5 * lo + 0.5 * hi  # (lo + hi) / 2 could overflow float32
+    else:
+        reset_control = jnp.zeros((m,), jnp.float32)
+        reset_control = reset_control if lo is None else jnp.maximum(reset_control, lo)
+        reset_control = reset_control if hi is None else jnp.minimum(reset_control, hi)
+    reset_plan = jnp.broadcast_to(reset_control, (T, m))
 
     def clip(u):
         if lo is not None:
@@ -391,9 +444,13 @@ def make_mppi(
     def step_pure(state: MPPIState, x0, params):
         key, key_iters = jax.random.split(state.key)
         keys = jax.random.split(key_iters, K)
+        carried_finite = jnp.all(jnp.isfinite(state.plan))
+        start = jnp.where(carried_finite, state.plan, reset_plan)  # the last finite plan
         (plan, all_nonfinite), stats = jax.lax.scan(
-            lambda c, k: iteration(c, k, x0, params), (state.plan, jnp.asarray(False)), keys
+            lambda c, k: iteration(c, k, x0, params), (start, jnp.asarray(False)), keys
         )
+        updated_finite = jnp.all(jnp.isfinite(plan))
+        plan = jnp.where(updated_finite, plan, start)
         min_cost, mean_cost, ess, num_nonfinite, costs = jax.tree_util.tree_map(lambda s: s[-1], stats)
         u0 = plan[0]
         shifted = jnp.concatenate([plan[1:], plan[-1:]], axis=0)
@@ -405,6 +462,7 @@ def make_mppi(
             all_nonfinite=all_nonfinite,
             nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix),
             costs=costs,
+            plan_reset=~(carried_finite & updated_finite),
         )
         return u0, MPPIState(plan=shifted, key=key), info
 

@@ -180,6 +180,17 @@ def drag_force(v: jax.Array, params: QuadParams) -> jax.Array:
     return -params.drag_coefficient * _safe_norm(v) * v
 
 
+def check_shapes(x, u) -> None:
+    """ValueError unless ``x`` is one state (10,) and ``u`` one control (4,). Shapes are static, so this runs
+    once when a function is traced (inside ``jit`` or ``vmap`` too) and costs nothing at run time."""
+    if jnp.shape(x) != (STATE_DIM,):
+        raise ValueError(f"quadrotor state x must have shape ({STATE_DIM},) = [px, py, pz, qw, qx, qy, qz, vx, vy, "
+                         f"vz], got shape {jnp.shape(x)}")
+    if jnp.shape(u) != (CONTROL_DIM,):
+        raise ValueError(f"quadrotor control u must have shape ({CONTROL_DIM},) = [wx, wy, wz, thrust], got shape "
+                         f"{jnp.shape(u)}")
+
+
 def dynamics(x: jax.Array, u: jax.Array, params: QuadParams, w_f: jax.Array | None = None) -> jax.Array:
     """Time derivative of the state, Eqs. (3)-(6).
 
@@ -193,7 +204,13 @@ def dynamics(x: jax.Array, u: jax.Array, params: QuadParams, w_f: jax.Array | No
 
     Returns:
         x_dot: (10,).
+
+    Raises:
+        ValueError: ``x`` is not (10,) or ``u`` not (4,) (see :func:`check_shapes`).
     """
+    check_shapes(x, u)
+    if w_f is not None and jnp.shape(w_f) != (3,):
+        raise ValueError(f"w_f must be one world-frame force of shape (3,), got shape {jnp.shape(w_f)}")
     q = x[QUAT]
     v = x[VEL]
     rates, thrust = u[:3], u[3]
