@@ -252,3 +252,22 @@ def test_an_update_that_overflows_float32_keeps_the_last_finite_plan():
     assert bool(info.plan_reset)
     np.testing.assert_array_equal(np.asarray(u0), np.asarray(edge[0]))
     chex.assert_tree_all_finite((u0, new_state.plan))
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("t_f", float("inf"), "t_f must be a finite number >= 0 seconds"),
+        ("t_f", float("nan"), "t_f must be a finite number"),
+        ("t_f", -1.0, "t_f must be a finite number"),
+        ("c_pixel", float("nan"), "c_pixel must be a finite number >= 0 with c_pixel"),
+        ("c_pixel", float("inf"), "c_pixel must be a finite number"),
+        ("c_pixel", 1e40, r"c_pixel \* pixel_cost_scale <= 1e\+30"),
+        ("pixel_cost_scale", float("nan"), "pixel_cost_scale must be a finite number"),
+    ],
+)
+def test_pixelmpc_config_refuses_non_finite_settings(field, value, message):
+    from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+
+    with pytest.raises(ValueError, match=message):
+        PixelMPCConfig(**{field: value})

@@ -20,6 +20,7 @@ the gates are arguments (new values never recompile), ``t_f``, ``c_pixel`` and s
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,7 @@ PIXEL_COSTS = ("l1", "border")
 BEHIND_CAMERA_OFFSET = 1e3  # a target behind the camera sits this far off the image (before any clip)
 STATE_DIM = quadrotor.STATE_DIM + 2
 IMAGE_CENTRE = (0.5, 0.5)
+PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 
 
 def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: float = 200.0,
@@ -97,10 +99,14 @@ class PixelMPCConfig:
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
             raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
-        if not (self.t_f >= 0.0):
-            raise ValueError(f"t_f must be >= 0 seconds, got {self.t_f!r}")
-        if not (self.c_pixel >= 0.0):
-            raise ValueError(f"c_pixel must be >= 0, got {self.c_pixel!r}")
+        if not (0.0 <= self.t_f < math.inf):
+            raise ValueError(f"t_f must be a finite number >= 0 seconds, got {self.t_f!r}")
+        if not (0.0 <= self.pixel_cost_scale < math.inf):
+            raise ValueError(f"pixel_cost_scale must be a finite number >= 0, got {self.pixel_cost_scale!r}")
+        if not (0.0 <= self.c_pixel < math.inf and self.c_pixel * self.pixel_cost_scale <= PIXEL_WEIGHT_MAX):
+            raise ValueError(f"c_pixel must be a finite number >= 0 with c_pixel * pixel_cost_scale <= "
+                             f"{PIXEL_WEIGHT_MAX:g} (a horizon of such costs must stay a float32 number), got "
+                             f"{self.c_pixel!r} (scale {self.pixel_cost_scale!r})")
         if not (0.0 <= self.pixel_deadzone < 0.5):
             raise ValueError(f"pixel_deadzone must lie in [0, 0.5), got {self.pixel_deadzone!r}")
         if self.pixel_cost not in PIXEL_COSTS:
