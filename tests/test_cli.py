@@ -7,6 +7,10 @@ import pytest
 from pixelmpc_jax import cli
 
 
+def _reject(constant):
+    raise AssertionError(f"non-strict JSON: {constant}")
+
+
 def test_help_lists_commands(capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["--help"])
@@ -25,7 +29,7 @@ def test_version(capsys):
 def test_demo_reaches_the_waypoint_and_writes_results(tmp_path, capsys):
     code = cli.main(["demo", "--seconds", "3", "--samples", "256", "--out", str(tmp_path)])
     assert code == 0
-    summary = json.loads((tmp_path / "demo.json").read_text())
+    summary = json.loads((tmp_path / "demo.json").read_text(), parse_constant=_reject)  # strict JSON
     assert summary["final_error_m"] < 0.3
     assert (tmp_path / "demo.png").stat().st_size > 1000
 
@@ -43,7 +47,7 @@ def test_unwritable_output_directory_is_rejected_before_running(tmp_path, capsys
     "argv, message",
     [
         (["race", "--controller", "pid"], "invalid choice"),
-        (["race", "--speed", "-14"], "must be positive"),
+        (["race", "--speed", "-14"], "argument --speed: must be a finite number in (0, 50] m/s, got -14"),
         (["race", "--laps", "0"], "must be a positive integer"),
         (["race", "--laps", "two"], "expected an integer"),
     ],
@@ -70,8 +74,8 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
     monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
     results = race.run_laps("mppi", speed=10.0, laps=3, seed=4, out=tmp_path, batch_size=1, max_time_s=0.2,
                             progress=False, num_samples=32)
-    assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4
-    saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert len(saved["laps"]) == 1
+    assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4 and results["interrupted"]
+    saved = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=_reject)  # strict JSON
+    assert len(saved["laps"]) == 1 and saved["interrupted"] is True
     assert set(metrics.LAP_KEYS) <= set(saved["laps"][0])
     assert saved["aggregate"]["num_laps"] == 1 and "success_rate" in saved["aggregate"]

@@ -271,3 +271,169 @@ def test_pixelmpc_config_refuses_non_finite_settings(field, value, message):
 
     with pytest.raises(ValueError, match=message):
         PixelMPCConfig(**{field: value})
+
+
+# --------------------------------------------------------------------------------------------------
+# The command: one line, exit 2, nothing written.
+# --------------------------------------------------------------------------------------------------
+
+
+def _run_cli(argv, capsys) -> tuple[int, str]:
+    """(exit code, stderr) of ``pixelmpc argv``, whether it returns or exits."""
+    from pixelmpc_jax import cli
+
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr().err
+
+
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{err}"
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["race", "--speed", "inf"], "pixelmpc race: error: argument --speed: must be a finite number in (0, 50] m/s, "
+                                     "got inf"),
+        (["race", "--speed", "nan"], "argument --speed: must be a finite number in (0, 50] m/s, got nan"),
+        (["race", "--speed", "-1"], "argument --speed: must be a finite number in (0, 50] m/s, got -1"),
+        (["race", "--t-f", "-1"], "argument --t-f: must be a finite number in [0, 2] s, got -1"),
+        (["race", "--t-f", "inf"], "argument --t-f: must be a finite number in [0, 2] s, got inf"),
+        (["race", "--c-pixel", "nan"], "argument --c-pixel: must be a finite number in [0, 1e+30], got nan"),
+        (["race", "--temperature", "1e-50"], "argument --temperature: must be a finite number in [1e-30, "),
+        (["race", "--max-time", "0"], "argument --max-time: must be a finite number in (0, 600] s, got 0"),
+        (["race", "--seed", "-1"], "argument --seed: must be an integer in [0, 2147483647], got -1"),
+        (["race", "--seed", "2147483647", "--laps", "2"], "--seed + --laps - 1 must be at most 2147483647"),
+        (["demo", "--seconds", "-1"], "pixelmpc demo: error: argument --seconds: must be a finite number in "
+                                      "[0.025, 600] s, got -1"),
+        (["demo", "--distance", "inf"], "argument --distance: must be a finite number in [-50, 50] m, got inf"),
+        (["collect", "--supersample", "2"], "argument --supersample: must be an odd integer in [1, 9], got 2"),
+        (["collect", "--max-lap-time", "nan"], "argument --max-lap-time: must be a finite number in (0, 600] s"),
+        (["train", "--data", "{tmp}/missing"], "argument --data: no DOF dataset at '{tmp}/missing': the directory "
+                                               "does not exist (collect one with `pixelmpc collect --out "
+                                               "{tmp}/missing`)"),
+        (["train", "--data", "{tmp}/empty"], "argument --data: no DOF dataset at '{tmp}/empty': manifest.json is "
+                                             "missing"),
+        (["train", "--data", "{tmp}/data", "--learning-rate", "inf"], "argument --learning-rate: must be a finite "
+                                                                      "number in (0, 1], got inf"),
+        (["evaluate", "--weights", "{tmp}/empty"], "argument --weights: no DOF weights file at '{tmp}/empty': "
+                                                   "it is a directory"),
+        (["evaluate", "--weights", "{tmp}/none.msgpack"], "argument --weights: no DOF weights file"),
+    ],
+)
+def test_bad_arguments_get_one_line_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "manifest.json").write_text("{}")
+    out = tmp_path / "out"
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    argv = [argv[0], "--out", str(out), *argv[1:]]  # --out comes first: it must still not be created
+    code, err = _run_cli(argv, capsys)
+    assert code == 2
+    assert message.replace("{tmp}", str(tmp_path)) in _one_line(err)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("content", [b"\x00\x13\xfb garbage " * 300, "truncated"])
+def test_a_damaged_weights_file_gets_one_line_and_no_output(content, tmp_path, capsys):
+    from pixelmpc_jax.learn.evaluate import shipped_weights_path
+
+    weights = tmp_path / "w.msgpack"
+    weights.write_bytes(shipped_weights_path().read_bytes()[:20000] if content == "truncated" else content)
+    out = tmp_path / "out"
+    code, err = _run_cli(["evaluate", "--weights", str(weights), "--out", str(out)], capsys)
+    assert code == 2
+    line = _one_line(err)
+    assert line.startswith(f"pixelmpc: error: {weights}: not a readable DOF checkpoint (corrupted or truncated")
+    assert "\\x" not in line  # no quoted bytes
+    assert not out.exists()
+    with pytest.raises(ValueError, match="corrupted or truncated"):  # --debug shows the exception itself
+        _run_cli(["--debug", "evaluate", "--weights", str(weights), "--out", str(out)], capsys)
+
+
+def test_a_library_error_reaching_the_command_is_one_line(tmp_path, capsys):
+    from pixelmpc_jax.learn import dataset
+    from pixelmpc_jax.strict_json import write_json_atomic
+
+    other = dataset.CollectConfig(laps=3).to_json()
+    write_json_atomic(tmp_path / "manifest.json", {"format": dataset.DATASET_FORMAT, "config": other,
+                                                   "policy": "mppi"})
+    code, err = _run_cli(["collect", "--out", str(tmp_path), "--laps", "2"], capsys)
+    assert code == 2
+    assert _one_line(err).startswith(f"pixelmpc: error: {tmp_path} holds a dataset collected with another config")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["manifest.json"]
+
+
+def test_output_folders_are_made_after_checking_every_argument(tmp_path, capsys, monkeypatch):
+    import pixelmpc_jax.reproduce
+
+    seen = {}
+    monkeypatch.setattr(pixelmpc_jax.reproduce, "reproduce",
+                        lambda parts, out, quick: seen.setdefault("out_exists", Path(out).is_dir()))
+    out = tmp_path / "a" / "b"
+    assert _run_cli(["reproduce", "--out", str(out), "--quick"], capsys)[0] == 0
+    assert seen["out_exists"]
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, err = _run_cli(["reproduce", "--out", str(blocker)], capsys)
+    assert code == 2 and "cannot be written: " in _one_line(err)
+
+
+# --------------------------------------------------------------------------------------------------
+# Exit codes: 1 for a run that completed and failed, 130 for interrupted work.
+# --------------------------------------------------------------------------------------------------
+
+
+def _fake_race(monkeypatch, success: bool, interrupted: bool):
+    from pixelmpc_jax.sim import metrics, race
+
+    def run_laps(**kwargs):
+        results = {"laps": [{"success": success}], "aggregate": {}, "interrupted": interrupted}
+        race.write_json_atomic(kwargs["out"] / "metrics.json", results)
+        return results
+
+    monkeypatch.setattr(race, "run_laps", run_laps)
+    monkeypatch.setattr(metrics, "format_table", lambda laps, aggregate: "table")
+
+
+@pytest.mark.parametrize("success, interrupted, code, message",
+                         [(True, False, 0, None), (False, False, 1, "no lap succeeded (1 flown)"),
+                          (True, True, 130, "interrupted after 1 of 1 lap(s)")])
+def test_race_exit_code_says_how_it_ended(success, interrupted, code, message, tmp_path, capsys, monkeypatch):
+    _fake_race(monkeypatch, success, interrupted)
+    got, err = _run_cli(["race", "--controller", "mppi", "--out", str(tmp_path)], capsys)
+    assert got == code
+    assert (tmp_path / "metrics.json").exists()  # written whatever the ending
+    if message:
+        assert message in _one_line(err)
+
+
+def test_interrupted_collect_and_train_exit_130(tmp_path, capsys, monkeypatch):
+    from pixelmpc_jax.learn import dataset, evaluate
+
+    monkeypatch.setattr(dataset, "run_collect", lambda *a, **k: {"interrupted": True})
+    assert _run_cli(["collect", "--out", str(tmp_path / "data")], capsys)[0] == 130
+    monkeypatch.setattr(dataset, "run_collect", lambda *a, **k: {"interrupted": False})
+    assert _run_cli(["collect", "--out", str(tmp_path / "data")], capsys)[0] == 0
+    (tmp_path / "data" / "manifest.json").write_text("{}")
+    monkeypatch.setattr(evaluate, "run_train", lambda *a, **k: {"interrupted": True})
+    assert _run_cli(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "t")], capsys)[0] == 130
+    monkeypatch.setattr(evaluate, "run_train", lambda *a, **k: {"interrupted": False})
+    assert _run_cli(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "t")], capsys)[0] == 0
+
+
+def test_an_interrupt_the_library_passes_on_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
+    import pixelmpc_jax.reproduce
+
+    def interrupted(parts, out, quick):
+        raise KeyboardInterrupt("interrupted: 2 cell(s) not finished; run again to resume")
+
+    monkeypatch.setattr(pixelmpc_jax.reproduce, "reproduce", interrupted)
+    code, err = _run_cli(["reproduce", "--out", str(tmp_path)], capsys)
+    assert code == 130 and _one_line(err) == "pixelmpc: interrupted"

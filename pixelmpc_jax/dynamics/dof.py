@@ -308,8 +308,9 @@ def read_checkpoint(path) -> DOFCheckpoint:
     try:
         payload = serialization.msgpack_restore(data)
     except Exception as err:  # msgpack raises several unrelated types on bad bytes
+        detail = str(err) if len(str(err)) <= 100 else type(err).__name__  # (some errors quote the bad bytes)
         raise ValueError(
-            f"{path}: not a readable DOF checkpoint (corrupted or truncated, {len(data)} bytes): {err!r}"
+            f"{path}: not a readable DOF checkpoint (corrupted or truncated, {len(data)} bytes): {detail}"
         ) from err
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
