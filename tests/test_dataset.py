@@ -107,7 +107,7 @@ def test_load_dataset_round_trip(tiny_dir):
 def test_second_collect_skips_and_a_deleted_lap_is_recollected(tiny_dir):
     before = {p.name: p.stat().st_mtime_ns for p in tiny_dir.glob("lap_*.npz")}
     manifest = D.collect(tiny_dir, TINY, progress=False)
-    assert manifest["complete"] and manifest["wall_s_this_call"] < 5.0
+    assert manifest["complete"] and manifest["wall_s_this_call"] < 5.0 and not manifest["interrupted"]
     assert {p.name: p.stat().st_mtime_ns for p in tiny_dir.glob("lap_*.npz")} == before
     flow_before = D.load_dataset(tiny_dir, "test").flow
     (tiny_dir / "lap_001.npz").unlink()
@@ -132,7 +132,7 @@ def test_interrupt_keeps_finished_laps(tmp_path, monkeypatch):
     monkeypatch.setattr(D, "fly_lap", fly_then_interrupt)
     config = TINY  # the runner compiled for the fixture is reused
     manifest = D.collect(tmp_path, config, progress=False)
-    assert not manifest["complete"]
+    assert not manifest["complete"] and manifest["interrupted"]  # (pixelmpc collect exits 130)
     assert [e["lap"] for e in manifest["laps"]] == [0]
     assert sorted(os.listdir(tmp_path)) == ["lap_000.npz", D.MANIFEST]  # no temp files left
     assert json.loads((tmp_path / D.MANIFEST).read_text())["complete"] is False
@@ -153,6 +153,38 @@ def test_clear_errors_for_missing_or_damaged_data(tiny_dir, tmp_path):
         D.load_dataset(damaged, "train")
     with pytest.raises(FileNotFoundError, match="lap_001.npz"):
         D.load_dataset(damaged, "test")
+
+
+def _corrupt_middle(path):
+    """Flip 64 bytes in the middle of a file (same size: a truncation check would not see it)."""
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 64] = bytes(b ^ 0xFF for b in data[middle:middle + 64])
+    path.write_bytes(bytes(data))
+
+
+def test_a_lap_file_with_corrupted_bytes_is_flown_again(tiny_dir, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_dir, copy)
+    original = (tiny_dir / "lap_000.npz").read_bytes()
+    recorded = {e["lap"]: e["sha256"] for e in D.read_manifest(tiny_dir)["laps"]}
+    assert recorded[0] == D.file_sha256(tiny_dir / "lap_000.npz")
+    _corrupt_middle(copy / "lap_000.npz")
+    with pytest.raises(ValueError, match="lap_000.npz: damaged lap file .its sha256 differs"):  # loaders refuse it
+        D.load_dataset(copy, "train")
+    manifest = D.collect(copy, TINY, progress=False)
+    assert "lap_000.npz: damaged (its checksum does not match); flying lap 0 again" in capsys.readouterr().err
+    assert manifest["complete"] and (copy / "lap_000.npz").read_bytes() == original  # seeded: the same lap
+    assert [e["sha256"] for e in manifest["laps"]] == [recorded[0], recorded[1]]
+    # Without a recorded checksum (a lap saved just before an interruption), the archive's CRC check decides.
+    _corrupt_middle(copy / "lap_001.npz")
+    stored = json.loads((copy / D.MANIFEST).read_text())
+    stored["laps"] = stored["laps"][:1]
+    (copy / D.MANIFEST).write_text(json.dumps(stored))
+    assert D._verified_lap(copy / "lap_001.npz") is None
+    assert D._verified_lap(tiny_dir / "lap_001.npz") == recorded[1]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -210,6 +242,7 @@ def _strip_to_format_1(src, dst):
         manifest.pop(key)
     for entry in manifest["laps"]:
         entry.pop("excited")
+        entry.pop("sha256")  # format 1 recorded no checksums
         with np.load(src / entry["file"]) as data:
             arrays = {k: data[k] for k in data.files if k not in D.FLOWN_KEYS and k != "meta_excited"}
         np.savez_compressed(dst / entry["file"], **arrays)

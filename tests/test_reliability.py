@@ -437,3 +437,12 @@ def test_an_interrupt_the_library_passes_on_exits_130_with_one_line(tmp_path, ca
     monkeypatch.setattr(pixelmpc_jax.reproduce, "reproduce", interrupted)
     code, err = _run_cli(["reproduce", "--out", str(tmp_path)], capsys)
     assert code == 130 and _one_line(err) == "pixelmpc: interrupted"
+
+
+def test_the_missing_dataset_hint_names_a_command_that_exists(tmp_path, capsys):
+    from pixelmpc_jax.learn import dataset
+
+    for root in (tmp_path / "nothing", tmp_path):
+        with pytest.raises(FileNotFoundError, match=f"collect one with `pixelmpc collect --out {root}`"):
+            dataset.read_manifest(root)
+    assert _run_cli(["collect", "--out", str(tmp_path), "--help"], capsys)[0] == 0  # and that command parses

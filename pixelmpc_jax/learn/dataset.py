@@ -38,7 +38,9 @@ storing it for every lap would more than double the dataset for nothing. It is c
 reprojection of the rendered depth), so ``"all"`` is there for experiments that want it.
 
 A lap file that exists is complete (atomic writes), so ``collect`` resumes: laps already on disk are
-skipped, and Ctrl-C loses at most the lap in progress. Lap files of format 1 (no ``w_flown``) still load:
+skipped, and Ctrl-C loses at most the lap in progress. The manifest records each lap file's sha256; a file
+whose bytes no longer match (or, without a recorded checksum, whose archive fails its CRC check) is flown
+again by ``collect`` and refused by the loaders. Lap files of format 1 (no ``w_flown``) still load:
 their flown rates are derived from the stored states, which is the same computation.
 """
 
@@ -47,12 +49,14 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import functools
+import hashlib
 import os
 import shlex
 import sys
 import tempfile
 import time
 import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -362,16 +366,34 @@ def _save_npz_atomic(path: Path, arrays: dict) -> None:
         raise
 
 
-def _lap_is_complete(path: Path) -> bool:
-    """The lap file exists and its archive lists every required array (a damaged file is re-collected)."""
+def file_sha256(path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _verified_lap(path: Path, expected_sha256: str | None = None) -> str | None:
+    """The sha256 of an intact lap file, or None when it is missing or damaged (then it is flown again).
+
+    Intact: the archive lists every required array and its bytes hash to ``expected_sha256`` (the manifest's);
+    without a recorded checksum (a lap written just before an interruption, a dataset from before checksums)
+    every member must pass the archive's CRC-32 check instead.
+    """
     if not path.exists():
-        return False
+        return None
     try:
         with zipfile.ZipFile(path) as archive:
-            names = {Path(n).stem for n in archive.namelist()}
-            return set(LAP_KEYS) <= names
-    except (zipfile.BadZipFile, OSError):
-        return False
+            if not set(LAP_KEYS) <= {Path(n).stem for n in archive.namelist()}:
+                return None
+            if expected_sha256 is None and archive.testzip() is not None:
+                return None
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error):
+        return None
+    digest = file_sha256(path)
+    return digest if expected_sha256 in (None, digest) else None
 
 
 def _lap_summary(path: Path) -> dict:
@@ -486,7 +508,8 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
 
     Returns:
         The manifest (also in ``out_dir/manifest.json``); ``manifest["complete"]`` is False after a
-        Ctrl-C, which keeps every finished lap (run again to resume).
+        Ctrl-C, which keeps every finished lap (run again to resume), and ``manifest["interrupted"]`` (not
+        stored) says whether this call was interrupted.
     """
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
@@ -540,6 +563,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
     if previous is not None and previous.get("format_version", 1) != DATASET_VERSION:
         manifest["format_version"] = previous.get("format_version", 1)  # laps of mixed formats: the oldest
     manifest = race.json_safe(manifest)
+    recorded_sha256 = {e["lap"]: e.get("sha256") for e in (previous or {}).get("laps", [])}
     done: dict[int, dict] = {}
     bar = frames_bar = None
     if progress:
@@ -552,11 +576,14 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         for lap in range(config.laps):
             path = root / lap_filename(lap)
             split = config.split_of(lap)
-            if _lap_is_complete(path):
-                done[lap] = _lap_entry(lap, path, split, _lap_summary(path))
+            digest = _verified_lap(path, recorded_sha256.get(lap))
+            if digest is not None:
+                done[lap] = _lap_entry(lap, path, split, _lap_summary(path), digest)
                 if bar is not None:
                     bar.update(1)
                 continue
+            if path.exists():
+                print(f"{path}: damaged (its checksum does not match); flying lap {lap} again", file=sys.stderr)
             world = base.replace(target_speed=jnp.asarray(speeds[lap], jnp.float32))
             if bar is not None:
                 bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="fly")
@@ -579,7 +606,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
                     "excited": config.excited(lap), **summary}
             arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
             _save_npz_atomic(path, arrays)
-            done[lap] = _lap_entry(lap, path, split, _lap_summary(path))
+            done[lap] = _lap_entry(lap, path, split, _lap_summary(path), file_sha256(path))
             _write_manifest(root, manifest, done, config, complete=False)
             if bar is not None:
                 bar.update(1)
@@ -593,12 +620,13 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
             bar.close()
     manifest = _write_manifest(root, manifest, done, config, complete=not interrupted and len(done) == config.laps)
     manifest["wall_s_this_call"] = time.perf_counter() - t0
+    manifest["interrupted"] = interrupted
     return manifest
 
 
-def _lap_entry(lap: int, path: Path, split: str, meta: dict) -> dict:
+def _lap_entry(lap: int, path: Path, split: str, meta: dict, sha256: str) -> dict:
     entry = {k.removeprefix("meta_"): v for k, v in meta.items()}
-    entry.update({"lap": lap, "file": path.name, "split": split, "bytes": path.stat().st_size})
+    entry.update({"lap": lap, "file": path.name, "split": split, "bytes": path.stat().st_size, "sha256": sha256})
     return entry
 
 
@@ -625,11 +653,11 @@ def read_manifest(data_dir) -> dict:
     root = Path(data_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"no DOF dataset at {root}: the directory does not exist "
-                                f"(collect one with `pixelmpc collect {root}` or learn.dataset.collect)")
+                                f"(collect one with `pixelmpc collect --out {root}` or learn.dataset.collect)")
     manifest = _read_manifest(root)
     if manifest is None:
         raise FileNotFoundError(f"no DOF dataset at {root}: {MANIFEST} is missing "
-                                f"(collect one with `pixelmpc collect {root}` or learn.dataset.collect)")
+                                f"(collect one with `pixelmpc collect --out {root}` or learn.dataset.collect)")
     return manifest
 
 
@@ -644,8 +672,13 @@ def _split_laps(manifest: dict, split: str, root: Path) -> list[dict]:
 
 
 def load_lap(path, with_flow: bool = True, with_exact: bool = True, info: dict | None = None) -> Lap:
-    """One lap file; ``ValueError`` naming the file if it is damaged."""
+    """One lap file; ``ValueError`` naming the file if it is damaged (its sha256 differs from ``info``'s, the
+    manifest entry's, or its arrays do not load)."""
     path = Path(path)
+    expected = (info or {}).get("sha256")
+    if expected is not None and path.exists() and file_sha256(path) != expected:
+        raise ValueError(f"{path}: damaged lap file (its sha256 differs from the manifest's); run collect again "
+                         f"to fly that lap again")
     try:
         with np.load(path) as data:
             missing = [k for k in LAP_KEYS if k not in data.files]
