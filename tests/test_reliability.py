@@ -446,3 +446,19 @@ def test_the_missing_dataset_hint_names_a_command_that_exists(tmp_path, capsys):
         with pytest.raises(FileNotFoundError, match=f"collect one with `pixelmpc collect --out {root}`"):
             dataset.read_manifest(root)
     assert _run_cli(["collect", "--out", str(tmp_path), "--help"], capsys)[0] == 0  # and that command parses
+
+
+def test_an_interrupted_grid_keeps_its_finished_cells_and_raises(tmp_path, monkeypatch):
+    from pixelmpc_jax.sim import grid, race
+
+    def run_laps(controller, speed, laps, **kwargs):
+        interrupted = speed > 10.0  # the second cell is interrupted after one of its two laps
+        flown = 1 if interrupted else laps
+        return {"laps": [{"success": True}] * flown, "aggregate": {}, "interrupted": interrupted,
+                "trajectories": [np.zeros((2, 10))] * flown, "covariances": []}
+
+    monkeypatch.setattr(race, "run_laps", run_laps)
+    cells = [grid.Cell("slow", speed=8.0), grid.Cell("fast", speed=14.0), grid.Cell("never", speed=9.0)]
+    with pytest.raises(KeyboardInterrupt, match="interrupted in cell fast: 1 finished cell"):
+        grid.run_grid(cells, tmp_path, laps=2, batch_size=1, progress=False)
+    assert list(strict_loads((tmp_path / "results.json").read_text())) == ["slow"]

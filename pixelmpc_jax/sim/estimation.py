@@ -134,8 +134,13 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
     out = Path(out)
     cells = race_cells((16.0,) if quick else RACE_SPEEDS)
     lanes = straight_cells() if straight else []
+    interrupted = False
     if run:
-        results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
+        try:
+            results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
+        except KeyboardInterrupt:
+            results = load_results(out)  # write the finished cells' report, then stop
+            interrupted = True
     else:
         results = load_results(out)
     race_rows, straight_rows = summarise(results, cells), summarise(results, lanes)
@@ -147,4 +152,6 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
     report += "".join(f"\n![{path.stem}]({path.name})\n" for path in figures)
     write_json_atomic(out / "summary.json", {"table_iv": race_rows, "straight_lane": straight_rows})
     (out / "REPORT.md").write_text(report)
+    if interrupted:
+        raise KeyboardInterrupt(f"interrupted: {len(missing)} cell(s) not finished; run again to resume")
     return {"table_iv": race_rows, "straight_lane": straight_rows}

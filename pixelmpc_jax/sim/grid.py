@@ -85,7 +85,9 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     not depend on it (lap i always uses seed ``seed + i``).
 
     Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap) and, with the
-    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick)."""
+    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). Interrupted (Ctrl-C),
+    the finished cells stay in ``results.json`` and the KeyboardInterrupt is raised again: a grid never returns
+    as if it were complete."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.json"
@@ -105,8 +107,9 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
                             options=dict(cell.options))
         trajectories = res.pop("trajectories")
         covariances = res.pop("covariances")
-        if len(res["laps"]) < laps:  # interrupted inside the cell: keep what is finished, stop here
-            break
+        if res.get("interrupted") or len(res["laps"]) < laps:  # interrupted inside the cell: keep what is done
+            raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
+                                    f"{path}; run again to resume")
         res["config"] = cell_record(cell)
         res["wall_time_s"] = time.perf_counter() - start
         results[cell.key()] = res

@@ -188,7 +188,11 @@ def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", q
     if quick:
         cells = [cells[0], cells[3]]  # nominal and the paper's best setting (t_f = 1, c_pixel = 9e6)
     if run:
-        results = run_grid(cells, out, laps=laps, progress=progress, dof_params=dof_params)
+        try:
+            results = run_grid(cells, out, laps=laps, progress=progress, dof_params=dof_params)
+        except KeyboardInterrupt:
+            visibility_report(out, cells, load_results(out), pixel_model)  # the finished cells' report
+            raise
     else:
         results = load_results(out)
     return visibility_report(out, cells, results, pixel_model)
