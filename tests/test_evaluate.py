@@ -133,7 +133,8 @@ def test_exact_rotation_response_is_the_pinhole_cameras():
     camera = E.episode_lib.make_world().camera
     exact = E.exact_rotation_response(camera)
     dt = E.episode_lib.CONTROL_DT
-    np.testing.assert_allclose(exact, [[0.0, 0.0, float(camera.fx) * dt], [0.0, -float(camera.fy) * dt, 0.0]], atol=1e-4)
+    fx, fy = float(camera.fx), float(camera.fy)
+    np.testing.assert_allclose(exact, [[0.0, 0.0, fx * dt], [0.0, -fy * dt, 0.0]], atol=1e-4)
     assert exact[0, 2] == pytest.approx(2.73, abs=0.01)  # px/frame per rad/s at 204 x 153 and 1/40 s
 
 
