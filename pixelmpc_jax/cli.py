@@ -210,7 +210,22 @@ def _check_race(args) -> None:
     from pixelmpc_jax.sim import race
 
     race.make_policy(args.controller, args.temperature, pixel_model=args.pixel_model, t_f=args.t_f,
-                     c_pixel=args.c_pixel)
+                     c_pixel=args.c_pixel, options=_race_options(args))
+
+
+def _race_options(args) -> dict:
+    """The controller options the race flags set away from their defaults (see race.make_policy)."""
+    options = {}
+    if args.controller == "pixelmpc":
+        if args.pixel_cost != "l1":
+            options["pixel_cost"] = args.pixel_cost
+        if args.border_margin is not None:
+            options["border_margin"] = args.border_margin
+    if args.noise_exponent:
+        options["mppi.noise_exponent"] = args.noise_exponent
+    if args.heading_weight is not None:
+        options["racing.heading_weight"] = args.heading_weight
+    return options
 
 
 def _cmd_race(args) -> int:
@@ -224,7 +239,7 @@ def _cmd_race(args) -> int:
                             max_time_s=args.max_time, temperature=args.temperature,
                             pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
                             c_pixel=args.c_pixel, estimator=args.estimator, video=args.video,
-                            course=args.course)
+                            course=args.course, options=_race_options(args))
     laps = results["laps"]
     if laps:
         print(metrics.format_table(laps, results["aggregate"]))
@@ -419,6 +434,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"PixelMPC pixel-cost horizon t_f, s, in [0, {RACE_T_F_MAX_S:g}] (the MPC horizon; default 1)")
     p.add_argument("--c-pixel", type=_float_in(0.0, 1e30), default=9e6,
                    help="PixelMPC pixel-cost weight, in [0, 1e30] (default 9e6)")
+    p.add_argument("--pixel-cost", choices=("l1", "border"), default="l1",
+                   help="PixelMPC pixel cost: l1, the paper's distance from the image centre (default), or border, "
+                        "a barrier on the image border that charges only a gate leaving the view")
+    p.add_argument("--border-margin", type=_float_in(0.0, 0.5, lo_open=True), default=None,
+                   help="where the border cost starts, as a fraction of the image inside the border, in (0, 0.5] "
+                        "(default 0.15)")
+    p.add_argument("--noise-exponent", type=_float_in(0.0, 4.0), default=0.0,
+                   help="MPPI sampling noise coloured as 1/f^beta along the horizon, beta in [0, 4] (default 0, "
+                        "white, the paper's)")
+    p.add_argument("--heading-weight", type=_float_in(0.0, 1.0), default=None,
+                   help="share of the racing cost's attitude term that pins the heading to the path, in [0, 1] "
+                        "(default 1, the paper's)")
     p.add_argument("--speed", type=_float_in(0.0, RACE_SPEED_MAX, lo_open=True, unit="m/s"), default=14.0,
                    help=f"target speed, m/s, in (0, {RACE_SPEED_MAX:g}] (default 14)")
     p.add_argument("--laps", type=_positive_int, default=1, help="number of laps (default 1)")

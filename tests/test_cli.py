@@ -50,6 +50,10 @@ def test_unwritable_output_directory_is_rejected_before_running(tmp_path, capsys
         (["race", "--speed", "-14"], "argument --speed: must be a finite number in (0, 50] m/s, got -14"),
         (["race", "--laps", "0"], "must be a positive integer"),
         (["race", "--laps", "two"], "expected an integer"),
+        (["race", "--pixel-cost", "l2"], "invalid choice"),
+        (["race", "--border-margin", "0"], "argument --border-margin: must be a finite number in (0, 0.5]"),
+        (["race", "--noise-exponent", "nan"], "argument --noise-exponent: must be a finite number in [0, 4]"),
+        (["race", "--heading-weight", "2"], "argument --heading-weight: must be a finite number in [0, 1]"),
     ],
 )
 def test_race_rejects_bad_arguments_before_running(argv, message, capsys):
@@ -79,3 +83,20 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
     assert len(saved["laps"]) == 1 and saved["interrupted"] is True
     assert set(metrics.LAP_KEYS) <= set(saved["laps"][0])
     assert saved["aggregate"]["num_laps"] == 1 and "success_rate" in saved["aggregate"]
+
+
+def test_race_lever_flags_reach_the_controller_options(monkeypatch, tmp_path):
+    """--pixel-cost, --border-margin, --noise-exponent and --heading-weight become race options."""
+    from pixelmpc_jax.sim import race
+
+    seen = {}
+
+    def fake_run_laps(**kwargs):
+        seen.update(kwargs)
+        return {"laps": [], "aggregate": {}, "interrupted": False}
+
+    monkeypatch.setattr(race, "run_laps", fake_run_laps)
+    cli.main(["race", "--out", str(tmp_path), "--pixel-cost", "border", "--border-margin", "0.2",
+              "--noise-exponent", "1", "--heading-weight", "0.5"])
+    assert seen["options"] == {"pixel_cost": "border", "border_margin": 0.2, "mppi.noise_exponent": 1.0,
+                               "racing.heading_weight": 0.5}
