@@ -3,11 +3,14 @@
 A grid is a list of :class:`Cell` (a controller and its settings); each cell flies ``laps`` races
 (seeds ``seed .. seed + laps - 1``, batched with ``vmap``). After every cell the results file is
 rewritten atomically, and a cell already in the file is not recomputed, so an interrupted run resumes.
+A cell is kept only when it was flown with the same settings (:func:`cell_record`), seed, number of laps and
+DOF weights (:func:`dof_weights_hash`) as the new run; otherwise it is flown again and replaced.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -71,6 +74,47 @@ def cell_record(cell: Cell) -> dict:
     return record
 
 
+def uses_dof(cell: Cell) -> bool:
+    """Whether the cell's controller evaluates the DOF network (PixelMPC with the "dof" pixel model)."""
+    return cell.controller == "pixelmpc" and cell.pixel_model == "dof"
+
+
+def dof_weights_hash(params) -> str:
+    """A short fingerprint of DOF weights: the first 16 hex digits of the sha256 of every leaf's dtype, shape
+    and bytes (in ``jax.tree_util.tree_leaves`` order)."""
+    import jax
+
+    digest = hashlib.sha256()
+    for leaf in jax.tree_util.tree_leaves(params):
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()[:16]
+
+
+def packaged_dof_hash() -> str:
+    """:func:`dof_weights_hash` of the DOF weights shipped inside the package."""
+    from pixelmpc_jax.dynamics import dof
+
+    return dof_weights_hash(dof.load_packaged_dof())
+
+
+def is_current(done: dict | None, cell: Cell, laps: int, seed: int, dof_hash: str | None,
+               packaged_hash=packaged_dof_hash) -> bool:
+    """Whether a finished cell's results ``done`` answer a run of ``cell`` for ``laps`` laps from ``seed`` with
+    DOF weights of fingerprint ``dof_hash`` (None for a cell that uses no DOF).
+
+    Results written before the seed and the weights were recorded count as seed 0 and the packaged weights
+    (``packaged_hash``: called only for such a record of a DOF cell), the defaults they were flown with."""
+    if not done or len(done.get("laps", [])) != laps or done.get("config") != cell_record(cell):
+        return False
+    if done.get("seed", 0) != seed:
+        return False
+    if "dof_weights_sha256" in done:
+        return done["dof_weights_sha256"] == dof_hash
+    return dof_hash is None or dof_hash == packaged_hash()
+
+
 def load_results(out: Path) -> dict:
     """``{cell name: race results}`` finished so far in ``out/results.json`` (empty if none)."""
     path = Path(out) / "results.json"
@@ -80,6 +124,11 @@ def load_results(out: Path) -> dict:
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
              progress: bool = True, dof_params=None) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
+
+    A cell in the file is kept only if it was flown with the same settings, ``laps``, ``seed`` and DOF weights
+    (``dof_params``, or the packaged weights when None) as asked now (see :func:`is_current`); each cell's
+    results record its ``seed`` and ``dof_weights_sha256`` (:func:`dof_weights_hash`, null for a cell that
+    uses no DOF).
 
     ``batch_size`` laps fly in one vmapped batch (default :func:`default_batch_size`); a lap's result does
     not depend on it (lap i always uses seed ``seed + i``).
@@ -93,9 +142,22 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     path = out / "results.json"
     results = load_results(out)
     batch_size = batch_size or default_batch_size(laps)
+    hashes: dict[str, str] = {}
+
+    def run_hash() -> str:  # the fingerprint of the weights a DOF cell flies with, computed once
+        if "run" not in hashes:
+            hashes["run"] = packaged_hash() if dof_params is None else dof_weights_hash(dof_params)
+        return hashes["run"]
+
+    def packaged_hash() -> str:
+        if "packaged" not in hashes:
+            hashes["packaged"] = packaged_dof_hash()
+        return hashes["packaged"]
+
     for cell in cells:
         done = results.get(cell.key())
-        if done and len(done.get("laps", [])) >= laps and done.get("config") == cell_record(cell):
+        dof_hash = run_hash() if uses_dof(cell) else None
+        if is_current(done, cell, laps, seed, dof_hash, packaged_hash):
             if progress:
                 print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
             continue
@@ -111,6 +173,8 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
             raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
                                     f"{path}; run again to resume")
         res["config"] = cell_record(cell)
+        res["seed"] = seed
+        res["dof_weights_sha256"] = dof_hash
         res["wall_time_s"] = time.perf_counter() - start
         results[cell.key()] = res
         race.write_json_atomic(path, results)
