@@ -100,3 +100,29 @@ def test_race_lever_flags_reach_the_controller_options(monkeypatch, tmp_path):
               "--noise-exponent", "1", "--heading-weight", "0.5"])
     assert seen["options"] == {"pixel_cost": "border", "border_margin": 0.2, "mppi.noise_exponent": 1.0,
                                "racing.heading_weight": 0.5}
+
+
+def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
+    """3 laps in batches of 2: both batches reach the vmapped runner with 2 lanes; the copy is dropped."""
+    from pixelmpc_jax.sim import race
+
+    shapes = []
+    make_runner = race.episode_lib.make_runner
+
+    def recording_runner(*args, **kwargs):
+        runner = make_runner(*args, **kwargs)
+
+        def batch(worlds, keys):
+            shapes.append((keys.shape, worlds.target_speed.shape))
+            return runner.batch(worlds, keys)
+
+        return runner._replace(batch=batch)
+
+    monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
+    results = race.run_laps("mppi", speed=10.0, laps=3, seed=4, batch_size=2, max_time_s=0.1, progress=False,
+                            num_samples=32)
+    assert [lap["seed"] for lap in results["laps"]] == [4, 5, 6] and len(results["trajectories"]) == 3
+    assert len(shapes) == 2 and shapes[0] == shapes[1] and shapes[0][0][0] == 2
+    shapes.clear()
+    race.run_laps("mppi", speed=10.0, laps=1, seed=4, batch_size=4, max_time_s=0.1, progress=False, num_samples=32)
+    assert [s[0][0] for s in shapes] == [1]  # a run shorter than a batch is not padded

@@ -126,8 +126,9 @@ def run_laps(
     its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
     :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also
     holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its position
-    covariance at each tick (``covariances``). ``interrupted`` is True when Ctrl-C stopped the run: the laps
-    finished before it are kept (and in ``out/metrics.json``).
+    covariance at each tick (``covariances``). Laps fly ``batch_size`` at a time; a last, smaller batch is padded
+    to that size (its copies dropped), so the batched episode compiles once. ``interrupted`` is True when
+    Ctrl-C stopped the run: the laps finished before it are kept (and in ``out/metrics.json``).
     """
     if not (isinstance(speed, (int, float)) and 0 < speed < float("inf")):
         raise ValueError(f"speed must be a positive finite number of m/s, got {speed!r}")
@@ -153,6 +154,7 @@ def run_laps(
     trajectories: list[np.ndarray] = []
     covariances: list[np.ndarray] = []
     seeds = list(range(seed, seed + laps))
+    batch_size = min(batch_size, laps)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -161,9 +163,12 @@ def run_laps(
     try:
         for first in range(0, laps, batch_size):
             chunk = seeds[first:first + batch_size]
-            worlds = lap_worlds(base, chunk, perturb)
-            keys = jax.vmap(jax.random.PRNGKey)(np.asarray(chunk))
-            logs = metrics_lib.unbatch(runner.batch(worlds, keys))
+            # the last chunk is padded to a whole batch (its last lap repeated, the copies dropped) so that
+            # every batch has one shape and the vmapped episode compiles once
+            padded = chunk + chunk[-1:] * (batch_size - len(chunk))
+            worlds = lap_worlds(base, padded, perturb)
+            keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
+            logs = metrics_lib.unbatch(runner.batch(worlds, keys))[:len(chunk)]
             for lane, (lap_seed, log) in enumerate(zip(chunk, logs)):
                 if video and out is not None and lap_seed == seed:
                     from pixelmpc_jax.sim.video import write_onboard_video
