@@ -51,12 +51,11 @@ import optax
 from flax import serialization, struct
 from tqdm.auto import tqdm
 
-from pixelmpc_jax import strict_json
+from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH  # noqa: F401 (re-exported)
 
-PAPER_WIDTH = 204
-PAPER_HEIGHT = 153
-PAPER_DT = 1.0 / 40.0
+PAPER_DT = timing.CONTROL_DT  # s between frames, the control tick
 LOSSES = ("polar", "endpoint")
 # What the network's control input u (4,) is: "command", the paper's (the body rates and thrust commanded at
 # the frame's tick), or "flown" (the body rates flown over the frame interval, with the commanded thrust;

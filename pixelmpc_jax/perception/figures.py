@@ -103,6 +103,6 @@ def write_render_figures(
     x0 = render_lib.pose_before_gate(track.gate(gate_index), distance, lateral=0.5, height=0.3)
     results = {}
     for name, speed, rates in FIGURE_CASES:
-        x1 = render_lib.advance_pose(x0, 1.0 / 40.0, speed, rates)
+        x1 = render_lib.advance_pose(x0, flow_lib.FRAME_DT, speed, rates)
         results[name] = render_figure(track, x0, x1, camera, Path(out_dir) / f"render_{name}.png")
     return results

@@ -12,9 +12,10 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
-FRAME_DT = 1.0 / 40.0
+FRAME_DT = timing.CONTROL_DT  # s, frames at the control rate, 40 Hz
 
 # The paper's Farneback parameters (Sec. IV-A), exactly.
 FARNEBACK_PARAMS = dict(pyr_scale=0.5, levels=10, winsize=51, iterations=15, poly_n=5, poly_sigma=1.1, flags=0)

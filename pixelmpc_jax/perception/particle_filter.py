@@ -66,6 +66,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, STATE_DIM, VEL
 from pixelmpc_jax.world import camera as camera_lib
@@ -111,7 +112,7 @@ class PFConfig:
     likelihood: str = "laplace"
     resample_threshold: float = 0.5
     penalise_undetected_target: bool = False
-    dt: float = 1.0 / 40.0
+    dt: float = timing.CONTROL_DT
     gravity: float = GRAVITY
 
     def __post_init__(self):

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import MPPIConfig
@@ -33,8 +34,8 @@ CRASH_MISSED_GATE = 4
 CRASH_TIMEOUT = 5
 END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TIMEOUT: "timeout"}
 
-CONTROL_DT = 0.025
-SUBSTEPS = 24
+CONTROL_DT = timing.CONTROL_DT  # s, one control tick (pixelmpc_jax.timing)
+SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
 DETECTORS = ("geometry", "image")
 ESTIMATORS = ("truth", "pf")
 

@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics.quadrotor import (
     CONTROL_DIM,
     QUAT,
@@ -63,8 +64,8 @@ from pixelmpc_jax.dynamics.quadrotor import (
     rotation_matrix,
 )
 
-PLANT_DT = 1.0 / 960.0
-SUBSTEPS_PER_TICK = 24  # 960 Hz / 40 Hz
+PLANT_DT = timing.PLANT_DT  # 960 Hz (pixelmpc_jax.timing)
+SUBSTEPS_PER_TICK = timing.SUBSTEPS_PER_TICK  # 960 Hz / 40 Hz = 24
 
 # Quad-X sign pattern, motors (front-left, rear-left, rear-right, front-right): rows are roll, pitch, yaw.
 _MIX_SIGNS = ((1.0, 1.0, -1.0, -1.0), (-1.0, 1.0, 1.0, -1.0), (-1.0, 1.0, -1.0, 1.0))
@@ -255,7 +256,8 @@ def preintegrate(imus: IMU, dt: float) -> TickIMU:
                    delta_p=dp, dt=jnp.asarray(count * dt, dtype), num_samples=jnp.asarray(count, dtype))
 
 
-def hover_tick_imu(tick_dt: float, num_samples: int = 24, gravity: float = 9.81, dtype=jnp.float32) -> TickIMU:
+def hover_tick_imu(tick_dt: float, num_samples: int = SUBSTEPS_PER_TICK, gravity: float = 9.81,
+                   dtype=jnp.float32) -> TickIMU:
     """The TickIMU of a tick at rest and level (the filter's first input)."""
     up = jnp.asarray([0.0, 0.0, gravity], dtype)
     return TickIMU(accel=up, gyro=jnp.zeros(3, dtype), delta_q=jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype),

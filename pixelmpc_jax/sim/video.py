@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.sim.episode import EpisodeLog
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
@@ -53,8 +54,8 @@ def annotated_frames(track, log: EpisodeLog, camera: camera_lib.Camera | None = 
             same = window[(target[window] == target[k]) & detected[window]]
             _polyline(rgb, detection_uv[same], ACTUAL, scale)
             _polyline(rgb, predicted[k], PREDICTED, scale)
-        cv2.putText(rgb, f"t={k * 0.025:5.2f}s gate {int(target[k]) + 1}", (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(rgb, f"t={k * timing.CONTROL_DT:5.2f}s gate {int(target[k]) + 1}", (6, 16),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
         frames.append(rgb)
     return frames
 
@@ -69,7 +70,7 @@ def write_onboard_video(track, log: EpisodeLog, path: Path, camera: camera_lib.C
     path = Path(path)
     if path.suffix.lower() == ".mp4":
         h, w = frames[0].shape[:2]
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 40.0 / every, (w, h))
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), timing.CONTROL_HZ / every, (w, h))
         if not writer.isOpened():
             raise RuntimeError(f"OpenCV cannot write MP4 here; use a .gif path instead of {path}")
         for frame in frames:
@@ -79,6 +80,6 @@ def write_onboard_video(track, log: EpisodeLog, path: Path, camera: camera_lib.C
     from PIL import Image
 
     images = [Image.fromarray(f) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(every * 25)), loop=0,
-                   optimize=True)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(round(every * timing.CONTROL_DT * 1000)),
+                   loop=0, optimize=True)
     return path

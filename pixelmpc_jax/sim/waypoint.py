@@ -11,6 +11,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import MPPIConfig, MPPIInfo, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
@@ -24,7 +25,7 @@ class WaypointFlight(NamedTuple):
     min_costs: jax.Array
 
 
-def waypoint_config(num_samples: int = 512, horizon: int = 40, dt: float = 0.025,
+def waypoint_config(num_samples: int = 512, horizon: int = 40, dt: float = timing.CONTROL_DT,
                     params: quadrotor.QuadParams | None = None) -> MPPIConfig:
     """MPPI settings for the demo: the paper's dt and noise on rates, a 1 s horizon, model limits."""
     params = params or quadrotor.QuadParams()

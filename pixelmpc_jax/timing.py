@@ -1,0 +1,15 @@
+"""The loop's clock, defined once: the control tick (the paper's 40 Hz, also the camera's frame interval) and
+the simulated vehicle's rate (960 Hz, FlightGoggles-like), with the plant substeps per tick.
+
+Imports nothing; every layer may import it. The older names are aliases of these: ``sim.episode.CONTROL_DT``
+and ``SUBSTEPS``, ``sim.plant.PLANT_DT`` and ``SUBSTEPS_PER_TICK``, ``perception.flow.FRAME_DT``,
+``learn.train.PAPER_DT`` and the default ``PFConfig.dt``.
+"""
+
+CONTROL_HZ = 40
+PLANT_HZ = 960
+
+CONTROL_DT = 1.0 / CONTROL_HZ  # s, one control tick = one camera frame (0.025)
+PLANT_DT = 1.0 / PLANT_HZ  # s, one plant substep
+SUBSTEPS_PER_TICK = PLANT_HZ // CONTROL_HZ  # 24
+assert SUBSTEPS_PER_TICK * CONTROL_HZ == PLANT_HZ, "the plant rate must be a multiple of the control rate"
