@@ -94,6 +94,27 @@ def test_axis_angle_and_yaw_helpers_agree():
     np.testing.assert_allclose(Q.quat_from_axis_angle(jnp.zeros(3), 0.8), [1, 0, 0, 0])
 
 
+def test_quat_exp_is_the_axis_angle_form_and_safe_at_zero_rate():
+    dt = 0.025
+    rates = jax.random.normal(jax.random.PRNGKey(0), (64, 3), jnp.float32) * 4.0
+
+    def axis_angle(w, dt):  # the form the rate-integration call sites used before quat_exp
+        return Q.quat_from_axis_angle(w, jnp.sqrt(jnp.sum(w * w)) * dt)
+
+    np.testing.assert_array_equal(jax.vmap(Q.quat_exp, (0, None))(rates, dt),
+                                  jax.vmap(axis_angle, (0, None))(rates, dt))
+    np.testing.assert_array_equal(jax.jit(Q.quat_exp)(rates[0], dt), axis_angle(rates[0], dt))
+    zero = jnp.zeros(3, jnp.float32)
+    np.testing.assert_array_equal(Q.quat_exp(zero, dt), [1.0, 0.0, 0.0, 0.0])
+    assert bool(jnp.any(jnp.isnan(jax.jacobian(axis_angle)(zero, dt))))  # what quat_exp avoids
+    jac = jax.jacobian(Q.quat_exp)(zero, dt)  # d q / d w at rest: [0; dt / 2 I], like the small-angle form
+    np.testing.assert_allclose(jac, np.vstack([np.zeros((1, 3)), 0.5 * dt * np.eye(3)]), atol=1e-7)
+    jac_dt = jax.jacobian(Q.quat_exp, argnums=1)(zero, dt)
+    assert np.all(np.isfinite(jac_dt))
+    small = jnp.asarray([1e-3, -2e-3, 5e-4], jnp.float32)  # near zero: the gradient is continuous
+    np.testing.assert_allclose(jax.jacobian(Q.quat_exp)(small, dt), jac, atol=1e-6)
+
+
 def test_quaternion_norm_after_10000_random_steps():
     key = jax.random.PRNGKey(3)
     controls = jax.random.uniform(key, (10_000, 4), minval=jnp.asarray([-6, -6, -6, 0.0]),

@@ -126,6 +126,20 @@ def quat_from_axis_angle(axis: jax.Array, angle: jax.Array) -> jax.Array:
     return jnp.where(ok, q, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype=axis.dtype))
 
 
+def quat_exp(w: jax.Array, dt) -> jax.Array:
+    """The rotation by the body rate ``w`` (3,) (rad/s) held for ``dt`` s, ``exp(w dt / 2)``: the quaternion
+    to right-multiply an attitude by, ``q' = q * quat_exp(w, dt)``.
+
+    The same numbers as ``quat_from_axis_angle(w, |w| dt)``; at ``w = 0`` the identity, with a finite
+    gradient there too (that of the first-order ``[1, w dt / 2]``, which ``|w|`` alone would make NaN)."""
+    w = jnp.asarray(w)
+    n2 = jnp.sum(w * w)
+    ok = n2 > 0
+    angle = jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0) * dt
+    first_order = jnp.concatenate([jnp.ones((1,), w.dtype), (0.5 * dt * w).astype(w.dtype)])
+    return jnp.where(ok, quat_from_axis_angle(w, angle), first_order)
+
+
 def quat_from_euler(roll, pitch, yaw) -> jax.Array:
     """Quaternion of intrinsic Z-Y-X (yaw, then pitch, then roll) Euler angles, in rad."""
     cr, sr = jnp.cos(0.5 * roll), jnp.sin(0.5 * roll)

@@ -216,8 +216,7 @@ def _check_detection(detection) -> None:
 
 def _small_rotation(rotvec: jax.Array) -> jax.Array:
     """Quaternion (4,) of the rotation vector (3,) (angle = norm, rad)."""
-    angle = jnp.sqrt(jnp.sum(rotvec * rotvec))
-    return quadrotor.quat_from_axis_angle(rotvec, angle)
+    return quadrotor.quat_exp(rotvec, 1.0)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "spread"))
@@ -265,9 +264,8 @@ def propagate_particle(x: jax.Array, accel: jax.Array, gyro: jax.Array, dt: floa
     with ``f`` the body specific force (3,), ``w`` the body rates (3,) and ``q_mid`` the attitude at dt / 2.
     """
     q = x[QUAT]
-    angle = jnp.sqrt(jnp.sum(gyro * gyro)) * dt
-    q_next = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_from_axis_angle(gyro, angle)))
-    q_mid = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_from_axis_angle(gyro, 0.5 * angle)))
+    q_next = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_exp(gyro, dt)))
+    q_mid = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_exp(gyro, 0.5 * dt)))
     a = quadrotor.quat_rotate(q_mid, accel) + jnp.asarray([0.0, 0.0, -gravity], x.dtype)
     v = x[VEL]
     p_next = x[POS] + v * dt + 0.5 * dt * dt * a
@@ -285,8 +283,7 @@ def propagate_preintegrated(x: jax.Array, imu, accel_noise: jax.Array, gyro_nois
     """
     dt = imu.dt
     q = x[QUAT]
-    angle = jnp.sqrt(jnp.sum(gyro_noise * gyro_noise)) * dt
-    dq = quadrotor.quat_multiply(imu.delta_q, quadrotor.quat_from_axis_angle(gyro_noise, angle))
+    dq = quadrotor.quat_multiply(imu.delta_q, quadrotor.quat_exp(gyro_noise, dt))
     dv = imu.delta_v + accel_noise * dt
     dp = imu.delta_p + 0.5 * accel_noise * dt * dt
     g = jnp.asarray([0.0, 0.0, -gravity], x.dtype)

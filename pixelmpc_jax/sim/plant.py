@@ -58,7 +58,7 @@ from pixelmpc_jax.dynamics.quadrotor import (
     QuadParams,
     dynamics,
     normalize_quat,
-    quat_from_axis_angle,
+    quat_exp,
     quat_multiply,
     quat_rotate,
     rotation_matrix,
@@ -245,8 +245,7 @@ def preintegrate(imus: IMU, dt: float) -> TickIMU:
         a = quat_rotate(q, accel)  # into the start body frame
         dp = dp + dv * dt + 0.5 * a * dt * dt
         dv = dv + a * dt
-        angle = jnp.sqrt(jnp.sum(gyro * gyro)) * dt
-        q = normalize_quat(quat_multiply(q, quat_from_axis_angle(gyro, angle)))
+        q = normalize_quat(quat_multiply(q, quat_exp(gyro, dt)))
         return (q, dv, dp), None
 
     start = (jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype), jnp.zeros(3, dtype), jnp.zeros(3, dtype))

@@ -430,6 +430,5 @@ def advance_pose(x_robot: jax.Array, dt: float, speed: float = 0.0, body_rates=(
     q = quadrotor.normalize_quat(x[quadrotor.QUAT])
     rates = jnp.asarray(body_rates, jnp.float32)
     position = x[quadrotor.POS] + quadrotor.rotation_matrix(q)[:, 0] * speed * dt
-    angle = jnp.sqrt(jnp.sum(rates * rates)) * dt
-    q_next = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_from_axis_angle(rates, angle)))
+    q_next = quadrotor.normalize_quat(quadrotor.quat_multiply(q, quadrotor.quat_exp(rates, dt)))
     return x.at[quadrotor.POS].set(position).at[quadrotor.QUAT].set(q_next)
