@@ -124,6 +124,16 @@ def test_polar_round_trip_numpy_and_jit():
     np.testing.assert_allclose(jax.jit(F.polar_to_flow)(lj, tj), flow, atol=1e-4)
 
 
+def test_half_precision_flow_is_converted_in_float32():
+    """DOF training keeps its flow in float16 on the device; the polar units come out in float32."""
+    flow = np.random.default_rng(2).normal(0.0, 5.0, (50, 2))
+    l16, theta16 = F.flow_to_polar(jnp.asarray(flow, jnp.float16))
+    l32, theta32 = F.flow_to_polar(jnp.asarray(jnp.asarray(flow, jnp.float16), jnp.float32))
+    assert l16.dtype == theta16.dtype == jnp.float32
+    np.testing.assert_array_equal(l16, l32)
+    np.testing.assert_array_equal(theta16, theta32)
+
+
 def test_average_endpoint_error():
     a = np.zeros((2, 2, 2))
     b = np.zeros((2, 2, 2))

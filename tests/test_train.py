@@ -85,6 +85,14 @@ def test_flow_to_polar_hand_cases():
     np.testing.assert_allclose(train_mod.polar_to_flow(l, theta, W, H, DT), flow, atol=1e-5)
 
 
+def test_training_uses_the_one_polar_conversion_of_perception_flow():
+    from pixelmpc_jax.perception import flow as flow_lib
+
+    assert train_mod.flow_to_polar is flow_lib.flow_to_polar and train_mod.polar_to_flow is flow_lib.polar_to_flow
+    assert train_mod.PAPER_DT == flow_lib.FRAME_DT
+    assert (train_mod.PAPER_WIDTH, train_mod.PAPER_HEIGHT) == (flow_lib.PAPER_WIDTH, flow_lib.PAPER_HEIGHT)
+
+
 def test_pixel_uv_centres():
     uv = train_mod.pixel_uv(jnp.asarray([0, W - 1]), jnp.asarray([0, H - 1]), W, H)
     np.testing.assert_allclose(uv, [[0.5 / W, 0.5 / H], [1 - 0.5 / W, 1 - 0.5 / H]], rtol=1e-6)

@@ -53,6 +53,7 @@ from tqdm.auto import tqdm
 
 from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.perception.flow import flow_to_polar, polar_to_flow  # the polar flow units (also from here)
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH  # noqa: F401 (re-exported)
 
 PAPER_DT = timing.CONTROL_DT  # s between frames, the control tick
@@ -192,21 +193,6 @@ def as_flow_data(data, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT) -> 
 # --------------------------------------------------------------------------------------------------
 # Targets, normalisation, loss.
 # --------------------------------------------------------------------------------------------------
-
-
-def flow_to_polar(flow_px: jax.Array, width: int, height: int, dt: float) -> tuple[jax.Array, jax.Array]:
-    """Pixels per frame (..., 2) -> (l, theta), each (...), l in normalised units per second."""
-    flow_px = flow_px.astype(jnp.float32)
-    u_dot = flow_px[..., 0] / (width * dt)
-    v_dot = flow_px[..., 1] / (height * dt)
-    return jnp.hypot(u_dot, v_dot), jnp.arctan2(v_dot, u_dot)
-
-
-def polar_to_flow(l: jax.Array, theta: jax.Array, width: int, height: int, dt: float) -> jax.Array:
-    """(l, theta) -> pixels per frame (..., 2); the inverse of :func:`flow_to_polar`."""
-    uv_dot = dof.polar_to_euler(l, theta)
-    scale = jnp.asarray([width * dt, height * dt], dtype=uv_dot.dtype)
-    return uv_dot * jnp.reshape(scale, (1,) * (uv_dot.ndim - 1) + (2,))
 
 
 def pixel_uv(i: jax.Array, j: jax.Array, width: int, height: int) -> jax.Array:

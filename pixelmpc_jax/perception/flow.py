@@ -68,19 +68,22 @@ def flow_to_polar(flow_px, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT,
     """Pixel flow per frame (..., 2) -> DOF units ``(l, theta)``, each (...,).
 
     ``u_dot = dx / W / dt``, ``v_dot = dy / H / dt``; ``l = |(u_dot, v_dot)|`` (normalised units per
-    second), ``theta = atan2(v_dot, u_dot)`` in (-pi, pi]. Works on numpy and JAX arrays, under jit.
+    second), ``theta = atan2(v_dot, u_dot)`` in (-pi, pi]. Works on numpy and JAX arrays, under jit; a
+    half-precision flow (DOF training keeps it in float16) is computed in float32.
     """
-    xp = jnp if not isinstance(flow_px, np.ndarray) else np
-    u_dot = flow_px[..., 0] / width / dt
-    v_dot = flow_px[..., 1] / height / dt
+    xp = np if isinstance(flow_px, np.ndarray) else jnp
+    flow_px = xp.asarray(flow_px)
+    flow_px = flow_px.astype(xp.promote_types(flow_px.dtype, xp.float32))
+    u_dot = flow_px[..., 0] / (width * dt)
+    v_dot = flow_px[..., 1] / (height * dt)
     return xp.hypot(u_dot, v_dot), xp.arctan2(v_dot, u_dot)
 
 
 def polar_to_flow(l, theta, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT, dt: float = FRAME_DT):
     """DOF units ``(l, theta)`` (...,) -> pixel flow per frame (..., 2), the inverse of ``flow_to_polar``."""
     xp = np if isinstance(l, np.ndarray) and isinstance(theta, np.ndarray) else jnp
-    dx = l * xp.cos(theta) * dt * width
-    dy = l * xp.sin(theta) * dt * height
+    dx = l * xp.cos(theta) * (width * dt)
+    dy = l * xp.sin(theta) * (height * dt)
     return xp.stack([dx, dy], axis=-1)
 
 
