@@ -1,6 +1,8 @@
 """The particle filter: equations, transformations (jit, vmap, keys), and behaviour (convergence, growth)."""
 
+import dataclasses
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -304,3 +306,11 @@ def test_no_recompilation_across_steps(camera, straight):
     for _ in range(2):
         state, _, _ = PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
     assert PF._pf_step_jit._cache_size() == before
+
+
+def test_the_config_docstring_names_the_boolean_defaults():
+    doc = PF.PFConfig.__doc__
+    for field in dataclasses.fields(PF.PFConfig):
+        if isinstance(field.default, bool):
+            entry = re.search(rf"\n        {field.name}: (.*?)(?=\n        \w+:|\Z)", doc, re.S)
+            assert entry and f"{field.default} (default)" in entry.group(1), field.name

@@ -1,4 +1,4 @@
-"""Cost functions for one state, written for MPPI's ``running_cost(x, u, t, params)`` signature.
+"""Costs for MPPI: the racing cost, Eq. (19), for one state or a batch of samples, its per-step parameters; waypoints.
 
 Every cost here is a pure function of one sample; the targets it reads (waypoints, gate geometry,
 speeds) come in ``params``, so changing them never recompiles.

@@ -26,7 +26,7 @@ VEL = slice(7, 10)
 
 @struct.dataclass
 class QuadParams:
-    """Vehicle facts of the AlphaPilot FlightGoggles drone (``reference/alphapilot_course.json``).
+    """Vehicle facts of the AlphaPilot FlightGoggles drone (``pixelmpc_jax/data/alphapilot_course.json``).
 
     A pytree: a new mass or drag coefficient is a new argument, not a new compilation.
 

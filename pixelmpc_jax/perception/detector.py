@@ -1,6 +1,6 @@
 """Gate detectors: colour segmentation of rendered images (OpenCV) and projection of the true gate (JAX).
 
-Both return a :class:`Detection` in normalised image coordinates (``uv = px / (W, H)``, DESIGN.md). The
+Both return a :class:`Detection` in normalised image coordinates (``uv = px / (W, H)``, README "Conventions"). The
 target pixel the controller tracks is ``Detection.centre``, the image of the gate's 3-D centre. From an
 image it is the intersection of the diagonals of the four inner-opening corners: a perspective map keeps
 lines and incidences, so the diagonals' crossing is exactly the image of the rectangle's centre.

@@ -1,7 +1,7 @@
 """Dense optical flow (OpenCV Farneback with the paper's parameters) and the DOF's polar flow units.
 
 Pixel flow follows Farneback's convention: ``flow[y, x] = (dx, dy)`` pixels per frame with
-``prev(y, x) ~ next(y + dy, x + dx)``. The DOF (DESIGN.md) predicts ``(l, theta)``: ``l`` the flow
+``prev(y, x) ~ next(y + dy, x + dx)``. The DOF (README, "Conventions") predicts ``(l, theta)``: ``l`` the flow
 magnitude in normalised image units per second and ``theta`` its angle, ``u_dot = l cos(theta)``,
 ``v_dot = l sin(theta)``, with ``u_dot = dx / W / dt`` and ``v_dot = dy / H / dt`` (frames at 40 Hz).
 """

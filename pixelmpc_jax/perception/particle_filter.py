@@ -27,10 +27,10 @@ Choices where the paper leaves one open:
   report, and predicting it would penalise the true pose. Its 4 inner corners are projected into each
   particle's camera; a corner counts as expected when in front of the camera and inside the image. Per
   corner, the error is the Euclidean pixel distance when both expected and detected, ``4 W`` pixels
-  (the paper's penalty, W the image width) when exactly one of the two holds, 0 when neither. A
-  detection with ``found=False`` detects nothing, so every expected corner pays the penalty. A negative
-  ``gate_id`` carries no information and leaves the weights alone. The paper also penalises the expected
-  corners when the target is not detected at all; that is ``PFConfig.penalise_undetected_target``, off by
+  (the paper's penalty, W the image width) when exactly one of the two holds, 0 when neither. A negative
+  ``gate_id`` carries no information and leaves the weights alone, and so, by default, does a detection
+  with ``found=False``. The paper also penalises the expected corners when the target is not detected at
+  all (every expected corner pays the penalty); that is ``PFConfig.penalise_undetected_target``, off by
   default: when the target has just left the image the true pose sits at the edge of the field of view
   and the penalty removes the particles on its inner side at every tick, which pushed the estimate away
   from the truth (with it on, our laps crashed within 2-4 gates; off, laps were completed).
@@ -83,8 +83,8 @@ class PFConfig:
         num_particles: P, 6,400 in the paper.
         position_noise_variance: m^2, Gaussian noise added to each particle's position per update (see
             ``position_noise_per_second``). 0.2 in the paper.
-        position_noise_per_second: False (default): the variance is per update, the paper's literal
-            reading; True: it is a rate, ``variance * dt`` per update.
+        position_noise_per_second: True (default): the variance is a rate, ``variance * dt`` per update;
+            False: it is per update, the paper's literal reading (module docstring: why not the default).
         accel_noise_variance: (m/s^2)^2 per axis, added to the accelerometer reading per particle. 0.2.
         gyro_noise_variance: (rad/s)^2 per axis, added to the gyro reading per particle. 0.1.
         missing_corner_penalty_widths: a corner expected but not detected, or detected but not expected,
@@ -93,12 +93,13 @@ class PFConfig:
         likelihood: "laplace" (``-sum e / sigma``) or "gaussian" (``-0.5 sum (e / sigma)^2``).
         resample_threshold: resample when ESS < threshold * P (1.0: every update).
         penalise_undetected_target: True (the paper): when the target is not detected at all, every particle
-            that expects its corners in view pays the missing-corner penalty. False: a tick without a
-            detection leaves the weights alone (corners missing from a detection are still penalised).
+            that expects its corners in view pays the missing-corner penalty. False (default): a tick without
+            a detection leaves the weights alone (corners missing from a detection are still penalised).
             When the target has just left the image, the true pose sits at the field of view's edge and
             the penalty removes the particles on its inner side at every tick, pushing the estimate away
             from the truth (in our loop the attitude error grew ~0.5 deg/s while the target was out of view).
-        dt: s, one update per control tick.
+        dt: s, one update per control tick (the tick of :mod:`pixelmpc_jax.timing`); used by the one-mean-sample
+            motion model (a preintegrated ``TickIMU`` carries its own ``dt``).
         gravity: m/s^2 along world -z.
     """
 
@@ -322,8 +323,9 @@ def _pf_predict_jit(state, imu, config):
 def pf_predict(state: PFState, imu, config: PFConfig = PFConfig()) -> PFState:
     """Motion update: every particle integrates the IMU with its own noise draw (module docstring).
 
-    ``imu``: anything with ``accel`` (3,) body specific force (m/s^2, +9.81 on body z at rest) and ``gyro``
-    (3,) body rates (rad/s), e.g. ``sim.plant.IMU``; the tick's mean sample.
+    ``imu``: the tick's samples preintegrated (``sim.plant.TickIMU``, what the closed loop feeds), or one mean
+    sample: anything with ``accel`` (3,) body specific force (m/s^2, +9.81 on body z at rest) and ``gyro``
+    (3,) body rates (rad/s), e.g. ``sim.plant.IMU``, integrated over ``config.dt``.
     """
     _check_state(state, config)
     _check_imu(imu)
@@ -512,10 +514,11 @@ def pf_step(state: PFState, imu, detection, track, camera: camera_lib.Camera, co
 
     Args:
         state: the filter.
-        imu: the IMU over the tick that led to now (``accel`` (3,), ``gyro`` (3,)), or None to skip the
-            motion update (the first tick).
-        detection: the target gate's ``Detection`` now (``found=False``: nothing detected, expected corners
-            are penalised), or None to skip the sensor update.
+        imu: the IMU over the tick that led to now (a ``sim.plant.TickIMU``, or one mean sample with
+            ``accel`` (3,), ``gyro`` (3,); see :func:`pf_predict`), or None to skip the motion update (the
+            first tick).
+        detection: the target gate's ``Detection`` now (``found=False``: nothing detected; the weights are
+            left alone unless ``config.penalise_undetected_target``), or None to skip the sensor update.
         track: the ``Track`` (its gates give the known corners).
         camera: the onboard camera.
 

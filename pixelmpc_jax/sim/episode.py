@@ -107,8 +107,9 @@ class EpisodeConfig:
 
 class Observation(NamedTuple):
     """What a controller sees at a tick. x_est: (10,); target_gate: () int32; progress_s: () m;
-    target_visibility: () fraction of the target gate's outline in view, at the estimate;
-    detection: the detector's view of the target gate from the true pose."""
+    target_visibility: () fraction of the target gate's outline in view from the true pose (what the
+    metrics count, not what the controller could know); detection: the detector's view of the target gate
+    from the true pose."""
 
     x_est: jax.Array
     target_gate: jax.Array

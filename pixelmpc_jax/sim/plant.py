@@ -2,7 +2,7 @@
 
 The controller's model (``dynamics/quadrotor.py``) follows commanded body rates at once. The plant puts the
 low-level loop of the AlphaPilot FlightGoggles drone between the command and the rigid body
-(``reference/alphapilot_course.json``, block ``vehicle``):
+(``pixelmpc_jax/data/alphapilot_course.json``, block ``vehicle``):
 
     gyro -> 2nd-order low-pass (30 Hz, damping 0.707) -> rate PID (P 9, I 3, D 0.3 on the filtered rate
     derivative) -> angular acceleration * inertia = torque -> mixer (+ collective thrust) -> motor speed

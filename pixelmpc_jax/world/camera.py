@@ -1,6 +1,6 @@
 """The onboard pinhole camera: intrinsics, mount, projection.
 
-Conventions (DESIGN.md): the camera sits at the body origin with its optical axis along body +x
+Conventions (README, "Conventions"): the camera sits at the body origin with its optical axis along body +x
 (optionally tilted up by a fixed angle); image u grows to the right, v downwards, origin top-left.
 Image coordinates are continuous: pixel (i, j) covers [i, i+1) x [j, j+1) and its centre is
 (i + 0.5, j + 0.5). Normalised coordinates are ``uv = (u_px / W, v_px / H)``; the image centre is
