@@ -18,8 +18,8 @@ def test_readme_examples_run():
 
 # Output names that docstrings use as placeholders for a folder the user picks.
 OUTPUT_FOLDERS = {"out", "out_dir", "OUT", "DIR"}
-# Stale references in files this change may not edit, kept visible here until they are fixed.
-KNOWN_STALE = {("pixelmpc_jax/control/costs.py", "benchmarks/README.md")}
+# Stale references kept visible here until they are fixed (none now).
+KNOWN_STALE: set = set()
 
 
 def _docstring_file_references():

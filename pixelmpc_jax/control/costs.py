@@ -1,7 +1,8 @@
 """Costs for MPPI: the racing cost, Eq. (19), for one state or a batch of samples, its per-step parameters; waypoints.
 
-Every cost here is a pure function of one sample; the targets it reads (waypoints, gate geometry,
-speeds) come in ``params``, so changing them never recompiles.
+Each cost is a pure function of one state, or of the batch of samples at one horizon step with the samples on
+the last axis (``racing_cost_batch``); the targets it reads (waypoints, gate geometry, speeds) come in
+``params``, so changing them never recompiles.
 """
 
 from __future__ import annotations
@@ -280,7 +281,7 @@ def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: 
     """Eq. (19) for a batch of states at horizon step t: ``X`` (N, >= 10) -> (N,).
 
     The work runs with the samples on the last axis (see :func:`closest_on_polyline`); that layout makes
-    the cost about 1.6x faster on a CPU than a ``vmap`` of a one-state version (benchmarks/README.md).
+    the cost about 1.6x faster on a CPU than a ``vmap`` of a one-state version (README, "Racing cost layout").
     """
     x = X[:, :quadrotor.STATE_DIM].T  # (10, N)
     p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
