@@ -211,6 +211,7 @@ def _check_race(args) -> None:
 
     race.make_policy(args.controller, args.temperature, pixel_model=args.pixel_model, t_f=args.t_f,
                      c_pixel=args.c_pixel, options=_race_options(args))
+    _race_dof(args)  # a missing or damaged weights file is refused before anything runs
 
 
 def _race_options(args) -> dict:
@@ -228,6 +229,18 @@ def _race_options(args) -> dict:
     return options
 
 
+def _race_dof(args):
+    """The DOF weights the race's PixelMPC uses: a packaged variant by name, or a weights file; None for the
+    default (the packaged paper weights, loaded by the race itself) or a race without the DOF."""
+    if args.controller != "pixelmpc" or args.pixel_model != "dof" or args.dof_weights == "paper":
+        return None
+    from pixelmpc_jax.dynamics import dof
+
+    if args.dof_weights in dof.PACKAGED_VARIANTS:
+        return dof.load_packaged_dof(args.dof_weights)
+    return dof.load_checkpoint(Path(args.dof_weights))[0]
+
+
 def _cmd_race(args) -> int:
     from pixelmpc_jax.sim import metrics, race
 
@@ -239,7 +252,7 @@ def _cmd_race(args) -> int:
                             max_time_s=args.max_time, temperature=args.temperature,
                             pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
                             c_pixel=args.c_pixel, estimator=args.estimator, video=args.video,
-                            course=args.course, options=_race_options(args))
+                            course=args.course, options=_race_options(args), dof_params=_race_dof(args))
     laps = results["laps"]
     if laps:
         print(metrics.format_table(laps, results["aggregate"]))
@@ -422,6 +435,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pixelmpc (default) or mppi, the paper's nominal baseline")
     p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
                    help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
+    p.add_argument("--dof-weights", default="paper", metavar="paper|flown|FILE",
+                   help="the DOF's weights: the packaged paper weights (command input; default), the packaged "
+                        "flown-rate weights, or a weights file from `pixelmpc train`")
     p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
                    help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
     p.add_argument("--course", choices=COURSES, default="alphapilot",

@@ -126,3 +126,24 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
     shapes.clear()
     race.run_laps("mppi", speed=10.0, laps=1, seed=4, batch_size=4, max_time_s=0.1, progress=False, num_samples=32)
     assert [s[0][0] for s in shapes] == [1]  # a run shorter than a batch is not padded
+
+
+def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
+    """--dof-weights picks a packaged variant or a file; a missing file is refused before anything runs."""
+    import jax
+
+    from pixelmpc_jax.dynamics import dof
+    from pixelmpc_jax.sim import race
+
+    seen = {}
+    monkeypatch.setattr(race, "run_laps", lambda **kwargs: seen.update(kwargs) or {"laps": [], "aggregate": {}})
+    cli.main(["race", "--out", str(tmp_path), "--dof-weights", "flown"])
+    flown = dof.load_packaged_dof("flown")
+    assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda a, b: bool((a == b).all()), seen["dof_params"], flown))
+    cli.main(["race", "--out", str(tmp_path), "--dof-weights", "paper"])
+    assert seen["dof_params"] is None  # the race loads the packaged paper weights itself
+    code = cli.main(["race", "--out", str(tmp_path / "new"), "--dof-weights", str(tmp_path / "missing.msgpack")])
+    assert code == 2 and "missing.msgpack" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(ValueError, match="unknown packaged DOF weights"):
+        dof.load_packaged_dof("best")

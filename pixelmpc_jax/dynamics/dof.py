@@ -372,11 +372,22 @@ def checkpoint_variant(config: Mapping) -> dict:
 
 
 PACKAGED_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "dof_weights.msgpack"
+PACKAGED_VARIANTS = {
+    # the paper's formulation: the network's control input is the commanded body rate (the default)
+    "paper": PACKAGED_WEIGHTS,
+    # the flown-rate variant: trained on the body rates flown over each frame (the MPC's own meaning of u)
+    "flown": PACKAGED_WEIGHTS.with_name("dof_weights_flown.msgpack"),
+}
 
 
-def load_packaged_dof() -> DOFParams:
-    """The DOF weights shipped inside the package (``pixelmpc_jax/data/dof_weights.msgpack``)."""
-    if not PACKAGED_WEIGHTS.exists():
-        raise FileNotFoundError(f"{PACKAGED_WEIGHTS}: the package ships no DOF weights; reinstall it, or train "
+def load_packaged_dof(variant: str = "paper") -> DOFParams:
+    """DOF weights shipped inside the package: ``variant`` "paper" (``data/dof_weights.msgpack``, the paper's
+    command input; the default) or "flown" (``data/dof_weights_flown.msgpack``); each has a ``.json`` beside it
+    saying how it was made."""
+    if variant not in PACKAGED_VARIANTS:
+        raise ValueError(f"unknown packaged DOF weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
+    path = PACKAGED_VARIANTS[variant]
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: the package ships no DOF weights; reinstall it, or train "
                                 f"your own with `pixelmpc train` and pass them explicitly")
-    return load_checkpoint(PACKAGED_WEIGHTS)[0]
+    return load_checkpoint(path)[0]
