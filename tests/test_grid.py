@@ -83,8 +83,7 @@ def test_results_without_seed_or_hash_count_as_the_defaults(tmp_path, flown):
                                     "frontier"])
 def test_the_committed_results_stay_valid_for_a_default_run(folder):
     results = grid.load_results(RESULTS / folder)
-    if not results:
-        pytest.skip(f"no results in {folder}")
+    assert results, f"no committed results in {folder}"
     packaged = grid.packaged_dof_hash()
     for entry in results.values():
         cell = grid.Cell(**entry["config"])
