@@ -70,17 +70,6 @@ def _int_in(lo: int, hi: int, *, odd: bool = False):
     return parse
 
 
-def _positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0 (at most float32's largest)."""
-    try:
-        value = float(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from err
-    if not (math.isfinite(value) and 0 < value <= FLOAT32_MAX):
-        raise argparse.ArgumentTypeError(f"must be a positive finite number (0, {FLOAT32_MAX:.4g}], got {text}")
-    return value
-
-
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
