@@ -88,3 +88,14 @@ def test_the_committed_results_stay_valid_for_a_default_run(folder):
     for entry in results.values():
         cell = grid.Cell(**entry["config"])
         assert grid.is_current(entry, cell, len(entry["laps"]), 0, packaged if grid.uses_dof(cell) else None)
+
+
+def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
+    """After a run, current_results gives every cell for the same seed and weights, none for another seed,
+    and only the weight-free cells for other DOF weights (what the frontier reports after an interruption)."""
+    _run(flown, tmp_path)
+    assert sorted(grid.current_results(CELLS, tmp_path, laps=2)) == ["dof", "nominal", "projection"]
+    assert grid.current_results(CELLS, tmp_path, laps=2, seed=5) == {}
+    assert grid.current_results(CELLS, tmp_path, laps=3) == {}
+    other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
+    assert sorted(grid.current_results(CELLS, tmp_path, laps=2, dof_params=other)) == ["nominal", "projection"]

@@ -184,13 +184,11 @@ def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0
         raise ValueError(f"cell names repeat: {sorted(n for n in set(names) if names.count(n) > 1)}")
     interrupted = False
     try:
-        results = grid.run_grid(all_cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params)
+        grid.run_grid(all_cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params)
     except KeyboardInterrupt:
         interrupted = True
-        results = grid.load_results(out)
-    # run_grid stops at a cell interrupted inside; a cell from another configuration does not count
-    results = {cell.name: results[cell.name] for cell in all_cells if cell.name in results
-               and results[cell.name].get("config") == grid.cell_record(cell)}
+    # only the cells of this run (settings, laps, seed, weights) count, also after an interruption
+    results = grid.current_results(all_cells, out, laps, seed, dof_params)
     frontier = build(results, nominal_speeds, cells, laps, seed, max_time_s)
     write(frontier, out)
     if interrupted or frontier["missing"]:

@@ -121,6 +121,34 @@ def load_results(out: Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {}
 
 
+def _fingerprints(dof_params):
+    """``(run_hash, packaged_hash)``: callables giving the fingerprint of the weights a DOF cell flies with
+    (``dof_params``, or the packaged weights when None) and of the packaged weights, each computed once."""
+    hashes: dict[str, str] = {}
+
+    def packaged_hash() -> str:
+        if "packaged" not in hashes:
+            hashes["packaged"] = packaged_dof_hash()
+        return hashes["packaged"]
+
+    def run_hash() -> str:
+        if "run" not in hashes:
+            hashes["run"] = packaged_hash() if dof_params is None else dof_weights_hash(dof_params)
+        return hashes["run"]
+
+    return run_hash, packaged_hash
+
+
+def current_results(cells: list[Cell], out: Path, laps: int, seed: int = 0, dof_params=None) -> dict:
+    """``{cell name: race results}`` of the cells in ``out/results.json`` that answer a run of ``cells`` with
+    ``laps``, ``seed`` and ``dof_params`` (:func:`is_current`): what :func:`run_grid` would keep."""
+    results = load_results(out)
+    run_hash, packaged_hash = _fingerprints(dof_params)
+    return {cell.key(): results[cell.key()] for cell in cells
+            if is_current(results.get(cell.key()), cell, laps, seed, run_hash() if uses_dof(cell) else None,
+                          packaged_hash)}
+
+
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
              progress: bool = True, dof_params=None) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
@@ -142,18 +170,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     path = out / "results.json"
     results = load_results(out)
     batch_size = batch_size or default_batch_size(laps)
-    hashes: dict[str, str] = {}
-
-    def run_hash() -> str:  # the fingerprint of the weights a DOF cell flies with, computed once
-        if "run" not in hashes:
-            hashes["run"] = packaged_hash() if dof_params is None else dof_weights_hash(dof_params)
-        return hashes["run"]
-
-    def packaged_hash() -> str:
-        if "packaged" not in hashes:
-            hashes["packaged"] = packaged_dof_hash()
-        return hashes["packaged"]
-
+    run_hash, packaged_hash = _fingerprints(dof_params)
     for cell in cells:
         done = results.get(cell.key())
         dof_hash = run_hash() if uses_dof(cell) else None
