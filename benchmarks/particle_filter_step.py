@@ -1,96 +1,12 @@
-"""Median time of one particle-filter tick (predict + update + estimate + resample) at the paper's 6,400 particles.
+"""Median time of one particle-filter tick at the paper's 6,400 particles.
 
     python benchmarks/particle_filter_step.py [--particles 6400] [--repeats 50]
 
-The timed call is the public ``pf_step`` (inputs checked, one compiled call) on the AlphaPilot course, 6 m
-before gate 3 with the gate in view, a hover tick of preintegrated IMU samples (what the closed loop feeds
-it) and a noisy geometric detection; the filter state changes every call as in the loop. ``pf_rows`` gives
-the same measurement as rows of the harness (``pixelmpc bench``). Compilation happens before the timed
-region; every call is blocked on.
-The paper runs its filter on a GPU and reports no time for it; the baseline measured in the same run is the
-motion update alone (``pf_predict``), to show what the sensor update, estimate and resampling add.
+A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/particle_filter_step.py``), which runs it from
+an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.particle_filter_step``.
 """
 
-from __future__ import annotations
-
-import argparse
-import json
-
-import jax
-
-from pixelmpc_jax.perception import detector as detector_lib
-from pixelmpc_jax.perception import particle_filter as pf
-from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.plant import hover_tick_imu
-from pixelmpc_jax.world import camera as camera_lib
-from pixelmpc_jax.world import render as render_lib
-from pixelmpc_jax.world import track as track_lib
-
-try:
-    from benchmarks.measure import measure
-except ImportError:  # run as a script from the benchmarks folder
-    from measure import measure
-
-
-def _problem(particles: int):
-    config = pf.PFConfig(num_particles=particles)
-    track = track_lib.load_course()
-    camera = camera_lib.default_camera()
-    gate_index = 2
-    x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)
-    detection = detector_lib.detect_from_geometry(
-        track.gate(gate_index), x_true, camera, jax.random.PRNGKey(1), 0.5, 0.0, gate_index)
-    imu = hover_tick_imu(0.025)
-    holder = {"state": pf.pf_init(jax.random.PRNGKey(0), x_true, config, spread=(0.5, 0.03, 0.2))}
-
-    def step():
-        holder["state"], estimate, info = pf.pf_step(holder["state"], imu, detection, track, camera, config)
-        return holder["state"].particles, estimate.mean, info.ess
-
-    def predict():
-        holder["state"] = pf.pf_predict(holder["state"], imu, config)
-        return holder["state"].particles
-
-    return step, predict
-
-
-def measure_pf(particles: int = 6400, repeats: int = 30) -> tuple[dict, dict]:
-    """(full step, motion update alone) timings; compilation outside the timed region."""
-    step, predict = _problem(particles)
-    jax.block_until_ready(step())
-    jax.block_until_ready(predict())
-    return measure(step, repeats=repeats), measure(predict, repeats=repeats)
-
-
-def pf_rows(particles: int = 6400, repeats: int = 30) -> list[dict]:
-    """Harness rows (group "estimator"): the filter tick and its motion update alone."""
-    try:
-        from benchmarks.measure import make_row
-    except ImportError:
-        from measure import make_row
-    full, predict = measure_pf(particles, repeats)
-    return [make_row("estimator", "particle filter tick (predict + update + estimate + resample)", particles, None,
-                     full),
-            make_row("estimator", "particle filter motion update alone", particles, None, predict)]
-
-
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--particles", type=int, default=6400)
-    parser.add_argument("--repeats", type=int, default=50)
-    args = parser.parse_args(argv)
-    result, baseline = measure_pf(args.particles, args.repeats)
-    device = device_line()
-    result.update(num_particles=args.particles, device=device, predict_only=baseline)
-    print(f"device: {device}")
-    print(f"pf_step, P={args.particles}: median {result['median_ms']:.3f} ms (mean {result['mean_ms']:.3f} "
-          f"+- {result['two_sigma_ms']:.3f} ms 2sigma, max {result['max_ms']:.3f} ms, {args.repeats} repeats); "
-          f"{args.particles / (result['median_ms'] / 1e3) / 1e6:.2f} M particle-updates/s")
-    print(f"baseline pf_predict only: median {baseline['median_ms']:.3f} ms (mean {baseline['mean_ms']:.3f} "
-          f"+- {baseline['two_sigma_ms']:.3f} ms 2sigma, max {baseline['max_ms']:.3f} ms)")
-    print(json.dumps({k: v for k, v in result.items() if k not in ("device", "predict_only")}))
-    return result
-
+from pixelmpc_jax.apps.bench.particle_filter_step import main
 
 if __name__ == "__main__":
     main()

@@ -11,7 +11,7 @@ Interrupted runs resume: finished cells are kept.
 import argparse
 from pathlib import Path
 
-from pixelmpc_jax.sim.paper import visibility_experiment
+from pixelmpc_jax.apps.paper import visibility_experiment
 
 
 def main(argv=None):

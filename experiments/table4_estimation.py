@@ -11,7 +11,7 @@ Interrupted runs resume: finished cells are kept.
 import argparse
 from pathlib import Path
 
-from pixelmpc_jax.sim.estimation import estimation_experiment
+from pixelmpc_jax.apps.estimation import estimation_experiment
 
 
 def main(argv=None):

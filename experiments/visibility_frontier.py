@@ -2,7 +2,7 @@
 
 Flies nominal MPPI at several target speeds (default 5, 6, 7, 8, 10, 14 m/s) and the PixelMPC cells (the
 paper's L1 cost and the border cost, c_pixel 9e6, projection and DOF pixel models, 8 m/s, t_f 1 s), then
-writes DIR/frontier.json, DIR/REPORT.md and DIR/frontier.png (see pixelmpc_jax/sim/frontier.py).
+writes DIR/frontier.json, DIR/REPORT.md and DIR/frontier.png (see pixelmpc_jax/apps/frontier.py).
 ``--quick``: nominal 6, 8, 10 m/s and the border-cost cells only, 4 laps each. Resumable per cell: an
 interrupted run (Ctrl-C) keeps its finished cells and exits with status 130; run it again to go on.
 
@@ -18,7 +18,7 @@ import math
 import sys
 from pathlib import Path
 
-from pixelmpc_jax.sim import frontier as frontier_lib
+from pixelmpc_jax.apps import frontier as frontier_lib
 
 
 def spec_from_args(args) -> frontier_lib.FrontierSpec:

@@ -16,7 +16,7 @@ gives about the paper's lap time.
 import argparse
 from pathlib import Path
 
-from pixelmpc_jax.sim.grid import Cell, run_grid
+from pixelmpc_jax.apps.grid import Cell, run_grid
 
 KEYS = ("time_vis_below_50_s", "time_vis_below_50_unavoidable_s", "time_vis_zero_s", "lap_time_s", "mean_speed")
 LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap time [s]", "mean speed [m/s]")

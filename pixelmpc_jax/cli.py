@@ -150,8 +150,8 @@ def _cmd_demo(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
+    from pixelmpc_jax.apps.waypoint import fly_to_waypoint, waypoint_config
     from pixelmpc_jax.dynamics import quadrotor
-    from pixelmpc_jax.sim.waypoint import fly_to_waypoint, waypoint_config
     from pixelmpc_jax.strict_json import write_json_atomic
 
     start = quadrotor.hover_state((0.0, 0.0, 2.0))
@@ -196,15 +196,15 @@ def _cmd_demo(args) -> int:
 
 def _check_race(args) -> None:
     """Build the controller's settings from the arguments (a ValueError names any the library refuses)."""
-    from pixelmpc_jax.sim import race
+    from pixelmpc_jax.sim import controllers
 
-    race.make_policy(args.controller, args.temperature, pixel_model=args.pixel_model, t_f=args.t_f,
+    controllers.make_policy(args.controller, args.temperature, pixel_model=args.pixel_model, t_f=args.t_f,
                      c_pixel=args.c_pixel, options=_race_options(args))
     _race_dof(args)  # a missing or damaged weights file is refused before anything runs
 
 
 def _race_options(args) -> dict:
-    """The controller options the race flags set away from their defaults (see race.make_policy)."""
+    """The controller options the race flags set away from their defaults (see controllers.make_policy)."""
     options = {}
     if args.controller == "pixelmpc":
         if args.pixel_cost != "l1":
@@ -231,7 +231,8 @@ def _race_dof(args):
 
 
 def _cmd_race(args) -> int:
-    from pixelmpc_jax.sim import metrics, race
+    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.sim import metrics
 
     course = "the AlphaPilot course" if args.course == "alphapilot" else "the straight lane"
     print(f"{args.controller} racing {course} at {args.speed:g} m/s: {args.laps} lap(s), "
@@ -301,14 +302,14 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from pixelmpc_jax.bench import run_bench
+    from pixelmpc_jax.apps.bench.suite import run_bench
 
     run_bench(args.out, quick=args.quick)
     return 0
 
 
 def _cmd_reproduce(args) -> int:
-    from pixelmpc_jax.reproduce import reproduce
+    from pixelmpc_jax.apps.reproduce import reproduce
 
     reproduce([args.parts] if isinstance(args.parts, str) else args.parts, args.out, quick=args.quick)
     print(f"report: {args.out / 'REPORT.md'}")
@@ -405,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="paper-size controller rows and the pytorch-mppi peer only")
     p.set_defaults(func=_cmd_bench)
 
-    from pixelmpc_jax.reproduce import CHOICES
+    from pixelmpc_jax.apps.reproduce import CHOICES
 
     p = sub.add_parser("reproduce", help="run the paper's experiments and benchmark into one report (resumable)")
     # default "all", not ["all"]: argparse checks a list default against the choices as one value, and fails
@@ -416,8 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a small version in minutes (2 laps per cell, the bench's quick rows, the tables only)")
     p.set_defaults(func=_cmd_reproduce)
 
+    from pixelmpc_jax.apps.race import COURSES
     from pixelmpc_jax.control.mppi import TEMPERATURE_MIN
-    from pixelmpc_jax.sim.race import CONTROLLERS, COURSES
+    from pixelmpc_jax.sim.controllers import CONTROLLERS
 
     p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
     p.add_argument("--controller", choices=CONTROLLERS, default="pixelmpc",

@@ -4,24 +4,18 @@ PixelMPC problem against the JAX functions, and the diff-drive problem's cost-ma
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-# the harness lives beside the package (benchmarks/); plain `pytest` does not put the repository root on the path
-if str(Path(__file__).resolve().parent.parent) not in sys.path:
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from benchmarks import problems, roofline, suite  # noqa: E402
-from benchmarks.table1 import SpyNet, spynet_flops_per_image  # noqa: E402
-from pixelmpc_jax.control import costs  # noqa: E402
-from pixelmpc_jax.control import pixelmpc as PM  # noqa: E402
-from pixelmpc_jax.dynamics import dof  # noqa: E402
-from pixelmpc_jax.dynamics import quadrotor as Q  # noqa: E402
+from pixelmpc_jax.apps.bench import problems, roofline, suite
+from pixelmpc_jax.apps.bench.table1 import SpyNet, spynet_flops_per_image
+from pixelmpc_jax.control import costs
+from pixelmpc_jax.control import pixelmpc as PM
+from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.dynamics import quadrotor as Q
 
 # --------------------------------------------------------------------------------------------------
 # The flop counter.
@@ -108,7 +102,7 @@ def test_diff_drive_step_hand_case():
 @pytest.fixture(scope="module")
 def port_setup():
     pytest.importorskip("torch")
-    from benchmarks import torch_port
+    from pixelmpc_jax.apps.bench import torch_port
 
     problem = problems.pixelmpc_problem(16, 80, 1.0)
     port = torch_port.PixelMPCTorch(problem, Q.QuadParams())
@@ -217,7 +211,7 @@ def test_smoke_run_writes_the_schema(tmp_path):
 
 
 def test_a_row_that_aborts_its_process_is_reported_not_fatal():
-    from benchmarks.measure import run_in_child
+    from pixelmpc_jax.apps.bench.measure import run_in_child
 
     assert run_in_child("math", "sqrt", [4.0]) == (True, 2.0)
     ok, why = run_in_child("os", "abort", [])  # what std::bad_alloc in XLA does to the process

@@ -64,7 +64,8 @@ def test_race_rejects_bad_arguments_before_running(argv, message, capsys):
 
 
 def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
-    from pixelmpc_jax.sim import metrics, race
+    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.sim import metrics
 
     calls = {"n": 0}
     real = metrics.lap_metrics
@@ -87,7 +88,7 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
 
 def test_race_lever_flags_reach_the_controller_options(monkeypatch, tmp_path):
     """--pixel-cost, --border-margin, --noise-exponent and --heading-weight become race options."""
-    from pixelmpc_jax.sim import race
+    from pixelmpc_jax.apps import race
 
     seen = {}
 
@@ -104,7 +105,7 @@ def test_race_lever_flags_reach_the_controller_options(monkeypatch, tmp_path):
 
 def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
     """3 laps in batches of 2: both batches reach the vmapped runner with 2 lanes; the copy is dropped."""
-    from pixelmpc_jax.sim import race
+    from pixelmpc_jax.apps import race
 
     shapes = []
     make_runner = race.episode_lib.make_runner
@@ -132,8 +133,8 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     """--dof-weights picks a packaged variant or a file; a missing file is refused before anything runs."""
     import jax
 
+    from pixelmpc_jax.apps import race
     from pixelmpc_jax.dynamics import dof
-    from pixelmpc_jax.sim import race
 
     seen = {}
     monkeypatch.setattr(race, "run_laps", lambda **kwargs: seen.update(kwargs) or {"laps": [], "aggregate": {}})

@@ -176,7 +176,7 @@ def test_aggregate_mean_two_sigma_and_success_rate():
 @pytest.mark.slow
 @pytest.mark.parametrize("speed", [14.0, 16.0])
 def test_nominal_mppi_completes_alphapilot_laps(speed):
-    from pixelmpc_jax.sim.race import run_laps
+    from pixelmpc_jax.apps.race import run_laps
 
     results = run_laps("mppi", speed=speed, laps=10, seed=0, progress=False)
     assert results["aggregate"]["success_rate"] >= 0.9

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from pixelmpc_jax.sim import frontier as F
-from pixelmpc_jax.sim import grid
+from pixelmpc_jax.apps import frontier as F
+from pixelmpc_jax.apps import grid
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 
 
@@ -169,7 +169,7 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
 
 
 def test_reproduce_has_a_frontier_part():
-    from pixelmpc_jax import reproduce as R
+    from pixelmpc_jax.apps import reproduce as R
 
     assert R.resolve_parts(["frontier"]) == ["frontier"]
     assert "frontier" in R._runners(quick=True, progress=False) and "frontier" in R.TITLES

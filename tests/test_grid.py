@@ -7,8 +7,8 @@ import jax
 import numpy as np
 import pytest
 
+from pixelmpc_jax.apps import grid, race
 from pixelmpc_jax.dynamics import dof
-from pixelmpc_jax.sim import grid, race
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", "pixelmpc"), grid.Cell("projection", "pixelmpc",

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax.apps.waypoint import fly_to_waypoint
 from pixelmpc_jax.control.mppi import MPPIConfig, importance_weights, make_mppi
 from pixelmpc_jax.dynamics import quadrotor as Q
-from pixelmpc_jax.sim.waypoint import fly_to_waypoint
 
 DT = 0.05
 

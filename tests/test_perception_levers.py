@@ -8,11 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax.apps import grid
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.dynamics import quadrotor as Q
-from pixelmpc_jax.sim import grid, race
+from pixelmpc_jax.sim import controllers
 from pixelmpc_jax.sim import metrics as M
 from pixelmpc_jax.world import camera as C
 from pixelmpc_jax.world import track as T
@@ -131,13 +132,13 @@ def test_coloured_noise_samples_have_sigma_and_are_smoother():
 
 
 def test_options_reach_the_controller_config_and_unknown_ones_are_rejected():
-    pixel, mppi, racing = race.split_options({"pixel_cost": "border", "mppi.noise_exponent": 1.0,
-                                              "racing.heading_weight": 0.5})
+    pixel, mppi, racing = controllers.split_options({"pixel_cost": "border", "mppi.noise_exponent": 1.0,
+                                                     "racing.heading_weight": 0.5})
     assert pixel == {"pixel_cost": "border"} and mppi == {"noise_exponent": 1.0} and racing == {"heading_weight": 0.5}
     with pytest.raises(ValueError, match="unknown controller option 'pixel_kost'"):
-        race.split_options({"pixel_kost": "border"})
+        controllers.split_options({"pixel_kost": "border"})
     with pytest.raises(ValueError, match="configure PixelMPC"):
-        race.make_policy("mppi", options={"pixel_cost": "border"})
+        controllers.make_policy("mppi", options={"pixel_cost": "border"})
     # a grid cell's options are part of what it is: same options in another order, same cell
     a = grid.Cell("a", "pixelmpc", options={"pixel_cost": "border", "border_margin": 0.2})
     b = grid.Cell("a", "pixelmpc", options={"border_margin": 0.2, "pixel_cost": "border"})

@@ -86,7 +86,7 @@ def strict_loads(text: str):
 
 
 def test_json_writer_turns_non_finite_numbers_into_null(tmp_path):
-    from pixelmpc_jax.sim import race
+    from pixelmpc_jax.apps import race
     from pixelmpc_jax.strict_json import dumps, write_json_atomic
 
     data = {"speed": float("inf"), "laps": [float("nan"), -float("inf"), np.float32("nan"), np.float64(2.5)],
@@ -371,10 +371,10 @@ def test_a_library_error_reaching_the_command_is_one_line(tmp_path, capsys):
 
 
 def test_output_folders_are_made_after_checking_every_argument(tmp_path, capsys, monkeypatch):
-    import pixelmpc_jax.reproduce
+    import pixelmpc_jax.apps.reproduce
 
     seen = {}
-    monkeypatch.setattr(pixelmpc_jax.reproduce, "reproduce",
+    monkeypatch.setattr(pixelmpc_jax.apps.reproduce, "reproduce",
                         lambda parts, out, quick: seen.setdefault("out_exists", Path(out).is_dir()))
     out = tmp_path / "a" / "b"
     assert _run_cli(["reproduce", "--out", str(out), "--quick"], capsys)[0] == 0
@@ -391,7 +391,8 @@ def test_output_folders_are_made_after_checking_every_argument(tmp_path, capsys,
 
 
 def _fake_race(monkeypatch, success: bool, interrupted: bool):
-    from pixelmpc_jax.sim import metrics, race
+    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.sim import metrics
 
     def run_laps(**kwargs):
         results = {"laps": [{"success": success}], "aggregate": {}, "interrupted": interrupted}
@@ -429,12 +430,12 @@ def test_interrupted_collect_and_train_exit_130(tmp_path, capsys, monkeypatch):
 
 
 def test_an_interrupt_the_library_passes_on_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
-    import pixelmpc_jax.reproduce
+    import pixelmpc_jax.apps.reproduce
 
     def interrupted(parts, out, quick):
         raise KeyboardInterrupt("interrupted: 2 cell(s) not finished; run again to resume")
 
-    monkeypatch.setattr(pixelmpc_jax.reproduce, "reproduce", interrupted)
+    monkeypatch.setattr(pixelmpc_jax.apps.reproduce, "reproduce", interrupted)
     code, err = _run_cli(["reproduce", "--out", str(tmp_path)], capsys)
     assert code == 130 and _one_line(err) == "pixelmpc: interrupted"
 
@@ -449,7 +450,7 @@ def test_the_missing_dataset_hint_names_a_command_that_exists(tmp_path, capsys):
 
 
 def test_an_interrupted_grid_keeps_its_finished_cells_and_raises(tmp_path, monkeypatch):
-    from pixelmpc_jax.sim import grid, race
+    from pixelmpc_jax.apps import grid, race
 
     def run_laps(controller, speed, laps, **kwargs):
         interrupted = speed > 10.0  # the second cell is interrupted after one of its two laps

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pixelmpc_jax import reproduce as R
+from pixelmpc_jax.apps import reproduce as R
 
 
 def test_aliases_expand_in_canonical_order_without_repeats():
@@ -66,7 +66,7 @@ def test_cli_rejects_an_unknown_part():
 def test_a_resumed_grid_part_reports_the_wall_time_of_all_its_cells(tmp_path):
     import json
 
-    from pixelmpc_jax import reproduce as R
+    from pixelmpc_jax.apps import reproduce as R
 
     assert R._part_wall_time(tmp_path, 12.0) == 12.0  # no grid in the folder: this run's time
     (tmp_path / "results.json").write_text(json.dumps({"a": {"wall_time_s": 100.0}, "b": {"wall_time_s": 200.0}}))

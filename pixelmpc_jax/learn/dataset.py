@@ -65,11 +65,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import strict_json
 from pixelmpc_jax.learn.train import INPUTS, FlowData
 from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.sim import controllers
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
-from pixelmpc_jax.sim import race
 from pixelmpc_jax.world import render as render_lib
 from pixelmpc_jax.world import track as track_lib
 
@@ -103,7 +104,7 @@ class CollectConfig:
             flow is the same at 1 and 3 (0.53 vs 0.55 px, 30 frame pairs at 12 m/s), 5x cheaper.
         render_batch: poses per compiled ``render_batch`` call (the last chunk is padded: one compile).
         exact_flow: ``"test"`` (exact flow for test laps only) or ``"all"``.
-        num_samples: MPPI samples of the nominal controller (``race.make_policy("mppi", ...)``).
+        num_samples: MPPI samples of the nominal controller (``controllers.make_policy("mppi", ...)``).
         excitation: add held rate pulses and dither to the body-rate command of the TRAIN laps
             (:func:`excited_policy`); test laps stay nominal.
         excitation_pulse_rad_s: a pulse's amplitude is uniform in +- this, per axis (rad/s).
@@ -199,7 +200,7 @@ def _same_config(recorded: dict | None, config: CollectConfig) -> bool:
     if recorded is None:
         return False
     defaults = {f.name: f.default for f in dataclasses.fields(CollectConfig)}
-    return {**race.json_safe(defaults), **recorded} == race.json_safe(config.to_json())
+    return {**strict_json.json_safe(defaults), **recorded} == strict_json.json_safe(config.to_json())
 
 
 class Lap(NamedTuple):
@@ -278,9 +279,9 @@ def lap_filename(index: int) -> str:
 
 @functools.lru_cache(maxsize=4)
 def _cached_runner(num_samples: int, max_time_s: float, excitation: tuple | None = None) -> episode_lib.Runner:
-    """The nominal MPPI episode runner (current ``race.make_policy`` defaults), compiled once per size;
+    """The nominal MPPI episode runner (current ``controllers.make_policy`` defaults), compiled once per size;
     with ``excitation`` (``CollectConfig.excitation_params()``) wrapped in :func:`excited_policy`."""
-    policy = race.make_policy("mppi", num_samples=num_samples)
+    policy = controllers.make_policy("mppi", num_samples=num_samples)
     if excitation is not None:
         policy = excited_policy(policy, *excitation, num_samples=num_samples)
     return episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s))
@@ -348,7 +349,7 @@ def _controller_source() -> dict:
     from pixelmpc_jax.control import costs
 
     return {Path(m.__file__).name: hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest()[:16]
-            for m in (episode_lib, costs, race)}
+            for m in (episode_lib, costs, controllers)}
 
 
 def _save_npz_atomic(path: Path, arrays: dict) -> None:
@@ -503,7 +504,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         out_dir: the dataset directory (created). A directory collected with another config is refused.
         config: what to collect.
         progress: tqdm progress bars (laps; frames of the lap in progress).
-        policy: a controller overriding the nominal MPPI from ``race.make_policy`` (tests; its name is
+        policy: a controller overriding the nominal MPPI from ``controllers.make_policy`` (tests; its name is
             recorded in the manifest).
 
     Returns:
@@ -562,7 +563,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
     }
     if previous is not None and previous.get("format_version", 1) != DATASET_VERSION:
         manifest["format_version"] = previous.get("format_version", 1)  # laps of mixed formats: the oldest
-    manifest = race.json_safe(manifest)
+    manifest = strict_json.json_safe(manifest)
     recorded_sha256 = {e["lap"]: e.get("sha256") for e in (previous or {}).get("laps", [])}
     done: dict[int, dict] = {}
     bar = frames_bar = None
@@ -639,7 +640,7 @@ def _write_manifest(root: Path, manifest: dict, done: dict[int, dict], config: C
     manifest["bytes"] = int(sum(e["bytes"] for e in manifest["laps"]))
     manifest["complete"] = bool(complete)
     manifest["updated"] = datetime.datetime.now().isoformat(timespec="seconds")
-    race.write_json_atomic(root / MANIFEST, race.json_safe(manifest))
+    strict_json.write_json_atomic(root / MANIFEST, strict_json.json_safe(manifest))
     return manifest
 
 

@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import strict_json
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import BatchCost, coloured_noise_filter, rollout_costs
 from pixelmpc_jax.dynamics import dof, quadrotor
@@ -55,7 +56,6 @@ from pixelmpc_jax.learn import train as train_lib
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.sim import episode as episode_lib
-from pixelmpc_jax.sim import race
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 
@@ -98,7 +98,7 @@ def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
     same record as readable JSON beside it (``.json``)."""
     path = Path(path)
     dof.save_checkpoint(path, dof_params, record)
-    race.write_json_atomic(path.with_suffix(".json"), record)
+    strict_json.write_json_atomic(path.with_suffix(".json"), record)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -718,8 +718,8 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         results["figures"] = ["dof_flow_fields.png", "dof_multistep.png"]
         results["figure_frame"] = {"lap": lap.info.get("lap"), "frame": t}
     results["wall_s"] = time.perf_counter() - t0
-    results = race.json_safe(results)
-    race.write_json_atomic(out / "dof_eval.json", results)
+    results = strict_json.json_safe(results)
+    strict_json.write_json_atomic(out / "dof_eval.json", results)
     return results
 
 
@@ -788,7 +788,7 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
     dof_params, history = train_lib.train(config, train_data, test_data,
                                           resume_from=checkpoint if (resume and checkpoint.exists()) else None)
     wall = time.perf_counter() - t0
-    race.write_json_atomic(out / "history.json", history)
+    strict_json.write_json_atomic(out / "history.json", history)
     record = {
         "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
         "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},

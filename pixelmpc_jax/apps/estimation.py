@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.strict_json import write_json_atomic
 
 # Table IV of the paper: (success rate, lap time mean, lap time 2 sigma) per (controller, target speed).
@@ -106,7 +106,7 @@ def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: st
 
 def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
     """One top-down figure per cell: its trajectories coloured by the position covariance trace."""
-    from pixelmpc_jax.sim.race import make_course, plot_trajectories
+    from pixelmpc_jax.apps.race import make_course, plot_trajectories
 
     written = []
     for cell in cells:

@@ -1,7 +1,7 @@
 """Timing for the runtime harness: compile (first call) outside the timed region, block on every call,
 warm up, then at least ``repeats`` timed calls; only calls slower than ``slow_s`` get fewer (recorded).
 
-A row is a flat dict with the fields of ``bench.json`` (see ``benchmarks/suite.py``).
+A row is a flat dict with the fields of ``bench.json`` (see ``apps/bench/suite.py``).
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ def run_in_child(module: str, function: str, args: list, timeout_s: float = 1800
     ``std::bad_alloc``, which aborts the whole process, and the kernel's OOM killer does the same; in a child
     that ends the row, not the harness. Returns ``(True, result)`` or ``(False, why)``.
     """
-    root = str(Path(__file__).resolve().parent.parent)  # the checkout, so ``benchmarks`` imports
+    root = str(Path(__file__).resolve().parents[3])  # the folder holding pixelmpc_jax (a checkout or site-packages)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
     try:
         done = subprocess.run([sys.executable, "-c", _CHILD, module, function, json.dumps(args)], env=env,

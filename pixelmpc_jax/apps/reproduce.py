@@ -51,7 +51,7 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
     """part -> run(folder) -> the part's Markdown report file name inside the folder."""
 
     def bench(folder: Path) -> str:
-        from pixelmpc_jax.bench import run_bench
+        from pixelmpc_jax.apps.bench.suite import run_bench
 
         run_bench(folder, quick=quick)
         return "bench.md"
@@ -64,20 +64,20 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
         return "REPORT.md"
 
     def table2(folder: Path, pixel_model: str = "dof") -> str:
-        from pixelmpc_jax.sim.paper import visibility_experiment
+        from pixelmpc_jax.apps.paper import visibility_experiment
 
         visibility_experiment(folder, laps=2 if quick else 10, pixel_model=pixel_model, quick=quick,
                               progress=progress)
         return "REPORT.md"
 
     def table4(folder: Path) -> str:
-        from pixelmpc_jax.sim.estimation import estimation_experiment
+        from pixelmpc_jax.apps.estimation import estimation_experiment
 
         estimation_experiment(folder, laps=2 if quick else 25, quick=quick, progress=progress)
         return "REPORT.md"
 
     def frontier(folder: Path) -> str:
-        from pixelmpc_jax.sim.frontier import default_spec, quick_spec, run_frontier
+        from pixelmpc_jax.apps.frontier import default_spec, quick_spec, run_frontier
 
         spec = quick_spec() if quick else default_spec()
         run_frontier(spec.nominal_speeds, spec.cells, folder, laps=spec.laps, progress=progress)
@@ -90,7 +90,7 @@ def _runners(quick: bool, progress: bool) -> dict[str, Callable[[Path], str]]:
 
 def _part_wall_time(folder: Path, measured: float) -> float:
     """A part's wall time: this run's, or, for a grid resumed over several runs, the sum of its cells'."""
-    from pixelmpc_jax.sim.grid import load_results
+    from pixelmpc_jax.apps.grid import load_results
 
     cells = load_results(folder)
     return max(measured, sum(cell.get("wall_time_s", 0.0) for cell in cells.values() if isinstance(cell, dict)))
@@ -153,7 +153,7 @@ def _read_state(path: Path) -> dict:
 
 def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool = True) -> dict:
     """Run the named parts (aliases allowed) into ``out`` and write ``out/REPORT.md``; returns the state."""
-    from pixelmpc_jax.sim.race import write_json_atomic
+    from pixelmpc_jax.apps.race import write_json_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

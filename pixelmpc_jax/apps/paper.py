@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.strict_json import write_json_atomic
 
 # The paper's Tables II and III (14 m/s, 10 races per cell, mean +- 2 sigma), keyed by (t_f, c_pixel).

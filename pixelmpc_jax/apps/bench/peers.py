@@ -12,9 +12,9 @@
 
 from __future__ import annotations
 
-from benchmarks import problems
-from benchmarks.controller import pixelmpc_row
-from benchmarks.measure import make_row, measure
+from pixelmpc_jax.apps.bench import problems
+from pixelmpc_jax.apps.bench.controller import pixelmpc_row
+from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.dynamics import quadrotor
 
 PEER_SAMPLES = (128, 512, 2048)
@@ -48,7 +48,7 @@ def pytorch_mppi_rows(samples=PEER_SAMPLES, horizon: int = 80, repeats: int = 30
                 for n in samples]
     import torch
 
-    from benchmarks import torch_port
+    from pixelmpc_jax.apps.bench import torch_port
 
     quad_params = quadrotor.QuadParams()
     default_threads = torch.get_num_threads()

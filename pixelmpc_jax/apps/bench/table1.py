@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.measure import make_row, measure, run_in_child
-from benchmarks.problems import bench_dof_params
+from pixelmpc_jax.apps.bench.measure import make_row, measure, run_in_child
+from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 
@@ -127,7 +127,7 @@ def dof_rows(dof_params=None, smoke: bool = False, repeats: int = 30) -> list[di
                                  **extra))
             continue
         if pixels * samples >= ISOLATE_ROWS:  # might not fit after all: a failed allocation aborts the process
-            ok, stats = run_in_child("benchmarks.table1", "_dof_stats", [pixels, samples, steps, repeats])
+            ok, stats = run_in_child("pixelmpc_jax.apps.bench.table1", "_dof_stats", [pixels, samples, steps, repeats])
         else:
             ok, stats = _measure_or_oom(lambda p=pixels, n=samples, t=steps: _dof_stats(p, n, t, repeats, dof_params))
         if not ok:
@@ -262,7 +262,7 @@ def spynet_rows(smoke: bool = False, repeats: int = 30, max_call_s: float = 60.0
                 f"(fits: needs {need / 2**30:.1f} GB)"), **extra))
             continue
         if batch >= ISOLATE_IMAGES:  # XLA's CPU convolutions need far more than the activations
-            ok, stats = run_in_child("benchmarks.table1", "_spynet_stats", [batch, list(wh), repeats])
+            ok, stats = run_in_child("pixelmpc_jax.apps.bench.table1", "_spynet_stats", [batch, list(wh), repeats])
         else:
             ok, stats = _measure_or_oom(lambda b=batch: _spynet_stats(b, wh, repeats))
         if not ok:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.sim import grid, race
+from pixelmpc_jax.apps import grid, race
 from pixelmpc_jax.sim.episode import CONTROL_DT
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 

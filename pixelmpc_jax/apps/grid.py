@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.sim import race
+from pixelmpc_jax.apps import race
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from benchmarks import problems, roofline
-from benchmarks.measure import make_row, measure
+from pixelmpc_jax.apps.bench import problems, roofline
+from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import track as track_lib

@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from benchmarks.measure import make_row, measure
+from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.dynamics import dof as dof_lib

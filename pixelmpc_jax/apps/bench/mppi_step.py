@@ -1,0 +1,78 @@
+"""Median step time of the quadrotor MPPI at the paper's sizes (N=512, T=80, K=1).
+
+    python benchmarks/mppi_step.py [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
+
+The step is the public jitted ``ctrl.step`` (inputs validated, one compiled call), timed after
+compilation with ``block_until_ready``; the state changes every call as in a control loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+import jax.numpy as jnp
+
+from pixelmpc_jax.apps.bench.measure import measure
+from pixelmpc_jax.control import costs
+from pixelmpc_jax.control.mppi import BatchCost, MPPIConfig, make_mppi
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.platform_info import device_description
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--samples", type=int, default=512)
+    parser.add_argument("--horizon", type=int, default=80)
+    parser.add_argument("--repeats", type=int, default=50)
+    parser.add_argument("--cost", choices=("racing", "waypoint"), default="racing",
+                        help="racing: Eq. (19) on the AlphaPilot course (default); waypoint: the demo's cost")
+    args = parser.parse_args(argv)
+
+    params = quadrotor.QuadParams()
+    lo, hi = params.control_bounds()
+    config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=0.025,
+                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
+    if args.cost == "racing":
+        from pixelmpc_jax.world import track as track_lib
+
+        track = track_lib.load_course()
+        cost_config = costs.RacingCostConfig()
+        x = track.start
+        cost_params = costs.racing_params(track, jnp.linspace(0.0, 25.0, args.horizon), 14.0, cost_config)
+
+        running_cost = BatchCost(lambda X, U, t, p: costs.racing_cost_batch(X, t, p, cost_config))
+    else:
+        weights = costs.WaypointWeights()
+        x = quadrotor.hover_state((0.0, 0.0, 2.0))
+        cost_params = jnp.asarray([5.0, 0.0, 2.0, 0.0])
+
+        def running_cost(x, u, t, p):
+            return costs.waypoint_cost(x, u, p, weights)
+
+    ctrl = make_mppi(config, lambda x, u, p: quadrotor.step(x, u, config.dt, params), running_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), quadrotor.hover_control(params))
+    holder = {"state": state, "x": x}
+
+    def call():
+        u, holder["state"], info = ctrl.step(holder["state"], holder["x"], cost_params)
+        holder["x"] = quadrotor.step(holder["x"], u, config.dt, params)
+        return u, info.min_cost
+
+    result = measure(call, repeats=args.repeats)
+    device = device_description()
+    result.update(num_samples=args.samples, horizon=args.horizon, device=device)
+    rollouts_per_s = args.samples * args.horizon / (result["median_ms"] / 1e3)
+    print(f"device: {device['platform']} ({device['device_kind']}; {device['cpu_model']}, "
+          f"{device['cpu_count']} cores), jax {device['jax']}")
+    print(f"quadrotor MPPI step ({args.cost} cost), N={args.samples}, T={args.horizon}: "
+          f"median {result['median_ms']:.2f} ms "
+          f"(mean {result['mean_ms']:.2f} +- {result['two_sigma_ms']:.2f} ms 2sigma, max {result['max_ms']:.2f} ms, "
+          f"{args.repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")
+    print(json.dumps({k: v for k, v in result.items() if k != "device"}))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,329 @@
+"""The runtime harness behind ``pixelmpc bench``: the paper's Table I, the controller step and its scaling,
+peers on identical work and the hardware limit, written to ``DIR/bench.json``, ``DIR/bench.md`` and
+``DIR/scaling.png``.
+
+    pixelmpc bench --out DIR [--quick]
+    python -m pixelmpc_jax.apps.bench.suite --out DIR [--quick | --smoke]
+
+Modes: full (everything, ~10 min on 2 CPU cores); ``quick`` (the paper-size controller rows, the
+roofline, the particle filter tick and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke``
+(every code path at N=16, T=8, 3 repeats: a schema check, seconds). CPU by default; JAX's default device
+where it finds a GPU.
+
+bench.json: ``device`` (platform, device kind, CPU model, cores), ``versions`` (jax, jaxlib, numpy, torch,
+pytorch-mppi, python), ``mode``, ``rows`` (each with at least group, name, num_samples, horizon, median_ms,
+mean_ms, two_sigma_ms, max_ms, and ratio = ours / theirs for peer rows) and ``summary`` (the headline
+figures and the targets).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pixelmpc_jax.apps.bench import controller, particle_filter_step, peers, table1
+from pixelmpc_jax.apps.bench.measure import fmt_ms
+from pixelmpc_jax.platform_info import device_description
+from pixelmpc_jax.strict_json import write_json_atomic
+
+REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "mean_ms", "two_sigma_ms", "max_ms")
+TARGETS = {"pixelmpc_step_ms": 12.0, "ratio_vs_pytorch_mppi": 0.35, "dof_fraction_of_matmul_rate": 0.70}
+
+
+def versions() -> dict:
+    import jax
+    import jaxlib
+
+    out = {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "numpy": np.__version__,
+           "python": platform.python_version()}
+    try:
+        import torch
+
+        out["torch"] = torch.__version__
+    except ImportError:
+        out["torch"] = None
+    try:
+        from importlib.metadata import version
+
+        out["pytorch_mppi"] = version("pytorch-mppi")
+    except Exception:  # not installed
+        out["pytorch_mppi"] = None
+    return out
+
+
+def _log(message: str, start: float) -> None:
+    print(f"[{time.perf_counter() - start:7.1f} s] {message}", flush=True)
+
+
+def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
+    """Run the harness and write ``bench.json``, ``bench.md`` and ``scaling.png`` into ``out_dir``.
+
+    Args:
+        out_dir: folder for the outputs (created).
+        quick: the paper-size controller rows, roofline and the pytorch-mppi peer only (< 5 min, 2 CPU cores).
+        smoke: every code path at tiny sizes (N=16, T=8, 3 repeats), for tests.
+
+    Returns:
+        the bench.json content.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    device = device_description()
+    device["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    vers = versions()
+    mode = "smoke" if smoke else "quick" if quick else "full"
+    print(f"device: {device['platform']} ({device['device_kind']}); CPU {device['cpu_model']}, "
+          f"{device['cpu_count']} cores, load {device['load_average_1min']:.1f}; jax {vers['jax']}, "
+          f"jaxlib {vers['jaxlib']}, torch {vers['torch']}, pytorch-mppi {vers['pytorch_mppi']}; mode {mode}",
+          flush=True)
+    repeats = 3 if smoke else 30
+    rows: list[dict] = []
+
+    _log("controller at the paper's sizes + roofline", start)
+    rows += controller.paper_size_rows(repeats=repeats, smoke=smoke)
+    paper_row = rows[0]
+
+    _log("particle filter tick", start)
+    rows += particle_filter_step.pf_rows(particles=256 if smoke else 6400, repeats=repeats)
+
+    _log("pytorch-mppi peer", start)
+    if smoke:
+        rows += peers.pytorch_mppi_rows(samples=(16,), horizon=8, repeats=repeats, budget_s=2.0,
+                                        ours={16: paper_row})
+    else:
+        rows += peers.pytorch_mppi_rows(repeats=repeats, ours={paper_row["num_samples"]: paper_row})
+
+    if not quick:
+        _log("MPPI-Generic's diff-drive problem", start)
+        rows += peers.mppi_generic_rows(samples=(16,) if smoke else peers.DIFF_DRIVE_SAMPLES, repeats=repeats)
+        _log("Table I", start)
+        rows += table1.table1_rows(smoke=smoke, repeats=repeats)
+        _log("scaling over N and T", start)
+        if smoke:
+            rows += controller.scaling_rows(repeats=repeats, samples=(32,), horizons=(8,), max_seconds_per_row=1.0)
+        else:
+            rows += controller.scaling_rows(repeats=repeats)
+
+    result = {"device": device, "versions": vers, "mode": mode, "rows": rows, "summary": summarize(rows),
+              "wall_s": time.perf_counter() - start}
+    write_json_atomic(out_dir / "bench.json", result, indent=1, default=_json_default)
+    (out_dir / "bench.md").write_text(markdown(result))
+    plot_scaling(rows, out_dir / "scaling.png")
+    _log(f"wrote {out_dir / 'bench.json'}, bench.md, scaling.png", start)
+    print(headline(result["summary"]), flush=True)
+    return result
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    return str(value)
+
+
+def _first(rows, **match):
+    for r in rows:
+        if all(r.get(k) == v for k, v in match.items()):
+            return r
+    return None
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Headline figures and the targets (met or not)."""
+    step = rows[0]
+    nominal = _first(rows, group="controller", name="nominal MPPI step (quadrotor + racing cost)")
+    roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate") or {}
+    ratios = {r["num_samples"]: r["ratio"] for r in rows if r["group"] == "peer" and r.get("best_peer")}
+    summary = {
+        "pixelmpc_step_median_ms": step["median_ms"],
+        "pixelmpc_step_min_ms": step["min_ms"],
+        "num_samples": step["num_samples"],
+        "horizon": step["horizon"],
+        "samples_per_s": step.get("samples_per_s"),
+        "sample_steps_per_s": step.get("sample_steps_per_s"),
+        "nominal_mppi_median_ms": nominal and nominal["median_ms"],
+        "ratio_vs_pytorch_mppi": ratios,
+        "matmul_rate_gflops": roof.get("matmul_rate_gflops"),
+        "step_fraction_of_matmul_rate": roof.get("step_fraction_of_matmul_rate"),
+        "dof_fraction_in_step": roof.get("dof_fraction_in_step"),
+        "dof_alone_fraction": roof.get("dof_alone_fraction"),
+        "dof_alone_fraction_min": roof.get("dof_alone_fraction_min"),
+        "step_fraction_of_matmul_rate_min": roof.get("step_fraction_of_matmul_rate_min"),
+    }
+    paper_size = step["num_samples"] == 512 and step["horizon"] == 80
+    summary["targets"] = {
+        "pixelmpc_step_ms <= 12": paper_size and step["median_ms"] <= TARGETS["pixelmpc_step_ms"],
+        "ratio_vs_pytorch_mppi <= 0.35": bool(ratios) and all(v <= TARGETS["ratio_vs_pytorch_mppi"]
+                                                              for v in ratios.values()),
+        "dof_fraction >= 0.70": (roof.get("dof_alone_fraction") or 0.0) >= TARGETS["dof_fraction_of_matmul_rate"],
+    }
+    return summary
+
+
+def headline(summary: dict) -> str:
+    ratio = ", ".join(f"N={n}: {v:.3f}" for n, v in summary["ratio_vs_pytorch_mppi"].items()) or "n/a"
+    nominal = summary["nominal_mppi_median_ms"]
+    return (f"PixelMPC step N={summary['num_samples']} T={summary['horizon']}: median "
+            f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}), "
+            f"{summary['samples_per_s'] / 1e3:.1f} k samples/s, {summary['sample_steps_per_s'] / 1e6:.2f} M "
+            f"sample-steps/s; nominal MPPI {nominal:.2f} ms; ours/pytorch-mppi {ratio}; "
+            f"matmul {summary['matmul_rate_gflops']:.1f} GFLOP/s, step at "
+            f"{summary['step_fraction_of_matmul_rate']:.1%}, DOF alone at {summary['dof_alone_fraction']:.1%}, "
+            f"DOF in step at {summary['dof_fraction_in_step']:.1%}; targets {summary['targets']}")
+
+
+def _num(value, digits: int = 2) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def markdown(result: dict) -> str:
+    d, v = result["device"], result["versions"]
+    rows = result["rows"]
+    lines = [
+        "# pixelmpc-jax runtime benchmarks", "",
+        f"Device: {d['platform']} ({d['device_kind']}); CPU {d['cpu_model']}, {d['cpu_count']} cores "
+        f"(1-min load {_num(d.get('load_average_1min'), 1)} at the start: the machine is shared, timings are "
+        f"noisy); jax {v['jax']}, jaxlib {v['jaxlib']}, torch {v['torch']}, pytorch-mppi {v['pytorch_mppi']}. "
+        f"Mode: {result['mode']}. ms; mean ± 2σ (population std over the repeats) and max; every call blocked "
+        f"until ready, compilation and warm-up excluded.", "",
+        headline(result["summary"]), "",
+    ]
+    t1 = [r for r in rows if r["group"] == "table1"]
+    if t1:
+        lines += ["## Table I (paper: GTX 1060 + Xeon E5-1650 v4)", "",
+                  "| model | N_pixel | N_sample | N_timestep | ours: mean ± 2σ (max) | median | repeats | paper |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in t1:
+            paper = r.get("paper") or (f"{r['paper_mean_ms']} ± {r['paper_two_sigma_ms']} (max {r['paper_max_ms']})"
+                                       if r.get("paper_mean_ms") is not None else "")
+            lines.append(f"| {r['name']} | {r.get('n_pixel', '')} | {r['num_samples']} | {r['horizon']} | "
+                         f"{fmt_ms(r)} | {_num(r['median_ms'])} | {r['repeats']} | {paper} |")
+        lines.append("")
+    ctrl = [r for r in rows if r["group"] in ("controller", "roofline") and r.get("median_ms") is not None]
+    if ctrl:
+        lines += ["## Controller step and matmul rate", "",
+                  "| row | N | T | median | mean ± 2σ (max) | min | repeats | samples/s | GFLOP/s |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in ctrl:
+            lines.append(f"| {r['name']} | {_num(r['num_samples'])} | {_num(r['horizon'])} | {_num(r['median_ms'])} | "
+                         f"{fmt_ms(r)} | {_num(r['min_ms'])} | {r['repeats']} | {_num(r.get('samples_per_s'), 0)} | "
+                         f"{_num(r.get('gflops_per_s'), 1)} |")
+        lines.append("")
+    roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate")
+    if roof:
+        f = roof["flops"]
+        lines += ["## The limit", "",
+                  f"Work of one step (N={roof['num_samples']}, T={roof['horizon']}): "
+                  f"total {f['total'] / 1e9:.3f} GFLOP; "
+                  f"DOF dense layers {f['dof_matmul'] / 1e9:.3f} GFLOP (2 x MACs, N x n_f evaluations), DOF bias+ReLU "
+                  f"{f['dof_elementwise'] / 1e6:.1f} MFLOP, racing cost {f['racing'] / 1e6:.1f} MFLOP, robot dynamics "
+                  f"{f['dynamics'] / 1e6:.1f} MFLOP, pixel model/cost rest {f['pixel'] / 1e6:.2f} MFLOP, MPPI "
+                  f"bookkeeping {f['mppi'] / 1e6:.2f} MFLOP (per sample-step, XLA cost analysis: "
+                  f"{', '.join(f'{k} {v:.0f}' for k, v in roof['per_sample_step_flops'].items())}).", "",
+                  f"Matmul rate (best median of the measured shapes): {roof['matmul_rate_gflops']:.1f} GFLOP/s. "
+                  f"Step: {roof['step_gflops_per_s']:.1f} GFLOP/s = {roof['step_fraction_of_matmul_rate']:.1%} of it. "
+                  f"DOF part alone (n_f steps over N samples): {roof['dof_alone_fraction']:.1%}; DOF part inside the "
+                  f"step (step minus the t_f=0 step, {roof['dof_marginal_ms']:.2f} ms): "
+                  f"{roof['dof_fraction_in_step']:.1%}. From the fastest calls (min time, against the best matmul "
+                  f"rate {roof['matmul_rate_best_gflops']:.1f} GFLOP/s): step "
+                  f"{roof['step_fraction_of_matmul_rate_min']:.1%}, "
+                  f"DOF alone {roof['dof_alone_fraction_min']:.1%}.",
+                  ""]
+    est = [r for r in rows if r["group"] == "estimator"]
+    if est:
+        lines += ["## Particle filter (Section V-D)", "",
+                  "| row | particles | median | mean ± 2σ (max) | min | repeats |", "|---|---|---|---|---|---|"]
+        for r in est:
+            lines.append(f"| {r['name']} | {r['num_samples']} | {_num(r['median_ms'])} | {fmt_ms(r)} | "
+                         f"{_num(r['min_ms'])} | {r['repeats']} |")
+        lines.append("")
+    peer = [r for r in rows if r["group"] == "peer"]
+    if peer:
+        lines += ["## Peers on identical work: pytorch-mppi (PixelMPC problem ported to torch)", "",
+                  "| implementation | N | T | median | mean ± 2σ (max) | repeats | ours / theirs |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in peer:
+            lines.append(f"| {r['name']} | {r['num_samples']} | {r['horizon']} | {_num(r['median_ms'])} | "
+                         f"{fmt_ms(r)} | {r['repeats']} | {_num(r.get('ratio'), 3)}"
+                         f"{' (best peer)' if r.get('best_peer') else ''} |")
+        lines.append("")
+    gen = [r for r in rows if r["group"] == "mppi_generic"]
+    if gen:
+        names = list(peers.MPPI_GENERIC_PUBLISHED)
+        lines += ["## MPPI-Generic's benchmark problem (diff drive, cost map, dt 0.02, T 100, λ 1, σ 0.2)", "",
+                  "Ours on this device; published figures on their hardware (not a same-run comparison).", "",
+                  "| N | ours median | ours mean ± 2σ (max) | " + " | ".join(names) + " |",
+                  "|---|---|---|" + "---|" * len(names)]
+        for r in gen:
+            pub = " | ".join(_num(r["published_ms"].get(n), 3) for n in names)
+            lines.append(f"| {r['num_samples']} | {_num(r['median_ms'], 3)} | {fmt_ms(r)} | {pub} |")
+        lines.append("")
+    scaling = [r for r in rows if r["group"] == "scaling"]
+    if scaling:
+        lines += ["## Scaling of the PixelMPC step (t_f = 1 s)", "",
+                  "| N | T | median | mean ± 2σ (max) | repeats | samples/s | sample-steps/s |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in scaling:
+            lines.append(f"| {r['num_samples']} | {r['horizon']} | {_num(r['median_ms'])} | {fmt_ms(r)} | "
+                         f"{r['repeats']} | {_num(r['samples_per_s'], 0)} | {_num(r['sample_steps_per_s'], 0)} |")
+        lines.append("")
+    reduced = [r["name"] + f" (N={r['num_samples']}, T={r['horizon']})" for r in rows if r.get("reduced_repeats")]
+    if reduced:
+        lines += ["Rows timed with fewer than 30 repeats (calls over 1 s, or a row's time budget): "
+                  + "; ".join(reduced) + ".", ""]
+    return "\n".join(lines)
+
+
+def plot_scaling(rows: list[dict], path) -> None:
+    """Median step time and samples/s against N, one line per T (scaling rows; else the controller rows)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scaling = [r for r in rows if r["group"] == "scaling"] or [
+        r for r in rows if r["group"] == "peer" and r["name"].startswith("ours")]
+    fig, (ax_t, ax_r) = plt.subplots(1, 2, figsize=(10, 4))
+    for horizon in sorted({r["horizon"] for r in scaling}):
+        sel = sorted((r for r in scaling if r["horizon"] == horizon), key=lambda r: r["num_samples"])
+        n = [r["num_samples"] for r in sel]
+        ax_t.plot(n, [r["median_ms"] for r in sel], "o-", label=f"T={horizon}")
+        ax_r.plot(n, [r["num_samples"] * r["horizon"] / (r["median_ms"] / 1e3) for r in sel], "o-",
+                  label=f"T={horizon}")
+    for r in rows:
+        if r["group"] == "peer" and r.get("best_peer"):
+            ax_t.plot(r["num_samples"], r["median_ms"], "kx")
+    ax_t.set(xscale="log", yscale="log", xlabel="samples N", ylabel="median step time (ms)",
+             title="PixelMPC step (x: pytorch-mppi, T=80)")
+    ax_r.set(xscale="log", yscale="log", xlabel="samples N", ylabel="sample-steps per second (N T / step time)",
+             title="dashed: the paper's 'over a million'")
+    ax_r.axhline(1e6, color="grey", ls="--", lw=0.8)
+    for ax in (ax_t, ax_r):
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="bench_out", help="output folder")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--quick", action="store_true", help="paper-size controller rows + pytorch-mppi (< 5 min)")
+    group.add_argument("--smoke", action="store_true", help="tiny sizes, 3 repeats (schema check)")
+    args = parser.parse_args(argv)
+    return run_bench(args.out, quick=args.quick, smoke=args.smoke)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""The import rule of the README's Architecture section: layers import only the layers above them, and no
+module of the library imports the experiment apps (``pixelmpc_jax.apps``)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parent.parent / "pixelmpc_jax"
+# Top to bottom: a module may import its own layer and those before it (and the shared top-level modules).
+LAYERS = ("dynamics", "world", "perception", "control", "sim", "learn", "apps")
+SHARED = {"timing", "strict_json", "platform_info"}  # imported by any layer
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every ``pixelmpc_jax`` module a file imports, at its top or inside a function."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return {name for name in names if name.startswith("pixelmpc_jax.")}
+
+
+def layer_of(module: str) -> str:
+    """``pixelmpc_jax.sim.episode`` -> ``sim``; ``pixelmpc_jax.timing`` -> ``timing``."""
+    return module.split(".")[1]
+
+
+def violations(path: Path, package: Path = PACKAGE) -> list[str]:
+    """The imports of ``path`` (inside ``package``) that break the rule: a later layer, or any layer from a
+    shared module."""
+    relative = path.relative_to(package)
+    own = relative.parts[0] if len(relative.parts) > 1 else relative.stem
+    bad = []
+    for module in sorted(imported_modules(path)):
+        target = layer_of(module)
+        if own in LAYERS and target in LAYERS and LAYERS.index(target) > LAYERS.index(own):
+            bad.append(f"{relative} imports {module}")
+        elif own in SHARED and target in LAYERS:
+            bad.append(f"{relative} (shared by every layer) imports {module}")
+    return bad
+
+
+def test_no_layer_imports_a_later_one_and_the_core_never_imports_the_apps():
+    files = sorted(PACKAGE.rglob("*.py"))
+    assert any(f.parts[-3:-1] == ("pixelmpc_jax", "learn") for f in files)  # the scan sees the package
+    bad = [line for path in files for line in violations(path)]
+    assert not bad, "imports against the layer order:\n" + "\n".join(bad)
+    core = [path for path in files if path.relative_to(PACKAGE).parts[0] not in ("apps", "cli.py")]
+    assert not [path for path in core if any(layer_of(m) == "apps" for m in imported_modules(path))]
+
+
+@pytest.mark.parametrize("source, own, bad", [
+    ("from pixelmpc_jax.apps import race\n", "sim/x.py", True),
+    ("def f():\n    import pixelmpc_jax.apps.grid\n", "learn/x.py", True),  # a lazy import counts too
+    ("from pixelmpc_jax.sim import episode\n", "control/x.py", True),
+    ("from pixelmpc_jax.world import track\n", "timing.py", True),
+    ("from pixelmpc_jax.sim import episode\n", "apps/x.py", False),
+    ("from pixelmpc_jax import timing\n", "dynamics/x.py", False),
+    ("from pixelmpc_jax.dynamics import dof\n", "learn/x.py", False),
+])
+def test_the_scan_finds_a_wrong_import(tmp_path, source, own, bad):
+    path = tmp_path / own
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(source)
+    assert bool(violations(path, tmp_path)) == bad
