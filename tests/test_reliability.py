@@ -40,6 +40,8 @@ def _free_port() -> int:
 
 def test_importing_the_cli_and_building_its_parser_starts_no_jax_backend():
     code = ("import pixelmpc_jax.cli as cli\ncli.build_parser()\n"
+            "import pixelmpc_jax.sim.episode, pixelmpc_jax.sim.env, pixelmpc_jax.sim.policies\n"
+            "import pixelmpc_jax.sim.sharding\n"
             "from jax._src import xla_bridge\nprint(sorted(xla_bridge._backends))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, JAX_PLATFORMS="cpu"), cwd=ROOT)

@@ -1,0 +1,292 @@
+"""The racing environment: the FlightGoggles-like plant on a course, seen through a detector and an estimator.
+
+Three pure functions over a :class:`SimState` pytree, built for a frozen :class:`EnvConfig` by
+:func:`make_env` (brax-like; the driver is :mod:`pixelmpc_jax.sim.episode`):
+
+- ``reset(world, key) -> SimState``: the vehicle at rest at the course's start.
+- ``observe(world, state, key) -> (SimState, Observation)``: the target gate's detection from the true pose
+  (geometric, or the rendered frame through OpenCV) and the estimate (the truth, or the particle filter of
+  Section V-D updated with the last tick's IMU and this detection): what a policy acts on.
+- ``step(world, state, u, key) -> SimState``: one 1/40 s control tick, 24 plant substeps at 960 Hz, then
+  gate passage and collisions on the flown segment, progress along the desired path, and the episode's end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pixelmpc_jax import timing
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.sim import plant as plant_lib
+from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import track as track_lib
+
+# Episode end causes beyond the track's crash causes.
+CRASH_MISSED_GATE = 4
+CRASH_TIMEOUT = 5
+END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TIMEOUT: "timeout"}
+
+CONTROL_DT = timing.CONTROL_DT  # s, one control tick (pixelmpc_jax.timing)
+SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
+DETECTORS = ("geometry", "image")
+ESTIMATORS = ("truth", "pf")
+
+
+@struct.dataclass
+class World:
+    """Everything dynamic an episode runs in (a pytree: new values never recompile).
+
+    Attributes:
+        track: the course.
+        target_speed: () m/s.
+        plant_params: the vehicle.
+        camera: the onboard camera.
+        dof: DOF network weights for PixelMPC (None for controllers without a pixel model).
+        detector_noise_px: () std of the geometric detector's pixel noise.
+        detector_dropout: () probability that a detection is missed.
+    """
+
+    track: track_lib.Track
+    target_speed: jax.Array
+    plant_params: plant_lib.PlantParams
+    camera: camera_lib.Camera
+    dof: Any = None
+    detector_noise_px: jax.Array = 0.0
+    detector_dropout: jax.Array = 0.0
+
+
+def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
+               plant_params: plant_lib.PlantParams | None = None,
+               camera: camera_lib.Camera | None = None, dof=None, detector_noise_px: float = 0.0,
+               detector_dropout: float = 0.0) -> World:
+    """A World with defaults: the AlphaPilot course, the reference vehicle, the paper's camera."""
+    if not (isinstance(target_speed, (int, float)) and target_speed > 0):
+        raise ValueError(f"target_speed must be a positive number of m/s, got {target_speed!r}")
+    track = track if track is not None else track_lib.load_course()
+    plant_params = plant_params if plant_params is not None else plant_lib.PlantParams()
+    camera = camera if camera is not None else camera_lib.default_camera()
+    leaves = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32)
+                                    if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else jnp.asarray(a),
+                                    (plant_params, camera))
+    return World(track=track, target_speed=jnp.asarray(target_speed, jnp.float32), plant_params=leaves[0],
+                 camera=leaves[1], dof=dof, detector_noise_px=jnp.asarray(detector_noise_px, jnp.float32),
+                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32))
+
+
+def stack_worlds(worlds: list[World]) -> World:
+    """Stack worlds (same course layout, possibly perturbed, different speeds) on a new leading axis."""
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *worlds)
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """Static settings of the environment (hashable: a new config compiles once).
+
+    Attributes:
+        max_time_s: the episode ends as a timeout after this much simulated time.
+        progress_window_m: arc length searched around the last progress when tracking the robot along
+            the desired path (the path may pass near itself elsewhere).
+        missed_gate_margin_m: the episode ends as ``missed_gate`` when the robot's progress is this far
+            past the target gate without having passed it.
+        detector: "geometry" (projection of the true gate, with the World's noise and dropout; fast and
+            batched) or "image" (each tick renders the onboard frame in JAX and runs the OpenCV colour
+            detector on the host through ``jax.pure_callback``; slower, one frame per tick).
+        estimator: "truth" (the controller sees the true state) or "pf" (the particle filter of Section
+            V-D, fed each tick with the previous tick's 24 IMU samples, preintegrated, and the target
+            gate's detection; the controller sees its mean).
+        pf: the particle filter's settings; pf_initial_spread: its initial spread (position m, attitude
+            rad, velocity m/s) around the true start.
+    """
+
+    max_time_s: float = 60.0
+    progress_window_m: float = 30.0
+    missed_gate_margin_m: float = 6.0
+    detector: str = "geometry"
+    estimator: str = "truth"
+    pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
+    pf_initial_spread: tuple = (0.3, 0.03, 0.2)
+
+    def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if not self.max_time_s > 0:
+            raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
+
+    @property
+    def max_ticks(self) -> int:
+        return int(round(self.max_time_s / CONTROL_DT))
+
+
+class Observation(NamedTuple):
+    """What a policy sees at a tick.
+
+    Attributes:
+        x_est: (10,) the estimated state (the true state with the "truth" estimator).
+        target_gate: () int32 index of the gate to pass next.
+        progress_s: () m, the estimate's progress along the desired path.
+        target_visibility: () fraction of the target gate's outline in view from the true pose (what the
+            metrics count, not what a controller could know).
+        detection: the detector's view of the target gate from the true pose.
+        position_cov_trace: () m^2, trace of the estimator's position covariance (0 for the truth).
+    """
+
+    x_est: jax.Array
+    target_gate: jax.Array
+    progress_s: jax.Array
+    target_visibility: jax.Array
+    detection: detector_lib.Detection
+    position_cov_trace: jax.Array = 0.0
+
+
+class SimState(NamedTuple):
+    """The environment's state for one episode (leading batch axes under vmap).
+
+    Attributes:
+        tick: () int32 ticks flown.
+        plant: the vehicle (true rigid-body state, body rates, motors).
+        target: () int32 index of the gate to pass next; the number of gates once every gate is passed.
+        progress_s: () m, the true position's progress along the desired path.
+        progress_est_s: () m, the estimate's progress (follows ``progress_s`` with the "truth" estimator).
+        filter: the particle filter's state with the "pf" estimator, else a () placeholder.
+        imu: the last tick's IMU samples, preintegrated (the filter's next input).
+        end_cause: () int32, 0 while flying or once finished, else a key of ``END_NAMES``.
+        done: () bool, the episode has ended (finished, crashed, missed a gate or timed out).
+    """
+
+    tick: jax.Array
+    plant: plant_lib.PlantState
+    target: jax.Array
+    progress_s: jax.Array
+    progress_est_s: jax.Array
+    filter: Any
+    imu: plant_lib.TickIMU
+    end_cause: jax.Array
+    done: jax.Array
+
+
+class Env(NamedTuple):
+    """The environment's pure functions for one :class:`EnvConfig` (see the module docstring)."""
+
+    reset: Callable[[World, jax.Array], SimState]
+    observe: Callable[[World, SimState, jax.Array], tuple[SimState, Observation]]
+    step: Callable[[World, SimState, jax.Array, jax.Array], SimState]
+    config: EnvConfig
+
+
+def target_visibility(world: World, state: SimState) -> jax.Array:
+    """() fraction of the target gate's outline in view from the true pose; 1 once every gate is passed."""
+    num_gates = world.track.num_gates
+    visibility = camera_lib.gate_visibility(world.track.gate(jnp.minimum(state.target, num_gates - 1)),
+                                            state.plant.x, world.camera)
+    return jnp.where(state.target >= num_gates, 1.0, visibility)
+
+
+def lap_finished(world: World, state: SimState) -> jax.Array:
+    """() bool, every gate passed without a crash."""
+    return (state.target >= world.track.num_gates) & (state.end_cause == 0)
+
+
+def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
+                     ) -> detector_lib.Detection:
+    """Render the onboard frame and detect the target gate in it with OpenCV (a host callback)."""
+    from pixelmpc_jax.world import render as render_lib
+
+    frame = render_lib.render(track, x, camera, supersample=1)
+
+    def host_detect(rgb, gate_id):
+        import numpy as np
+
+        det = detector_lib.detect_from_image(np.asarray(rgb), int(gate_id), camera=camera)
+        return jax.tree_util.tree_map(np.asarray, det)
+
+    template = detector_lib.Detection(
+        found=jax.ShapeDtypeStruct((), jnp.bool_), centre=jax.ShapeDtypeStruct((2,), jnp.float32),
+        bbox=jax.ShapeDtypeStruct((4,), jnp.float32), corners=jax.ShapeDtypeStruct((4, 2), jnp.float32),
+        corners_visible=jax.ShapeDtypeStruct((4,), jnp.bool_), gate_id=jax.ShapeDtypeStruct((), jnp.int32))
+    det = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
+    return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), det, template)
+
+
+def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array, window_m: float) -> jax.Array:
+    """() m, the progress of ``position`` (3,) along the desired path, searched around ``previous_s``."""
+    spacing = track_lib.PATH_SPACING
+    length = min(int(window_m / spacing) + 2, track.num_path_points)
+    start = jnp.floor((previous_s - 0.25 * window_m) / track.path_spacing).astype(jnp.int32)
+    window = track_lib.PathWindow(start=start, length=length)
+    return track_lib.path_query(track, position, window).progress_s
+
+
+def make_env(config: EnvConfig = EnvConfig()) -> Env:
+    """The environment's ``reset``, ``observe`` and ``step`` for ``config`` (pure; jit and vmap them)."""
+
+    def reset(world: World, key: jax.Array) -> SimState:
+        """The vehicle at rest at the course's start, level, with the motors at hover speed; ``key`` draws
+        the particle filter's initial cloud."""
+        x0 = world.track.start
+        return SimState(
+            tick=jnp.asarray(0, jnp.int32), plant=plant_lib.init_plant(x0, world.plant_params),
+            target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
+            progress_est_s=jnp.asarray(0.0, jnp.float32),
+            filter=(pf_lib.pf_init(key, x0, config.pf, config.pf_initial_spread)
+                    if config.estimator == "pf" else jnp.zeros(())),
+            imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
+            end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
+        )
+
+    def observe(world: World, state: SimState, key: jax.Array) -> tuple[SimState, Observation]:
+        """Detect the target gate from the true pose (``key``: the geometric detector's noise and dropout)
+        and update the estimator with the last tick's IMU and the detection."""
+        track, x = world.track, state.plant.x
+        if config.detector == "image":
+            detection = _image_detection(track, x, world.camera, state.target)
+        else:
+            detection = detector_lib.detect_from_geometry(
+                track.gate(state.target), x, world.camera, key, world.detector_noise_px, world.detector_dropout,
+                state.target)
+        if config.estimator == "pf":
+            filter_state, estimate, filter_info = pf_lib.pf_step(
+                state.filter, state.imu, detection, track, world.camera, config.pf)
+            x_est, cov_trace = estimate.mean.astype(x.dtype), filter_info.position_cov_trace
+            progress_est = _progress(track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
+        else:
+            filter_state, x_est, cov_trace, progress_est = state.filter, x, jnp.asarray(0.0), state.progress_s
+        observation = Observation(
+            x_est=x_est, target_gate=state.target, progress_s=progress_est,
+            target_visibility=target_visibility(world, state), detection=detection,
+            position_cov_trace=cov_trace.astype(jnp.float32),
+        )
+        return state._replace(filter=filter_state, progress_est_s=progress_est), observation
+
+    def step(world: World, state: SimState, u: jax.Array, key: jax.Array) -> SimState:
+        """Fly command ``u`` (4,) for one tick (``key``: the plant's noise), then check the flown segment for
+        gate passage and collisions, track the progress, and end the episode on a finish, a crash, a gate
+        missed by more than ``missed_gate_margin_m``, or the time limit."""
+        track = world.track
+        num_gates = track.num_gates
+        plant_state, _, imu = plant_lib.plant_tick(state.plant, u, key, world.plant_params, SUBSTEPS)
+        p0, p1 = state.plant.x[quadrotor.POS], plant_state.x[quadrotor.POS]
+        passed = track_lib.gate_passed(track.gate(state.target), p0, p1)
+        target = state.target + passed.astype(jnp.int32)
+        finished = target >= num_gates
+        hit, cause = track_lib.collision(track, p0, p1)
+        progress = _progress(track, p1, state.progress_s, config.progress_window_m)
+        missed = (~finished) & (progress > track.path_gate_s[jnp.minimum(target, num_gates - 1)]
+                                + config.missed_gate_margin_m)
+        tick = state.tick + 1
+        timeout = tick >= config.max_ticks
+        end_cause = jnp.where(hit, cause, jnp.where(missed, CRASH_MISSED_GATE,
+                                                    jnp.where(timeout & ~finished, CRASH_TIMEOUT, 0)))
+        return state._replace(tick=tick, plant=plant_state, target=target, progress_s=progress, imu=imu,
+                              end_cause=end_cause.astype(jnp.int32), done=finished | hit | missed | timeout)
+
+    return Env(reset=reset, observe=observe, step=step, config=config)

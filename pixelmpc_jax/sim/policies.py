@@ -1,0 +1,123 @@
+"""Policies for the closed loop: the paper's nominal MPPI baseline and PixelMPC, as pure init/act pairs.
+
+A :class:`Policy` is ``init(key, world) -> state``, called once per episode (per-episode constants belong in
+the state), and ``act(state, obs, world) -> (u, state, predicted)``, called every tick with the environment's
+:class:`~pixelmpc_jax.sim.env.Observation`. The driver is :mod:`pixelmpc_jax.sim.episode`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from pixelmpc_jax.control import costs
+from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
+from pixelmpc_jax.control.mppi import MPPIConfig
+from pixelmpc_jax.control.pixelmpc import paper_mppi_config
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.sim.env import Observation, World
+
+DEFAULT_FEEDFORWARD_GAIN = 0.0
+
+
+class Policy(NamedTuple):
+    """A controller in the loop.
+
+    ``init(key, world) -> state`` once per episode; ``act(state, obs, world) -> (u, state, predicted)`` every
+    tick, with ``u`` (4,) the command, ``world`` the :class:`~pixelmpc_jax.sim.env.World` and ``predicted``
+    the (T+1, n) nominal prediction (its columns past the 10 robot states, if any, are the target pixel).
+    """
+
+    init: Callable[[jax.Array, World], Any]
+    act: Callable[[Any, Observation, World], tuple[jax.Array, Any, jax.Array]]
+    name: str
+
+
+class RacingPolicyState(NamedTuple):
+    """MPPI's state and, per horizon step, the path progress (m) its last plan predicted (T,)."""
+
+    mppi: Any
+    step_progress: jax.Array
+
+
+def rate_feedforward(u0: jax.Array, u1: jax.Array, gain: float, u_min, u_max) -> jax.Array:
+    """The command sent to the plant: ``u0`` with its body rates led by ``gain * (u1 - u0)``.
+
+    The model assumes the rates follow the command at once; the plant's rate loop lags it with a time
+    constant of about 1 / P = 0.11 s. Leading the planned rate change (u1 is the plan's next control)
+    lets the plant's rates follow the plan the model optimised. Thrust is passed through. Clipped.
+    """
+    rates = u0[:3] + gain * (u1[:3] - u0[:3])
+    u = jnp.concatenate([rates, u0[3:]])
+    return jnp.clip(u, jnp.asarray(u_min), jnp.asarray(u_max))
+
+
+def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
+                  quad_params: quadrotor.QuadParams, feedforward_gain: float) -> Policy:
+    """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
+
+    ``build(obs, world, racing_params) -> (x0, params)`` makes the controller's state and params from an
+    observation; the nominal trajectory's first 10 columns must be the robot state. Each tick cuts the
+    racing cost's path windows (Eq. 19) around the progress the previous plan predicted for each step.
+    """
+    horizon = mppi_config.horizon
+
+    def init(key: jax.Array, world: World) -> RacingPolicyState:
+        return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
+                                 jnp.full((horizon,), jnp.nan, jnp.float32))
+
+    def act(state: RacingPolicyState, obs: Observation, world: World):
+        # First tick: no previous plan, every step's path window starts at the current progress.
+        step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
+        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config)
+        x0, params = build(obs, world, racing)
+        u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
+        robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
+        next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
+        if feedforward_gain:
+            u = rate_feedforward(u, mppi_state.plan[0], feedforward_gain, mppi_config.u_min, mppi_config.u_max)
+        return u, RacingPolicyState(mppi_state, next_progress), info.nominal_trajectory
+
+    return Policy(init=init, act=act, name=name)
+
+
+def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
+                        cost_config: costs.RacingCostConfig | None = None,
+                        quad_params: quadrotor.QuadParams | None = None,
+                        feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
+    """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only."""
+    mppi_config = mppi_config or paper_mppi_config()
+    cost_config = cost_config or costs.RacingCostConfig()
+    quad_params = quad_params or quadrotor.QuadParams()
+    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params)
+
+    def build(obs, world, racing):
+        return obs.x_est, racing
+
+    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, feedforward_gain)
+
+
+def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
+                    quad_params: quadrotor.QuadParams | None = None,
+                    feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
+    """PixelMPC in the loop: the target pixel is the detector's, the pixel cost is active while it
+    detects the target; the DOF weights come from ``world.dof``."""
+    config = config or pixelmpc_lib.PixelMPCConfig()
+    quad_params = quad_params or quadrotor.QuadParams()
+    ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
+
+    def build(obs, world, racing):
+        detection = obs.detection
+        uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
+        params = pixelmpc_lib.PixelMPCParams(
+            racing=racing, dof=world.dof, target_active=detection.found,
+            target_centre=world.track.gates.centre[obs.target_gate],
+            target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera,
+        )
+        return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
+
+    return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
+                         quad_params, feedforward_gain)

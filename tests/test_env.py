@@ -1,0 +1,172 @@
+"""The environment alone (reset, observe, step from hand-made states) and the policies' init/act pair."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.sim import env as env_lib
+from pixelmpc_jax.sim import plant as plant_lib
+from pixelmpc_jax.sim import policies
+from pixelmpc_jax.world import track as track_lib
+
+CONFIG = env_lib.EnvConfig(max_time_s=10.0)
+HOVER = quadrotor.hover_control(quadrotor.QuadParams())  # [0, 0, 0, m g]
+
+
+@pytest.fixture(scope="module")
+def world():
+    # gates at x = 12, 27, 42 m, facing +x, centres 3 m up; the hall spans y in [-9.2, 9.2], z in [0, 15]
+    course = track_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+    return env_lib.make_world(course, target_speed=8.0)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = env_lib.make_env(CONFIG)
+    return env_lib.Env(reset=jax.jit(e.reset), observe=jax.jit(e.observe), step=jax.jit(e.step), config=CONFIG)
+
+
+def placed(env, world, position, velocity=(0.0, 0.0, 0.0), target=0, progress_s=0.0, tick=0):
+    """The reset state with the vehicle level at ``position`` moving at ``velocity``, the given target gate,
+    path progress and tick."""
+    x = jnp.concatenate([jnp.asarray(position, jnp.float32), jnp.asarray([1.0, 0.0, 0.0, 0.0]),
+                         jnp.asarray(velocity, jnp.float32)])
+    s = jnp.asarray(progress_s, jnp.float32)
+    return env.reset(world, jax.random.PRNGKey(0))._replace(
+        plant=plant_lib.init_plant(x, world.plant_params), target=jnp.asarray(target, jnp.int32),
+        progress_s=s, progress_est_s=s, tick=jnp.asarray(tick, jnp.int32))
+
+
+def fly(env, world, state, u, ticks):
+    for i in range(ticks):
+        state = env.step(world, state, jnp.asarray(u, jnp.float32), jax.random.PRNGKey(i))
+    return state
+
+
+def test_reset_puts_the_vehicle_at_rest_at_the_start(env, world):
+    state = env.reset(world, jax.random.PRNGKey(0))
+    np.testing.assert_allclose(state.plant.x, world.track.start, atol=1e-6)
+    assert int(state.tick) == 0 and int(state.target) == 0 and not bool(state.done)
+    assert int(state.end_cause) == 0 and float(state.progress_s) == 0.0
+
+
+def test_a_hover_command_keeps_the_vehicle_near_the_start_and_no_thrust_drops_it(env, world):
+    start = env.reset(world, jax.random.PRNGKey(0))
+    hovering = fly(env, world, start, HOVER, 40)  # 1 s
+    assert int(hovering.tick) == 40 and not bool(hovering.done) and int(hovering.end_cause) == 0
+    assert np.linalg.norm(np.asarray(hovering.plant.x[:3] - world.track.start[:3])) < 0.1
+    falling = fly(env, world, start, jnp.zeros(4), 20)  # 0.5 s: about g t^2 / 2 = 1.2 m down
+    assert float(world.track.start[2] - falling.plant.x[2]) > 0.6
+    assert abs(float(falling.plant.x[0])) < 0.05 and int(falling.target) == 0
+
+
+def test_flying_through_the_gate_opening_advances_the_target(env, world):
+    # 0.1 m before gate 0's plane at 10 m/s: one tick (0.25 m) crosses it
+    before = placed(env, world, (11.9, 0.0, 3.0), (10.0, 0.0, 0.0), progress_s=11.9)
+    after = env.step(world, before, HOVER, jax.random.PRNGKey(1))
+    assert int(after.target) == 1 and not bool(after.done) and int(after.end_cause) == 0
+    assert float(after.plant.x[0]) > 12.0 and float(after.progress_s) == pytest.approx(float(after.plant.x[0]),
+                                                                                        abs=0.05)
+    # the same crossing 4 m to the side of the opening passes nothing (and hits nothing)
+    beside = env.step(world, placed(env, world, (11.9, 4.0, 3.0), (10.0, 0.0, 0.0), progress_s=11.9), HOVER,
+                      jax.random.PRNGKey(1))
+    assert int(beside.target) == 0 and not bool(beside.done)
+
+
+def test_passing_the_last_gate_finishes_the_lap(env, world):
+    last = world.track.num_gates - 1
+    before = placed(env, world, (41.9, 0.0, 3.0), (10.0, 0.0, 0.0), target=last, progress_s=41.9)
+    after = env.step(world, before, HOVER, jax.random.PRNGKey(1))
+    assert int(after.target) == world.track.num_gates and bool(after.done) and int(after.end_cause) == 0
+    assert bool(env_lib.lap_finished(world, after)) and float(env_lib.target_visibility(world, after)) == 1.0
+    assert not bool(env_lib.lap_finished(world, before))
+
+
+@pytest.mark.parametrize("position, velocity, cause", [
+    ((0.0, 9.1, 3.0), (0.0, 10.0, 0.0), "wall"),  # 0.1 m from the hall's side wall, flying into it
+    ((0.0, 0.0, 0.15), (0.0, 0.0, -10.0), "ground"),
+    ((11.9, 0.0, 3.0 + 0.5 * 1.85 + 0.15), (10.0, 0.0, 0.0), "gate"),  # into gate 0's top bar
+])
+def test_flying_into_an_obstacle_ends_the_episode_with_its_cause(env, world, position, velocity, cause):
+    before = placed(env, world, position, velocity, progress_s=float(position[0]))
+    assert not bool(before.done)
+    after = env.step(world, before, HOVER, jax.random.PRNGKey(1))
+    assert bool(after.done) and env_lib.END_NAMES[int(after.end_cause)] == cause
+    assert int(after.target) == 0 and not bool(env_lib.lap_finished(world, after))
+
+
+def test_leaving_the_target_gate_behind_ends_the_episode_as_a_missed_gate(env, world):
+    # gate 0 at s = 12 m, not passed; the margin is 6 m
+    inside = env.step(world, placed(env, world, (17.5, 0.0, 3.0), progress_s=17.5), HOVER, jax.random.PRNGKey(1))
+    assert not bool(inside.done)
+    past = env.step(world, placed(env, world, (18.5, 0.0, 3.0), progress_s=18.5), HOVER, jax.random.PRNGKey(1))
+    assert bool(past.done) and int(past.end_cause) == env_lib.CRASH_MISSED_GATE
+
+
+def test_the_time_limit_ends_the_episode_as_a_timeout(env, world):
+    last_tick = CONFIG.max_ticks - 1
+    assert CONFIG.max_ticks == 400
+    before = placed(env, world, (0.0, 0.0, 3.0), tick=last_tick - 1)
+    assert not bool(env.step(world, before, HOVER, jax.random.PRNGKey(1)).done)
+    ended = env.step(world, placed(env, world, (0.0, 0.0, 3.0), tick=last_tick), HOVER, jax.random.PRNGKey(1))
+    assert bool(ended.done) and int(ended.tick) == 400 and int(ended.end_cause) == env_lib.CRASH_TIMEOUT
+
+
+def test_observe_sees_the_target_gate_and_the_truth_or_the_filter(world):
+    noisy = world.replace(detector_noise_px=jnp.asarray(3.0, jnp.float32))
+    truth = env_lib.make_env(CONFIG)
+    state = truth.reset(noisy, jax.random.PRNGKey(0))
+    observe = jax.jit(truth.observe)
+    same, obs = observe(noisy, state, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(obs.x_est, state.plant.x)
+    assert int(obs.target_gate) == 0 and float(obs.position_cov_trace) == 0.0
+    assert bool(obs.detection.found) and 0.0 < float(obs.target_visibility) <= 1.0
+    # gate 0 straight ahead: its centre is near the image centre, moved by the detector's noise (per key)
+    np.testing.assert_allclose(obs.detection.centre, [0.5, 0.5], atol=0.05)
+    _, again = observe(noisy, state, jax.random.PRNGKey(1))
+    _, other = observe(noisy, state, jax.random.PRNGKey(2))
+    np.testing.assert_array_equal(again.detection.centre, obs.detection.centre)
+    assert not np.allclose(other.detection.centre, obs.detection.centre)
+
+    from pixelmpc_jax.perception.particle_filter import PFConfig
+
+    filtered = env_lib.make_env(env_lib.EnvConfig(estimator="pf", pf=PFConfig(num_particles=256)))
+    state = filtered.reset(world, jax.random.PRNGKey(0))
+    updated, obs = jax.jit(filtered.observe)(world, state, jax.random.PRNGKey(1))
+    error = np.linalg.norm(np.asarray(obs.x_est[:3] - state.plant.x[:3]))
+    assert 0.0 < error < 0.5 and float(obs.position_cov_trace) > 0.0
+    assert not np.array_equal(updated.filter.key, state.filter.key)  # the filter stepped
+
+
+@pytest.mark.parametrize("kind", ["mppi", "pixelmpc"])
+def test_a_policy_acts_within_the_control_bounds(world, kind):
+    mppi_config = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=20)
+    if kind == "mppi":
+        policy = policies.nominal_mppi_policy(mppi_config)
+    else:
+        policy = policies.pixelmpc_policy(pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, pixel_model="projection"))
+    env = env_lib.make_env(CONFIG)
+    state = env.reset(world, jax.random.PRNGKey(0))
+    _, obs = env.observe(world, state, jax.random.PRNGKey(1))
+    policy_state = jax.jit(policy.init)(jax.random.PRNGKey(2), world)
+    assert bool(jnp.all(jnp.isnan(policy_state.step_progress)))  # no plan yet
+    u, policy_state, prediction = jax.jit(policy.act)(policy_state, obs, world)
+    lo, hi = np.asarray(mppi_config.u_min), np.asarray(mppi_config.u_max)
+    assert u.shape == (4,) and np.all(np.asarray(u) >= lo) and np.all(np.asarray(u) <= hi)
+    assert prediction.shape == (21, 10 if kind == "mppi" else 12)
+    # the next tick's path windows follow the plan forward from the start
+    progress = np.asarray(policy_state.step_progress)
+    assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)
+
+
+def test_the_old_names_stay_importable_from_the_episode_module():
+    from pixelmpc_jax.sim import episode, sharding
+
+    assert episode.World is env_lib.World and episode.Observation is env_lib.Observation
+    assert episode.Policy is policies.Policy and episode.shard_batch is sharding.shard_batch
+    for name in episode.__all__:
+        assert getattr(episode, name) is not None
+    assert issubclass(episode.EpisodeConfig, env_lib.EnvConfig)
