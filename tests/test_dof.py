@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -128,8 +129,8 @@ def test_checkpoint_round_trip_bit_identical(dof_params, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["dof.msgpack"]  # no temp file left behind
     restored, restored_config = dof.load_checkpoint(path)
     assert restored_config == config
-    for a, b in zip(jax.tree_util.tree_leaves(dof_params), jax.tree_util.tree_leaves(restored), strict=True):
-        assert a.dtype == b.dtype and np.array_equal(a, b)
+    chex.assert_trees_all_equal(dof_params, restored)  # bit for bit
+    chex.assert_trees_all_equal_dtypes(dof_params, restored)
     q, uv, u = _samples(32, seed=4)
     f = jax.jit(jax.vmap(dof.pixel_velocity, in_axes=(None, 0, 0, 0)))
     assert np.array_equal(f(dof_params, q, uv, u), f(restored, q, uv, u))

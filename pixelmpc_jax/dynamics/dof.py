@@ -21,8 +21,6 @@ training config) sits in the same file.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -243,22 +241,6 @@ def _architecture_of(dof_params: DOFParams) -> dict:
     return arch
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _to_numpy_tree(tree):
     """State dict with arrays as numpy (msgpack stores them as raw bytes); strings stay strings."""
 
@@ -269,7 +251,7 @@ def _to_numpy_tree(tree):
 
 
 def save_checkpoint(path, dof_params: DOFParams, config: Mapping, *, extra: Mapping | None = None) -> None:
-    """Write ``dof_params`` and ``config`` to one msgpack file, atomically (temp file + ``os.replace``).
+    """Write ``dof_params`` and ``config`` to one msgpack file, atomically (``strict_json.write_atomic``).
 
     The file records the format and version, the architecture (layer sizes, activation, dropout; read
     from the weights' shapes), the normalisation constants (inside the params), and ``config`` (a
@@ -288,7 +270,10 @@ def save_checkpoint(path, dof_params: DOFParams, config: Mapping, *, extra: Mapp
         "dof_params": _to_numpy_tree(dof_params),
         "extra": {str(k): _to_numpy_tree(v) for k, v in (extra or {}).items()},
     }
-    _write_atomic(Path(path), serialization.msgpack_serialize(payload))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = serialization.msgpack_serialize(payload)
+    strict_json.write_atomic(path, lambda f: f.write(data))
 
 
 def _diff(expected: dict, found: dict) -> list[str]:
