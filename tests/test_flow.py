@@ -7,8 +7,8 @@ import pytest
 
 from pixelmpc_jax.perception import flow as F
 from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as R
-from pixelmpc_jax.world import track as T
 
 PAPER_DOF_AEE_PX = 2.45  # the paper's DOF flow error; Farneback's own error must stay below it
 DT = 1.0 / 40.0
@@ -35,7 +35,7 @@ def camera():
 @pytest.fixture(scope="module")
 def aee_table(camera):
     """AEE (px) of Farneback against the exact flow over the valid pixels, per motion and pose."""
-    course = T.load_course()
+    course = course_lib.load_course()
     starts = [R.pose_before_gate(course.gate(g), d, lat, h, yaw, roll) for g, d, lat, h, yaw, roll in POSES]
     firsts = R.render_batch(course, jnp.stack(starts), camera)
     nexts_x = jnp.stack([R.advance_pose(x, DT, v, w) for _, v, w in MOTIONS for x in starts])

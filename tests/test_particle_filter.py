@@ -16,8 +16,8 @@ from pixelmpc_jax.perception import detector as D
 from pixelmpc_jax.perception import particle_filter as PF
 from pixelmpc_jax.sim.plant import IMU
 from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as R
-from pixelmpc_jax.world import track as T
 
 # One small configuration for most tests, so they share one compilation.
 SMALL = PF.PFConfig(num_particles=768)
@@ -31,7 +31,7 @@ def camera():
 
 @pytest.fixture(scope="module")
 def straight():
-    return T.straight_course(num_gates=2, height=3.0, first_gate_x=20.0)
+    return course_lib.straight_course(num_gates=2, height=3.0, first_gate_x=20.0)
 
 
 _propagate = jax.jit(PF.propagate_particle, static_argnames=("dt",))
@@ -166,7 +166,7 @@ def test_converges_to_true_pose(camera, straight):
 
 
 def test_converges_on_alphapilot_course_6400(camera):
-    course = T.load_course()
+    course = course_lib.load_course()
     x_true = R.pose_before_gate(course.gate(2), 6.0, 0.3, 0.2)
     config = PF.PFConfig()  # the paper's 6,400 particles
     state = PF.pf_init(jax.random.PRNGKey(2), x_true.at[:3].add(jnp.asarray([0.5, -0.5, 0.3])), config,

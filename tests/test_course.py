@@ -1,0 +1,207 @@
+"""Building a course: the course file (gate geometry, start, hall, bad input), the perturbation and the
+straight course."""
+
+import copy
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.world import course as C
+from pixelmpc_jax.world import track as T
+
+
+@pytest.fixture(scope="module")
+def course_data():
+    return json.loads(C.COURSE_FILE.read_text())
+
+
+@pytest.fixture(scope="module")
+def course():
+    return C.load_course()
+
+
+# --------------------------------------------------------------------------------------------------
+# Loading.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_gates_in_race_order(course, course_data):
+    assert course.names == tuple(course_data["race"]["gate_order"])
+    assert course.num_gates == 11
+    assert course.gates.centre.shape == (11, 3) and course.gates.rotation.shape == (11, 3, 3)
+
+
+def test_centres_are_corner_means_and_corners_reproduce_the_file(course, course_data):
+    for k, name in enumerate(course.names):
+        corners = np.asarray(course_data["gates"][name]["corners"])
+        np.testing.assert_allclose(course.gates.centre[k], corners.mean(axis=0), atol=1e-4)
+        ours = np.asarray(course.gate(k).corners())  # (4, 3)
+        # Every file corner is one of ours (the file's order is inconsistent, ours is fixed).
+        dist = np.linalg.norm(corners[:, None, :] - ours[None, :, :], axis=-1)
+        assert dist.min(axis=1).max() < 2e-3, name
+        assert sorted(dist.argmin(axis=1)) == [0, 1, 2, 3], name
+
+
+def test_rotation_frames(course):
+    R = np.asarray(course.gates.rotation)
+    np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-5)
+    normal, lateral, up = R[..., 0], R[..., 1], R[..., 2]
+    np.testing.assert_allclose(lateral, np.cross(up, normal), atol=1e-5)
+    assert (up[:, 2] > 0.99).all()  # the AlphaPilot gates stand upright
+
+
+def test_corner_order_top_left_first(course):
+    g = course.gate(course.names.index("Gate10"))  # crossed along +y: lateral (left) is -x
+    tl, tr, br, bl = np.asarray(g.corners())
+    assert tl[2] > bl[2] and tr[2] > br[2]  # top above bottom
+    assert tl[0] < tr[0] and bl[0] < br[0]  # looking along +y, right is +x
+    np.testing.assert_allclose(np.asarray(g.outer_corners())[0] - tl, [-0.3, 0.0, 0.3], atol=1e-4)
+
+
+def test_normals_point_along_the_direction_of_travel(course):
+    c = np.asarray(course.gates.centre)
+    n = np.asarray(course.gates.normal)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-6)
+    previous = np.concatenate([np.asarray(course.start[:3])[None], c[:-1]])
+    following = np.concatenate([c[1:], c[-1:]])
+    assert (np.sum(n * (following - previous), axis=-1) > 0).all()
+    np.testing.assert_allclose(n[0], [0.0, 1.0, 0.0], atol=1e-4)  # Gate10 straight ahead of the start (+y)
+    np.testing.assert_allclose(n[2], [0.0, -1.0, 0.0], atol=1e-4)  # Gate2 is crossed going back (-y)
+
+
+def test_gate_sizes(course):
+    g = course.gate(course.names.index("Gate10"))
+    assert float(g.width) == pytest.approx(1.8, abs=1e-3)
+    assert float(g.height) == pytest.approx(1.846, abs=1e-3)
+    assert float(g.border) == pytest.approx(0.3)
+    assert float(g.depth) == pytest.approx(T.GATE_DEPTH)
+    big = course.gate(course.names.index("Gate21"))  # the diagonal one: 2.128 * sqrt(2) wide
+    assert float(big.width) == pytest.approx(math.hypot(17.81402 - 15.68563, 40.63416 - 38.50578), abs=1e-3)
+    assert float(big.height) == pytest.approx(8.376249 - 5.14875, abs=1e-3)
+    assert ((course.gates.width > 1.5) & (course.gates.width < 3.5)).all()
+
+
+def test_start_pose(course):
+    np.testing.assert_allclose(course.start[:3], [18.0, -23.0, 5.3], atol=1e-6)
+    np.testing.assert_allclose(course.start[3:7], [math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)], atol=1e-6)
+    heading = quadrotor.rotation_matrix(course.start[3:7])[:, 0]
+    np.testing.assert_allclose(heading, [0.0, 1.0, 0.0], atol=1e-5)  # yaw +90 deg: facing +y
+    np.testing.assert_allclose(course.start[7:], 0.0)
+
+
+def test_hall_encloses_the_course_with_margin(course):
+    corners = np.asarray(course.gates.outer_corners()).reshape(-1, 3)
+    pts = np.concatenate([corners, np.asarray(course.start[:3])[None], np.asarray(course.path_points)])
+    lo, hi = np.asarray(course.hall_min), np.asarray(course.hall_max)
+    assert lo[2] == 0.0 and 12.0 <= hi[2] <= 20.0
+    assert (pts[:, :2] - lo[:2] >= T.HALL_MARGIN - 1e-3).all()
+    assert (hi[:2] - pts[:, :2] >= T.HALL_MARGIN - 1e-3).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# Bad input.
+# --------------------------------------------------------------------------------------------------
+
+
+def _write(tmp_path, data):
+    path = tmp_path / "course.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d["gates"]["Gate10"]["corners"].pop(), r"gate 'Gate10' corners: expected 4 corners.*3"),
+        (lambda d: d["gates"]["Gate2"]["corners"][1].pop(), r"gate 'Gate2' corners\[1\]: expected 3"),
+        (lambda d: d.update(speed_limit=3), r"unknown field\(s\) \['speed_limit'\]"),
+        (lambda d: d["race"].update(laps=2), r"race: unknown field\(s\) \['laps'\]"),
+        (lambda d: d["gates"]["Gate9"].update(colour=1), r"gate 'Gate9': unknown field\(s\) \['colour'\]"),
+        (lambda d: d["gates"].pop("Gate13"), r"gate\(s\) \['Gate13'\] missing from 'gates'"),
+        (lambda d: d["gates"]["Gate1"].update(corners=[[1.0, 2.0, 3.0]] * 4), r"'Gate1' corners: degenerate"),
+        (
+            lambda d: d["race"]["init_pose"].update(quaternion_xyzw=[0, 0, 1]),
+            r"race.init_pose.quaternion_xyzw: expected 4",
+        ),
+    ],
+)
+def test_bad_course_files_raise(tmp_path, course_data, edit, message):
+    data = copy.deepcopy(course_data)
+    edit(data)
+    with pytest.raises(ValueError, match=message):
+        C.load_course(_write(tmp_path, data))
+
+
+def test_a_copy_of_the_file_loads_the_same(tmp_path, course_data, course):
+    other = C.load_course(_write(tmp_path, course_data))
+    np.testing.assert_allclose(other.gates.centre, course.gates.centre)
+    np.testing.assert_allclose(other.path_points, course.path_points)
+
+
+# --------------------------------------------------------------------------------------------------
+# Perturbation and the straight course.
+# --------------------------------------------------------------------------------------------------
+
+
+def _yaw(normals):
+    return np.arctan2(normals[..., 1], normals[..., 0])
+
+
+def test_perturbation_is_deterministic_and_bounded(course):
+    perturb_batch = jax.jit(jax.vmap(C.perturb_course, in_axes=(None, 0)))
+    keys = jax.random.split(jax.random.PRNGKey(0), 16)
+    batch = perturb_batch(course, keys)
+    again = perturb_batch(course, keys)
+    np.testing.assert_array_equal(batch.gates.centre, again.gates.centre)
+    np.testing.assert_array_equal(batch.path_points, again.path_points)
+    assert not np.allclose(batch.gates.centre[0], batch.gates.centre[1])
+    eager = C.perturb_course(course, keys[5])  # no-jit, no-vmap
+    np.testing.assert_allclose(eager.gates.centre, batch.gates.centre[5], atol=1e-5)
+    np.testing.assert_allclose(eager.path_points, batch.path_points[5], atol=1e-3)
+    bounds = np.asarray(course.perturbation_bounds)
+    d = np.asarray(batch.gates.centre) - np.asarray(course.gates.centre)  # (16, G, 3)
+    assert (np.abs(d[..., :2]) <= bounds[:, :2] + 1e-4).all()
+    np.testing.assert_allclose(d[..., 2], 0.0, atol=1e-5)
+    turn = _yaw(np.asarray(batch.gates.normal)) - _yaw(np.asarray(course.gates.normal))
+    dyaw = np.rad2deg(np.angle(np.exp(1j * turn)))
+    assert (np.abs(dyaw) <= bounds[:, 2] + 1e-3).all()
+    assert np.abs(dyaw).max() > 1.0 and np.abs(d[..., :2]).max() > 1.0  # it does move them
+    fixed = (bounds[:, 0] == 0) & (bounds[:, 1] == 0)  # Gate21, Gate9, Gate6: no xy freedom
+    assert fixed.sum() == 3
+    np.testing.assert_allclose(d[:, fixed, :2], 0.0, atol=1e-5)
+    np.testing.assert_allclose(batch.gates.width, np.broadcast_to(course.gates.width, (16, 11)))
+
+
+def test_perturbed_path_is_rebuilt_with_the_same_shape(course):
+    t = C.perturb_course(course, jax.random.PRNGKey(3))
+    assert t.path_points.shape == course.path_points.shape and t.names == course.names
+    np.testing.assert_array_equal(t.hall_min, course.hall_min)
+    query = jax.jit(T.path_query)
+    for k in range(t.num_gates):
+        q = query(t, t.gates.centre[k])
+        assert float(q.distance) < 0.01
+        assert float(jnp.dot(q.tangent, t.gates.normal[k])) > 0.99
+    tight = C.perturb_course(course, jax.random.PRNGKey(3), bounds=jnp.zeros(3))
+    np.testing.assert_allclose(tight.path_points, course.path_points, atol=1e-4)
+
+
+def test_straight_course():
+    t = C.straight_course(num_gates=5, spacing=20.0, height=3.0, first_gate_x=20.0)
+    assert t.num_gates == 5 and t.names[0] == "Gate1"
+    np.testing.assert_allclose(t.gates.centre[:, 0], [20.0, 40.0, 60.0, 80.0, 100.0])
+    np.testing.assert_allclose(t.gates.normal, np.broadcast_to([1.0, 0.0, 0.0], (5, 3)), atol=1e-6)
+    np.testing.assert_allclose(t.start[:3], [0.0, 0.0, 3.0])
+    np.testing.assert_allclose(t.path_points[:, 1], 0.0, atol=1e-4)
+    np.testing.assert_allclose(t.path_points[:, 2], 3.0, atol=1e-4)
+    np.testing.assert_allclose(t.path_gate_s, [20.0, 40.0, 60.0, 80.0, 100.0], atol=1e-3)
+    assert float(t.hall_min[0]) <= -T.HALL_MARGIN and float(t.hall_max[0]) >= 100.0 + T.HALL_MARGIN
+    p0, p1 = jnp.asarray([19.0, 0.0, 3.0]), jnp.asarray([21.0, 0.0, 3.0])
+    np.testing.assert_array_equal(jax.jit(T.gate_passed)(t.gates, p0, p1), [True, False, False, False, False])
+    with pytest.raises(ValueError, match="num_gates"):
+        C.straight_course(num_gates=0)
