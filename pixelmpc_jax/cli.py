@@ -268,7 +268,7 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_collect(args) -> int:
-    from pixelmpc_jax.learn.dataset import run_collect
+    from pixelmpc_jax.learn.collect import run_collect
 
     manifest = run_collect(args.out, laps=args.laps, seed=args.seed, max_lap_time_s=args.max_lap_time,
                            supersample=args.supersample, paper=args.paper, excitation=args.excitation,
@@ -278,7 +278,7 @@ def _cmd_collect(args) -> int:
 
 
 def _cmd_train(args) -> int:
-    from pixelmpc_jax.learn.evaluate import run_train
+    from pixelmpc_jax.learn.train import run_train
 
     record = run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
                        learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship,

@@ -1,9 +1,9 @@
 """The loop's clock, defined once: the control tick (the paper's 40 Hz, also the camera's frame interval) and
 the simulated vehicle's rate (960 Hz, FlightGoggles-like), with the plant substeps per tick.
 
-Imports nothing; every layer may import it. The older names are aliases of these: ``sim.episode.CONTROL_DT``
-and ``SUBSTEPS``, ``sim.plant.PLANT_DT`` and ``SUBSTEPS_PER_TICK``, ``perception.flow.FRAME_DT``,
-``learn.train.PAPER_DT`` and the default ``PFConfig.dt``.
+Imports nothing; every layer may import it. The frame interval of the flow data and the DOF (``perception.flow``,
+``learn``) and the default ``PFConfig.dt`` are ``CONTROL_DT``; ``sim.episode.CONTROL_DT`` and ``SUBSTEPS``,
+``sim.plant.PLANT_DT`` and ``SUBSTEPS_PER_TICK`` are aliases of these.
 """
 
 CONTROL_HZ = 40

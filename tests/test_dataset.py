@@ -1,158 +1,111 @@
-"""DOF data collection (Algorithm 1, first loop): lap files, flow conventions, resume, interrupt, loading."""
+"""The DOF dataset's loaders on small hand-written datasets: laps and frames as written, the control input
+variants, format-1 files, checksums and clear errors; the flown rates; the training-frame checks."""
 
 from __future__ import annotations
 
 import json
-import os
-import zipfile
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.learn import dataset as D
-from pixelmpc_jax.learn import train as T
-from pixelmpc_jax.learn.train import FlowData
-from pixelmpc_jax.perception import flow as flow_lib
-from pixelmpc_jax.sim import episode as episode_lib
 
-H, W = 153, 204
-# Two 1 s laps (40 ticks each) with a small MPPI: lap 0 train at 6 m/s, lap 1 test at 14 m/s.
-TINY = D.CollectConfig(laps=2, max_lap_time_s=1.0, num_samples=64, test_laps=(1,), render_batch=16)
-FRAMES = 40
+W, H = 16, 12
 
 
-@pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("dof_data")
-    manifest = D.collect(root, TINY, progress=False)
-    assert manifest["complete"]
-    return root
+def _lap_arrays(frames: int, rng, with_flown: bool = True) -> dict:
+    q = rng.normal(size=(frames + 1, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    states = np.concatenate([rng.normal(size=(frames + 1, 3)), q, rng.normal(size=(frames + 1, 3))], 1)
+    states = states.astype(np.float32)
+    arrays = {"flow": rng.normal(size=(frames, H, W, 2)).astype(np.float16), "q": states[:frames, 3:7].copy(),
+              "u": rng.normal(size=(frames, 4)).astype(np.float32), "states": states,
+              "target": np.zeros(frames + 1, np.int32), "meta_frames": np.asarray(frames)}
+    if with_flown:
+        arrays["w_flown"] = D.flown_rates(states)
+    return arrays
 
 
-def test_config_speeds_split_and_paper_size():
-    config = D.CollectConfig(laps=10)
-    assert config.speeds()[0] == 6.0 and config.speeds()[-1] == 14.0
-    assert np.allclose(np.diff(config.speeds()), 8.0 / 9.0)
-    assert config.test_indices() == [2, 7]  # interior speeds, one per block of five
-    assert D.CollectConfig(laps=4).test_indices() == [2]
-    assert D.CollectConfig(laps=2).test_indices() == [1]  # none by the rule: the last lap
-    assert D.CollectConfig(laps=1).test_indices() == []
-    paper = D.CollectConfig.paper()
-    assert (paper.laps, paper.max_lap_time_s) == (10, 30.0)
-    assert paper.seeds() == list(range(10))
-    for bad in (dict(laps=0), dict(speed_min=10.0, speed_max=6.0), dict(supersample=2), dict(exact_flow="x"),
-                dict(laps=2, test_laps=(2,))):
-        with pytest.raises(ValueError):
-            D.CollectConfig(**bad)
+def write_dataset(root, frames=(5, 3), with_flown: bool = True, seed: int = 0) -> list[dict]:
+    """A dataset as collect writes it (lap 0 train, the others test), with random arrays; returns the laps'
+    arrays."""
+    rng = np.random.default_rng(seed)
+    root.mkdir(parents=True, exist_ok=True)
+    laps, entries = [], []
+    for i, n in enumerate(frames):
+        arrays = _lap_arrays(n, rng, with_flown)
+        path = root / D.lap_filename(i)
+        np.savez_compressed(path, **arrays)
+        split = "train" if i == 0 else "test"
+        entries.append({"lap": i, "file": path.name, "split": split, "frames": n, "speed": 6.0 + i, "seed": i,
+                        "end": "timeout", "gates_passed": 0, "sha256": D.file_sha256(path)})
+        laps.append(arrays)
+    manifest = {"format": D.DATASET_FORMAT, "format_version": 2 if with_flown else 1, "image_size_wh": [W, H],
+                "frame_dt_s": timing.CONTROL_DT, "config": {"laps": len(frames)},
+                "split": {"train": [0], "test": list(range(1, len(frames)))}, "laps": entries,
+                "frames": {s: sum(e["frames"] for e in entries if e["split"] == s) for s in ("train", "test")}}
+    (root / D.MANIFEST).write_text(json.dumps(manifest))
+    return laps
 
 
-def test_lap_files_hold_the_expected_arrays(tiny_dir):
-    manifest = json.loads((tiny_dir / D.MANIFEST).read_text())
-    assert manifest["split"] == {"train": [0], "test": [1]}
-    assert manifest["frames"] == {"train": FRAMES, "test": FRAMES}
-    assert [e["speed"] for e in manifest["laps"]] == [6.0, 14.0]
-    assert [e["seed"] for e in manifest["laps"]] == [0, 1]
-    assert manifest["config"] == TINY.to_json()
-    assert "jax" in manifest["versions"] and "opencv" in manifest["versions"]
-    with np.load(tiny_dir / "lap_000.npz") as lap:
-        assert lap["flow"].dtype == np.float16 and lap["flow"].shape == (FRAMES, H, W, 2)
-        assert lap["q"].dtype == np.float32 and lap["q"].shape == (FRAMES, 4)
-        assert lap["u"].dtype == np.float32 and lap["u"].shape == (FRAMES, 4)
-        assert lap["states"].shape == (FRAMES + 1, 10) and lap["target"].shape == (FRAMES + 1,)
-        assert lap["target"].dtype == np.int32
-        np.testing.assert_array_equal(lap["q"], lap["states"][:FRAMES, 3:7])
-        assert np.all(lap["u"][:, 3] > 0)  # thrust
-        assert "exact_flow" not in lap.files  # train lap: Farneback only
-        assert np.all(np.isfinite(lap["flow"].astype(np.float32)))
-    with np.load(tiny_dir / "lap_001.npz") as lap:
-        assert lap["exact_flow"].dtype == np.float16 and lap["exact_flow"].shape == (FRAMES, H, W, 2)
-        assert lap["exact_valid"].dtype == bool and lap["exact_valid"].shape == (FRAMES, H, W)
-        assert lap["exact_valid"].mean() > 0.5
+def test_load_dataset_and_laps_give_the_written_arrays(tmp_path):
+    laps = write_dataset(tmp_path / "data", frames=(5, 3, 4))
+    train = D.load_dataset(tmp_path / "data", "train")
+    assert isinstance(train, D.FlowData) and train.flow.dtype == np.float16 and train.q.dtype == np.float32
+    np.testing.assert_array_equal(train.q, laps[0]["q"])
+    np.testing.assert_array_equal(train.flow, laps[0]["flow"])
+    test = D.load_dataset(tmp_path / "data", "test")
+    np.testing.assert_array_equal(test.u, np.concatenate([laps[1]["u"], laps[2]["u"]]))  # laps in order
+    every = D.load_dataset(tmp_path / "data", "all")
+    np.testing.assert_array_equal(every.flow, np.concatenate([lap["flow"] for lap in laps]))
+    loaded = D.load_laps(tmp_path / "data", "test", with_flow=False)
+    assert [lap.flow for lap in loaded] == [None, None]
+    np.testing.assert_array_equal(loaded[1].states, laps[2]["states"])
+    np.testing.assert_array_equal(loaded[1].w_flown, laps[2]["w_flown"])
+    assert loaded[1].info["speed"] == 8.0 and loaded[1].info["frames"] == 4
+    assert loaded[1].info["w_flown_source"] == "stored"
 
 
-def test_farneback_agrees_with_the_exact_flow(tiny_dir):
-    """Same convention (flow[y, x] = (du, dv), frame t -> t + 1): Farneback is far closer to the exact flow
-    than zero flow or the axis-swapped field, on the later (faster) frames of the 14 m/s lap."""
-    lap = D.load_laps(tiny_dir, "test")[0]
-    sl = slice(20, FRAMES)
-    fb = lap.flow[sl].astype(np.float32)
-    exact, valid = lap.exact_flow[sl].astype(np.float32), lap.exact_valid[sl]
-    error = flow_lib.average_endpoint_error(fb, exact, valid)
-    zero = flow_lib.average_endpoint_error(np.zeros_like(exact), exact, valid)
-    swapped = flow_lib.average_endpoint_error(fb[..., ::-1], exact, valid)
-    assert zero > 1.0
-    assert error < 0.4 * zero
-    assert error < 0.5 * swapped
+def test_the_control_input_is_the_command_or_the_flown_rates_with_the_thrust(tmp_path):
+    laps = write_dataset(tmp_path / "data")
+    flown = D.load_dataset(tmp_path / "data", "train", input="flown")
+    np.testing.assert_array_equal(flown.u[:, :3], laps[0]["w_flown"])
+    np.testing.assert_array_equal(flown.u[:, 3], laps[0]["u"][:, 3])  # the commanded thrust
+    np.testing.assert_array_equal(D.load_dataset(tmp_path / "data", "train", input="command").u, laps[0]["u"])
+    lap = D.load_laps(tmp_path / "data", "train")[0]
+    np.testing.assert_array_equal(D.lap_input(lap, "flown"), flown.u)
+    for call in (lambda: D.control_input(lap.u, lap.w_flown, "gyro"),
+                 lambda: D.load_dataset(tmp_path / "data", "train", input="gyro")):
+        with pytest.raises(ValueError, match="input must be one of"):
+            call()
 
 
-def test_load_dataset_round_trip(tiny_dir):
-    train = D.load_dataset(tiny_dir, "train")
-    assert isinstance(train, FlowData)
-    assert train.q.shape == (FRAMES, 4) and train.flow.shape == (FRAMES, H, W, 2)
-    assert train.flow.dtype == np.float16
-    with np.load(tiny_dir / "lap_000.npz") as lap:
-        np.testing.assert_array_equal(train.flow, lap["flow"])
-        np.testing.assert_array_equal(train.u, lap["u"])
-    both = D.load_dataset(tiny_dir, "all")
-    test = D.load_dataset(tiny_dir, "test")
-    np.testing.assert_array_equal(both.flow[FRAMES:], test.flow)
-    laps = D.load_laps(tiny_dir, "test", with_flow=False)
-    assert laps[0].flow is None and laps[0].states.shape == (FRAMES + 1, 10)
-    assert laps[0].info["speed"] == 14.0 and laps[0].info["split"] == "test"
+def test_format_1_laps_get_their_flown_rates_from_the_states(tmp_path):
+    laps = write_dataset(tmp_path / "old", with_flown=False)
+    lap = D.load_laps(tmp_path / "old", "train")[0]
+    assert lap.info["w_flown_source"] == "states"
+    np.testing.assert_array_equal(lap.w_flown, D.flown_rates(laps[0]["states"]))
 
 
-def test_second_collect_skips_and_a_deleted_lap_is_recollected(tiny_dir):
-    before = {p.name: p.stat().st_mtime_ns for p in tiny_dir.glob("lap_*.npz")}
-    manifest = D.collect(tiny_dir, TINY, progress=False)
-    assert manifest["complete"] and manifest["wall_s_this_call"] < 5.0 and not manifest["interrupted"]
-    assert {p.name: p.stat().st_mtime_ns for p in tiny_dir.glob("lap_*.npz")} == before
-    flow_before = D.load_dataset(tiny_dir, "test").flow
-    (tiny_dir / "lap_001.npz").unlink()
-    manifest = D.collect(tiny_dir, TINY, progress=False)
-    assert manifest["complete"] and manifest["frames"]["test"] == FRAMES
-    assert (tiny_dir / "lap_000.npz").stat().st_mtime_ns == before["lap_000.npz"]
-    np.testing.assert_array_equal(D.load_dataset(tiny_dir, "test").flow, flow_before)  # seeded: the same lap
-    with pytest.raises(ValueError, match="another config"):
-        D.collect(tiny_dir, D.CollectConfig(laps=3, max_lap_time_s=1.0, num_samples=64), progress=False)
-
-
-def test_interrupt_keeps_finished_laps(tmp_path, monkeypatch):
-    fly = D.fly_lap
-    calls = []
-
-    def fly_then_interrupt(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return fly(*args, **kwargs)
-
-    monkeypatch.setattr(D, "fly_lap", fly_then_interrupt)
-    config = TINY  # the runner compiled for the fixture is reused
-    manifest = D.collect(tmp_path, config, progress=False)
-    assert not manifest["complete"] and manifest["interrupted"]  # (pixelmpc collect exits 130)
-    assert [e["lap"] for e in manifest["laps"]] == [0]
-    assert sorted(os.listdir(tmp_path)) == ["lap_000.npz", D.MANIFEST]  # no temp files left
-    assert json.loads((tmp_path / D.MANIFEST).read_text())["complete"] is False
-
-
-def test_clear_errors_for_missing_or_damaged_data(tiny_dir, tmp_path):
-    with pytest.raises(FileNotFoundError, match="does not exist"):
-        D.load_dataset(tmp_path / "nothing")
-    with pytest.raises(FileNotFoundError, match="manifest.json is missing"):
-        D.load_dataset(tmp_path)
-    with pytest.raises(ValueError, match="split"):
-        D.load_dataset(tiny_dir, "validation")
-    damaged = tmp_path / "damaged"
-    damaged.mkdir()
-    (damaged / D.MANIFEST).write_text((tiny_dir / D.MANIFEST).read_text())
-    (damaged / "lap_000.npz").write_bytes((tiny_dir / "lap_000.npz").read_bytes()[:1000])
-    with pytest.raises(ValueError, match="lap_000.npz: damaged lap file"):
-        D.load_dataset(damaged, "train")
-    with pytest.raises(FileNotFoundError, match="lap_001.npz"):
-        D.load_dataset(damaged, "test")
+def test_flown_rates_of_a_constant_rate_rotation_are_that_rate():
+    params = quadrotor.QuadParams()
+    x = quadrotor.hover_state((0.0, 0.0, 2.0), yaw=0.4)
+    u = jnp.asarray([0.7, -1.1, 2.5, 9.0])
+    states = [np.asarray(x)]
+    for _ in range(3):  # three frames of 24 substeps each, as the plant integrates the attitude
+        for _ in range(timing.SUBSTEPS_PER_TICK):
+            x = quadrotor.step(x, u, timing.PLANT_DT, params)
+        states.append(np.asarray(x))
+    w = D.flown_rates(np.stack(states), timing.CONTROL_DT)
+    assert w.shape == (3, 3) and w.dtype == np.float32
+    np.testing.assert_allclose(w, np.tile(np.asarray(u[:3]), (3, 1)), atol=1e-4)
+    # q and -q are the same attitude: the shorter rotation is taken
+    flipped = np.stack(states)
+    flipped[1, 3:7] *= -1
+    np.testing.assert_allclose(D.flown_rates(flipped, timing.CONTROL_DT), w, atol=1e-4)
 
 
 def _corrupt_middle(path):
@@ -163,157 +116,59 @@ def _corrupt_middle(path):
     path.write_bytes(bytes(data))
 
 
-def test_a_lap_file_with_corrupted_bytes_is_flown_again(tiny_dir, tmp_path, capsys):
-    import shutil
-
-    copy = tmp_path / "copy"
-    shutil.copytree(tiny_dir, copy)
-    original = (tiny_dir / "lap_000.npz").read_bytes()
-    recorded = {e["lap"]: e["sha256"] for e in D.read_manifest(tiny_dir)["laps"]}
-    assert recorded[0] == D.file_sha256(tiny_dir / "lap_000.npz")
-    _corrupt_middle(copy / "lap_000.npz")
-    with pytest.raises(ValueError, match="lap_000.npz: damaged lap file .its sha256 differs"):  # loaders refuse it
-        D.load_dataset(copy, "train")
-    manifest = D.collect(copy, TINY, progress=False)
-    assert "lap_000.npz: damaged (its checksum does not match); flying lap 0 again" in capsys.readouterr().err
-    assert manifest["complete"] and (copy / "lap_000.npz").read_bytes() == original  # seeded: the same lap
-    assert [e["sha256"] for e in manifest["laps"]] == [recorded[0], recorded[1]]
-    # Without a recorded checksum (a lap saved just before an interruption), the archive's CRC check decides.
-    _corrupt_middle(copy / "lap_001.npz")
-    stored = json.loads((copy / D.MANIFEST).read_text())
-    stored["laps"] = stored["laps"][:1]
-    (copy / D.MANIFEST).write_text(json.dumps(stored))
-    assert D._verified_lap(copy / "lap_001.npz") is None
-    assert D._verified_lap(tiny_dir / "lap_001.npz") == recorded[1]
-
-
-# --------------------------------------------------------------------------------------------------
-# Flown rates, old datasets, excitation.
-# --------------------------------------------------------------------------------------------------
+def test_clear_errors_for_missing_foreign_or_damaged_data(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        D.load_dataset(tmp_path / "nothing")
+    with pytest.raises(FileNotFoundError, match="manifest.json is missing"):
+        D.load_dataset(tmp_path)
+    (tmp_path / D.MANIFEST).write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(ValueError, match="not a pixelmpc_jax.flow_dataset manifest"):
+        D.read_manifest(tmp_path)
+    root = tmp_path / "data"
+    write_dataset(root)
+    with pytest.raises(ValueError, match="split"):
+        D.load_dataset(root, "validation")
+    (root / "lap_001.npz").unlink()
+    with pytest.raises(FileNotFoundError, match="lap_001.npz: lap file listed in the manifest is missing"):
+        D.load_dataset(root, "test")
+    _corrupt_middle(root / "lap_000.npz")
+    with pytest.raises(ValueError, match="lap_000.npz: damaged lap file .its sha256 differs"):
+        D.load_dataset(root, "train")
+    entry = D.read_manifest(root)["laps"][0]
+    (root / "lap_000.npz").write_bytes(b"not an archive")
+    with pytest.raises(ValueError, match="lap_000.npz: damaged lap file"):  # without a checksum: it does not load
+        D.load_lap(root / "lap_000.npz", info={k: v for k, v in entry.items() if k != "sha256"})
 
 
-def test_flown_rates_of_a_constant_rate_rotation_are_that_rate():
-    params = quadrotor.QuadParams()
-    x = quadrotor.hover_state((0.0, 0.0, 2.0), yaw=0.4)
-    u = jnp.asarray([0.7, -1.1, 2.5, 9.0])
-    states = [np.asarray(x)]
-    for _ in range(3):  # three frames of 24 substeps each, as the plant integrates the attitude
-        for _ in range(24):
-            x = quadrotor.step(x, u, episode_lib.CONTROL_DT / 24, params)
-        states.append(np.asarray(x))
-    w = D.flown_rates(np.stack(states), episode_lib.CONTROL_DT)
-    assert w.shape == (3, 3) and w.dtype == np.float32
-    np.testing.assert_allclose(w, np.tile(np.asarray(u[:3]), (3, 1)), atol=1e-4)
-    # q and -q are the same attitude: the shorter rotation is taken
-    flipped = np.stack(states)
-    flipped[1, 3:7] *= -1
-    np.testing.assert_allclose(D.flown_rates(flipped, episode_lib.CONTROL_DT), w, atol=1e-4)
+def test_an_intact_lap_is_known_by_its_checksum_or_its_crc(tmp_path):
+    write_dataset(tmp_path)
+    path = tmp_path / "lap_000.npz"
+    digest = D.file_sha256(path)
+    assert D.intact_lap_sha256(path, digest) == digest
+    assert D.intact_lap_sha256(path) == digest
+    assert D.intact_lap_sha256(path, "0" * 64) is None
+    assert D.lap_meta(path) == {"frames": 5}
+    _corrupt_middle(path)
+    assert D.intact_lap_sha256(path, digest) is None and D.intact_lap_sha256(path) is None
+    assert D.intact_lap_sha256(tmp_path / "lap_009.npz") is None
 
 
-def test_lap_files_store_the_rates_flown_over_each_frame(tiny_dir):
-    manifest = json.loads((tiny_dir / D.MANIFEST).read_text())
-    assert manifest["format_version"] == 2 and "w_flown" in manifest["flown_rates"]
-    assert manifest["excited_laps"] == []
-    with np.load(tiny_dir / "lap_001.npz") as lap:
-        w, rates, u = lap["w_flown"], lap["rates"], lap["u"]
-        assert w.shape == (FRAMES, 3) and rates.shape == (FRAMES + 1, 3)
-        np.testing.assert_allclose(w, D.flown_rates(lap["states"]), atol=1e-6)
-    # The mean rate over a tick lies between the true rates at its two ends (the rate loop is smooth).
-    trapezoid = 0.5 * (rates[:-1] + rates[1:])
-    assert np.max(np.abs(w - trapezoid)) < 0.05 + 0.05 * np.max(np.abs(trapezoid))
-    assert np.max(np.abs(w - u[:, :3])) > 0.05  # and it is not the command
-    test = D.load_dataset(tiny_dir, "test", input="flown")
-    np.testing.assert_array_equal(test.u[:, :3], w)
-    np.testing.assert_array_equal(test.u[:, 3], u[:, 3])  # the commanded thrust
-    np.testing.assert_array_equal(D.load_dataset(tiny_dir, "test", input="command").u, u)
-    assert D.load_laps(tiny_dir, "test")[0].info["w_flown_source"] == "stored"
-    with pytest.raises(ValueError, match="input"):
-        D.load_dataset(tiny_dir, "test", input="gyro")
+def test_training_frames_are_checked_early():
+    rng = np.random.default_rng(0)
+    q, u, flow = rng.normal(size=(4, 4)), rng.normal(size=(4, 4)), rng.normal(size=(4, H, W, 2)).astype(np.float16)
+    data = D.as_flow_data({"q": q, "u": u, "flow": flow}, W, H)
+    assert isinstance(data, D.FlowData) and data.flow.shape == (4, H, W, 2)
+    with pytest.raises(ValueError, match=r"flow must have shape \(F, H, W, 2\) = \(4, 153, 204, 2\)"):
+        D.as_flow_data((q, u, flow))  # the paper's size by default
+    with pytest.raises(ValueError, match=r"u must have shape \(F, 4\)"):
+        D.as_flow_data((q, u[:3], flow), W, H)
+    with pytest.raises(ValueError, match="flow must be float16 or float32"):
+        D.as_flow_data((q, u, flow.astype(np.int16)), W, H)
+    q[2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"q contains non-finite values in frames \[2\]"):
+        D.as_flow_data((q, u, flow), W, H)
 
 
-def _strip_to_format_1(src, dst):
-    """A copy of a dataset as format 1 wrote it: no flown rates in the lap files, no excitation fields."""
-    dst.mkdir()
-    manifest = json.loads((src / D.MANIFEST).read_text())
-    manifest["format_version"] = 1
-    for key in [k for k in manifest["config"] if k.startswith("excitation")]:
-        del manifest["config"][key]
-    for key in ("flown_rates", "excited_laps"):
-        manifest.pop(key)
-    for entry in manifest["laps"]:
-        entry.pop("excited")
-        entry.pop("sha256")  # format 1 recorded no checksums
-        with np.load(src / entry["file"]) as data:
-            arrays = {k: data[k] for k in data.files if k not in D.FLOWN_KEYS and k != "meta_excited"}
-        np.savez_compressed(dst / entry["file"], **arrays)
-        entry["bytes"] = (dst / entry["file"]).stat().st_size
-    (dst / D.MANIFEST).write_text(json.dumps(manifest))
-    return manifest
-
-
-def test_old_datasets_without_flown_rates_load_train_and_resume(tiny_dir, tmp_path):
-    old = tmp_path / "old"
-    _strip_to_format_1(tiny_dir, old)
-    with zipfile.ZipFile(old / "lap_000.npz") as archive:
-        assert not {"w_flown.npy", "rates.npy"} & set(archive.namelist())
-    for split in ("train", "test"):
-        for input in T.INPUTS:  # the flown rates are derived from the stored states: the same numbers
-            np.testing.assert_array_equal(D.load_dataset(old, split, input=input).u,
-                                          D.load_dataset(tiny_dir, split, input=input).u)
-    assert D.load_laps(old, "train")[0].info["w_flown_source"] == "states"
-    config = T.TrainConfig(steps=3, batch_size=64, log_every=1, checkpoint_every=0, probe_size=64,
-                           progress=False, input="flown")
-    params, history = T.train(config, D.load_dataset(old, "train", input="flown"),
-                              D.load_dataset(old, "test", input="flown"))
-    assert history["step"] == [1, 2, 3] and np.isfinite(history["test_aee_px"])
-    # Collecting into it again with the config it was made with reuses it (the new fields at their defaults).
-    before = {p.name: p.stat().st_mtime_ns for p in old.glob("lap_*.npz")}
-    manifest = D.collect(old, TINY, progress=False)
-    assert manifest["complete"] and manifest["format_version"] == 1
-    assert {p.name: p.stat().st_mtime_ns for p in old.glob("lap_*.npz")} == before
-    with pytest.raises(ValueError, match="another config"):
-        D.collect(old, D.CollectConfig(**{**TINY.to_json(), "test_laps": (1,), "excitation": True}),
-                  progress=False)
-
-
-def _constant_policy(u):
-    return episode_lib.Policy(init=lambda key: jnp.zeros(()),
-                              act=lambda state, obs, world: (jnp.asarray(u), state, jnp.zeros((2, 10))),
-                              name="constant")
-
-
-def test_excited_policy_adds_held_pulses_within_the_rate_bounds():
-    base_u = jnp.asarray([5.5, 0.0, -1.0, 9.0])
-    policy = D.excited_policy(_constant_policy(base_u), pulse_rad_s=1.5, hold_s=0.3, gap_s=0.5, dither_rad_s=0.0)
-    state = policy.init(jax.random.key(3))
-    act = jax.jit(lambda s: policy.act(s, None, None))
-    us = []
-    for _ in range(400):
-        u, state, _ = act(state)
-        us.append(np.asarray(u))
-    us = np.stack(us)
-    np.testing.assert_array_equal(us[:, 3], 9.0)  # thrust untouched
-    offset = us[:, :3] - np.asarray(base_u[:3])
-    assert np.all(us[:, :3] <= 6.0 + 1e-6) and np.all(us[:, :3] >= -6.0 - 1e-6)  # the MPPI's rate bounds
-    for axis in (1, 2):  # unclipped axes: pulses of at most 1.5 rad/s, held for 4-12 ticks, off between
-        on = np.abs(offset[:, axis]) > 1e-6
-        assert 0.15 < on.mean() < 0.7
-        assert np.max(np.abs(offset[:, axis])) <= 1.5 + 1e-6
-        changes = np.nonzero(np.diff(offset[:, axis]))[0]
-        runs = np.diff(changes)
-        assert runs.min() >= 1 and np.median(runs) >= 3
-    assert np.max(offset[:, 0]) <= 0.5 + 1e-6  # clipped at 6 rad/s
-    dithered = D.excited_policy(_constant_policy(base_u), pulse_rad_s=0.0, dither_rad_s=0.3)
-    state = dithered.init(jax.random.key(0))
-    u, _, _ = dithered.act(state, None, None)
-    assert 0 < np.max(np.abs(np.asarray(u[1:3]) - np.asarray(base_u[1:3]))) < 1.5
-
-
-def test_collect_with_excitation_excites_the_train_laps_only(tmp_path):
-    config = D.CollectConfig(laps=2, max_lap_time_s=0.5, num_samples=64, test_laps=(1,), render_batch=16,
-                             excitation=True)
-    assert [config.excited(i) for i in range(2)] == [True, False]
-    manifest = D.collect(tmp_path, config, progress=False)
-    assert manifest["excited_laps"] == [0] and [e["excited"] for e in manifest["laps"]] == [True, False]
-    train = D.load_laps(tmp_path, "train", with_flow=False)[0]
-    assert np.all(np.isfinite(train.w_flown)) and np.all(np.abs(train.u[:, :3]) <= 6.0 + 1e-6)
+def test_pixel_uv_centres():
+    uv = D.pixel_uv(jnp.asarray([0, W - 1]), jnp.asarray([0, H - 1]), W, H)
+    np.testing.assert_allclose(uv, [[0.5 / W, 0.5 / H], [1 - 0.5 / W, 1 - 0.5 / H]], rtol=1e-6)

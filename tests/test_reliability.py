@@ -360,10 +360,10 @@ def test_a_damaged_weights_file_gets_one_line_and_no_output(content, tmp_path, c
 
 
 def test_a_library_error_reaching_the_command_is_one_line(tmp_path, capsys):
-    from pixelmpc_jax.learn import dataset
+    from pixelmpc_jax.learn import collect, dataset
     from pixelmpc_jax.strict_json import write_json_atomic
 
-    other = dataset.CollectConfig(laps=3).to_json()
+    other = collect.CollectConfig(laps=3).to_json()
     write_json_atomic(tmp_path / "manifest.json", {"format": dataset.DATASET_FORMAT, "config": other,
                                                    "policy": "mppi"})
     code, err = _run_cli(["collect", "--out", str(tmp_path), "--laps", "2"], capsys)
@@ -418,16 +418,16 @@ def test_race_exit_code_says_how_it_ended(success, interrupted, code, message, t
 
 
 def test_interrupted_collect_and_train_exit_130(tmp_path, capsys, monkeypatch):
-    from pixelmpc_jax.learn import dataset, evaluate
+    from pixelmpc_jax.learn import collect, train
 
-    monkeypatch.setattr(dataset, "run_collect", lambda *a, **k: {"interrupted": True})
+    monkeypatch.setattr(collect, "run_collect", lambda *a, **k: {"interrupted": True})
     assert _run_cli(["collect", "--out", str(tmp_path / "data")], capsys)[0] == 130
-    monkeypatch.setattr(dataset, "run_collect", lambda *a, **k: {"interrupted": False})
+    monkeypatch.setattr(collect, "run_collect", lambda *a, **k: {"interrupted": False})
     assert _run_cli(["collect", "--out", str(tmp_path / "data")], capsys)[0] == 0
     (tmp_path / "data" / "manifest.json").write_text("{}")
-    monkeypatch.setattr(evaluate, "run_train", lambda *a, **k: {"interrupted": True})
+    monkeypatch.setattr(train, "run_train", lambda *a, **k: {"interrupted": True})
     assert _run_cli(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "t")], capsys)[0] == 130
-    monkeypatch.setattr(evaluate, "run_train", lambda *a, **k: {"interrupted": False})
+    monkeypatch.setattr(train, "run_train", lambda *a, **k: {"interrupted": False})
     assert _run_cli(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "t")], capsys)[0] == 0
 
 

@@ -1,19 +1,27 @@
-"""DOF training (Algorithm 1): targets, loss, a seeded run that learns, determinism, checkpoints, resume,
-and the AEE evaluation and baselines."""
+"""DOF training (Algorithm 1): targets, loss, a seeded run that learns, determinism, checkpoints, resume, and
+the `pixelmpc train` entry point."""
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
+import json
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.learn import aee
 from pixelmpc_jax.learn import train as train_mod
-from pixelmpc_jax.learn.train import Batch, FlowData, TrainConfig
+from pixelmpc_jax.learn.dataset import FlowData
+from pixelmpc_jax.learn.train import Batch, TrainConfig
+from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.world import camera as camera_lib
 
 W, H, DT = 32, 24, 1.0 / 40.0
 
@@ -82,20 +90,14 @@ def test_flow_to_polar_hand_cases():
     l, theta = train_mod.flow_to_polar(flow, W, H, DT)
     np.testing.assert_allclose(l, [1.0, 2.0], rtol=1e-6)
     np.testing.assert_allclose(theta, [0.0, -np.pi / 2], atol=1e-6)
-    np.testing.assert_allclose(train_mod.polar_to_flow(l, theta, W, H, DT), flow, atol=1e-5)
+    np.testing.assert_allclose(flow_lib.polar_to_flow(l, theta, W, H, DT), flow, atol=1e-5)
 
 
-def test_training_uses_the_one_polar_conversion_of_perception_flow():
-    from pixelmpc_jax.perception import flow as flow_lib
-
-    assert train_mod.flow_to_polar is flow_lib.flow_to_polar and train_mod.polar_to_flow is flow_lib.polar_to_flow
-    assert train_mod.PAPER_DT == flow_lib.FRAME_DT
-    assert (train_mod.PAPER_WIDTH, train_mod.PAPER_HEIGHT) == (flow_lib.PAPER_WIDTH, flow_lib.PAPER_HEIGHT)
-
-
-def test_pixel_uv_centres():
-    uv = train_mod.pixel_uv(jnp.asarray([0, W - 1]), jnp.asarray([0, H - 1]), W, H)
-    np.testing.assert_allclose(uv, [[0.5 / W, 0.5 / H], [1 - 0.5 / W, 1 - 0.5 / H]], rtol=1e-6)
+def test_training_uses_the_one_polar_conversion_the_tick_and_the_image_size():
+    assert train_mod.flow_to_polar is flow_lib.flow_to_polar
+    config = TrainConfig()
+    assert config.dt == timing.CONTROL_DT
+    assert (config.width, config.height) == (camera_lib.PAPER_WIDTH, camera_lib.PAPER_HEIGHT)
 
 
 def _batch_with_prediction(params, l_hat, theta_hat, l, theta):
@@ -166,11 +168,12 @@ def test_normalisation_constants(train_data):
     np.testing.assert_allclose(c["output_std"][0], np.std(l), rtol=1e-3)
 
 
-def test_bad_data_shapes_raise(train_data):
+def test_bad_data_and_config_raise(train_data):
     with pytest.raises(ValueError, match=r"flow must have shape \(F, H, W, 2\) = \(64, 153, 204, 2\)"):
-        train_mod.as_flow_data(train_data)  # 32 x 24 frames, paper size expected
-    with pytest.raises(ValueError, match=r"u must have shape \(F, 4\)"):
-        train_mod.as_flow_data((train_data.q, train_data.u[:3], train_data.flow), W, H)
+        train_mod.train(TrainConfig(steps=1, progress=False), train_data)  # 32 x 24 frames, paper size expected
+    params = dof.init_dof_params(jax.random.key(0))
+    with pytest.raises(AssertionError, match="shape"):  # (B, 1) targets would broadcast against (B,) outputs
+        train_mod.dof_loss(params.weights, params, Batch(jnp.zeros((3, 10)), jnp.ones((3, 1)), jnp.ones((3, 1))), None)
     with pytest.raises(ValueError, match="schedule"):
         small_config(schedule="linear")
     bad_flow = train_data.flow.copy()
@@ -190,11 +193,11 @@ def test_training_learns_and_beats_zero_flow(trained, test_data):
     assert history["probe_loss"][-1] < 0.1
     assert history["step"] == [50, 100, 150, 200, 250, 300]
     assert not history["interrupted"]
-    zero = train_mod.zero_flow_aee(*test_data)
+    zero = aee.zero_flow_aee(*test_data)
     assert history["test_zero_flow_aee_px"] == pytest.approx(zero)
     assert history["test_aee_px"] < 0.6 * zero
     np.testing.assert_allclose(
-        train_mod.evaluate_aee(params, *test_data, W, H, DT), history["test_aee_px"], rtol=1e-5
+        aee.evaluate_aee(params, *test_data, W, H, DT), history["test_aee_px"], rtol=1e-5
     )
 
 
@@ -203,9 +206,9 @@ def test_same_seed_same_params(train_data):
     a, _ = train_mod.train(config, train_data)
     b, _ = train_mod.train(config, train_data)
     c, _ = train_mod.train(dataclasses.replace(config, seed=1), train_data)
-    leaves = jax.tree_util.tree_leaves
-    assert all(np.array_equal(x, y) for x, y in zip(leaves(a), leaves(b), strict=True))
-    assert not all(np.array_equal(x, y) for x, y in zip(leaves(a), leaves(c), strict=True))
+    chex.assert_trees_all_equal(a, b)
+    with pytest.raises(AssertionError):
+        chex.assert_trees_all_equal(a, c)
 
 
 def test_resume_continues_from_saved_step(train_data, tmp_path):
@@ -217,8 +220,7 @@ def test_resume_continues_from_saved_step(train_data, tmp_path):
     assert config["step"] == 20 and config["train_config"]["steps"] == 20 and "command" in config
     resumed, history = train_mod.train(small_config(steps=40, log_every=10), train_data, resume_from=path)
     assert history["step"] == [10, 20, 30, 40]
-    leaves = jax.tree_util.tree_leaves
-    assert all(np.array_equal(x, y) for x, y in zip(leaves(full), leaves(resumed), strict=True))
+    chex.assert_trees_all_equal(full, resumed)
 
 
 def test_keyboard_interrupt_saves_and_returns(train_data, tmp_path, monkeypatch):
@@ -240,8 +242,7 @@ def test_keyboard_interrupt_saves_and_returns(train_data, tmp_path, monkeypatch)
     assert history["interrupted"]
     saved, record = dof.load_checkpoint(config.checkpoint_path)
     assert record["step"] == 7
-    leaves = jax.tree_util.tree_leaves
-    assert all(np.array_equal(x, y) for x, y in zip(leaves(params), leaves(saved), strict=True))
+    chex.assert_trees_all_equal(params, saved)
     monkeypatch.undo()
     _, history = train_mod.train(config, train_data, resume_from=config.checkpoint_path)
     assert history["step"] == [10, 20, 30, 40] and not history["interrupted"]
@@ -252,38 +253,6 @@ def test_weights_only_checkpoint_cannot_resume(train_data, tmp_path):
     dof.save_checkpoint(path, dof.init_dof_params(jax.random.key(0)), {})
     with pytest.raises(ValueError, match="no optimizer state"):
         train_mod.train(small_config(steps=5), train_data, resume_from=path)
-
-
-# --------------------------------------------------------------------------------------------------
-# Evaluation and baselines.
-# --------------------------------------------------------------------------------------------------
-
-
-def test_evaluate_aee_matches_numpy_and_is_chunk_invariant(test_data):
-    """Zero weights predict the constant (l, theta) = output_mean: a flow we can compute by hand."""
-    params = dof.init_dof_params(jax.random.key(0), output_mean=[0.8, 0.7])
-    params = params.replace(weights=jax.tree_util.tree_map(jnp.zeros_like, params.weights))
-    pred_px = np.asarray([0.8 * np.cos(0.7) * W * DT, 0.8 * np.sin(0.7) * H * DT])
-    flow = test_data.flow.astype(np.float64)
-    expected = np.mean(np.hypot(pred_px[0] - flow[..., 0], pred_px[1] - flow[..., 1]))
-    for chunk_pixels in (1, 3 * W * H, 1 << 20):  # 1 frame, 3 frames with a padded tail, all at once
-        got = train_mod.evaluate_aee(params, *test_data, W, H, DT, chunk_pixels=chunk_pixels)
-        np.testing.assert_allclose(got, expected, rtol=1e-5)
-
-
-def test_zero_flow_and_orientation_bin_baselines(train_data):
-    q, u, flow = train_data
-    expected = np.mean(np.hypot(flow[..., 0].astype(np.float64), flow[..., 1].astype(np.float64)))
-    np.testing.assert_allclose(train_mod.zero_flow_aee(q, u, flow, chunk_frames=7), expected, rtol=1e-6)
-    # A flow field that depends on the orientation bin only is predicted exactly.
-    baseline = train_mod.fit_orientation_bin_baseline(q, u, flow, bins_per_angle=2)
-    idx = train_mod._bin_index(baseline.edges, train_mod._euler(q))
-    assert baseline.counts.sum() == len(q) and baseline.mean_flow.shape == (8, H, W, 2)
-    binned_flow = np.asarray(flow[:8][idx % 8], np.float32)
-    exact = train_mod.fit_orientation_bin_baseline(q, u, binned_flow, bins_per_angle=2)
-    assert train_mod.orientation_bin_aee(exact, q, u, binned_flow) < 1e-6
-    # On the rotational data (driven by u, not q) it is no better than predicting the mean flow.
-    assert train_mod.orientation_bin_aee(baseline, q, u, flow) > 0.5 * expected
 
 
 def test_input_variant_is_validated_and_recorded_in_the_checkpoint(train_data, tmp_path):
@@ -299,3 +268,23 @@ def test_input_variant_is_validated_and_recorded_in_the_checkpoint(train_data, t
     assert dof.checkpoint_variant(record) == {"input": "flown", "loss": "endpoint"}
     # the same compiled step serves both inputs (the input is only what the data's u means)
     assert train_mod._compile_key(small_config(input="flown")) == train_mod._compile_key(small_config())
+
+
+def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
+    from test_dataset import write_dataset  # a small dataset as collect writes it
+
+    write_dataset(tmp_path / "data", frames=(6, 4))
+    out = tmp_path / "out"
+    record = train_mod.run_train(tmp_path / "data", out, steps=3, batch_size=64, progress=False, loss="endpoint",
+                                 input="flown")
+    assert record["steps_done"] == 3 and not record["interrupted"]
+    assert record["variant"]["input"] == "flown" and record["variant"]["loss"] == "endpoint"
+    assert np.isfinite(record["results"]["test_aee_px"])
+    _, saved = dof.load_checkpoint(out / "dof_weights.msgpack")
+    assert saved == json.loads((out / "dof_weights.json").read_text()) == json.loads(json.dumps(record))
+    assert json.loads((out / "history.json").read_text())["step"][-1] == 3
+    assert dof.read_checkpoint(out / "checkpoint.msgpack").extra["train"]  # resumable
+    for call in record["calls"]:  # the calls it records name functions that exist
+        module, name = call.split("(")[0].rsplit(".", 1)
+        assert callable(getattr(importlib.import_module(module), name)), call
+

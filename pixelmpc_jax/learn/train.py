@@ -1,9 +1,9 @@
-"""Self-supervised DOF training, the paper's Algorithm 1, and its evaluation.
+"""Self-supervised DOF training, the paper's Algorithm 1, and the `pixelmpc train` entry point.
 
 Data: per frame ``f`` the orientation ``q[f]`` (4,), the control ``u[f]`` (4,) and the dense optical
 flow ``flow[f]`` (H, W, 2) to the next frame, in PIXELS PER FRAME (``flow[y, x] = (du, dv)``, frames
-``dt = 1/40`` s apart). Every pixel of every frame is a training row: pixel (i, j) has
-``uv = ((i + 0.5) / W, (j + 0.5) / H)`` and target ``u_dot = du / W / dt``, ``v_dot = dv / H / dt``,
+``dt = 1/40`` s apart; :mod:`pixelmpc_jax.learn.dataset`). Every pixel of every frame is a training row:
+pixel (i, j) has ``uv = ((i + 0.5) / W, (j + 0.5) / H)`` and target ``u_dot = du / W / dt``, ``v_dot = dv / H / dt``,
 ``l = hypot(u_dot, v_dot)``, ``theta = atan2(v_dot, u_dot)``. Rows are never materialised: each step
 draws ``batch_size`` random (frame, x, y) triples with ``jax.random`` inside the compiled step and
 gathers from the device-resident arrays (float16 flow is fine: 14,000 frames at 204 x 153 is 1.7 GB).
@@ -30,20 +30,24 @@ does not see the velocity or the depth that make up the translational flow. The 
 the mean flow LENGTH along the l^2-weighted mean direction; the endpoint loss by the mean flow VECTOR, which
 is what the pixel dynamics uv_{t+1} = uv_t + dt * uv_dot integrates. Measured on the same data and steps
 (README, "DOF loss"): the same AEE, a much smaller multi-step pixel error, the same response to the controls.
+A further loss is one function in :data:`LOSS_FUNCTIONS`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import functools
 import json
 import shlex
+import shutil
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,21 +56,15 @@ from flax import serialization, struct
 from tqdm.auto import tqdm
 
 from pixelmpc_jax import strict_json, timing
-from pixelmpc_jax.dynamics import dof, quadrotor
-from pixelmpc_jax.perception.flow import flow_to_polar, polar_to_flow  # the polar flow units (also from here)
-from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH  # noqa: F401 (re-exported)
-
-PAPER_DT = timing.CONTROL_DT  # s between frames, the control tick
-LOSSES = ("polar", "endpoint")
-# What the network's control input u (4,) is: "command", the paper's (the body rates and thrust commanded at
-# the frame's tick), or "flown" (the body rates flown over the frame interval, with the commanded thrust;
-# dataset.control_input). The MPC's robot model assumes the commanded rates are flown at once, so "flown"
-# is what PixelMPC means by its control; the network is the same [10, 128, 128, 128, 2] either way.
-INPUTS = ("command", "flown")
-
+from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.learn import dataset as dataset_lib
+from pixelmpc_jax.learn.aee import evaluate_aee, zero_flow_aee
+from pixelmpc_jax.learn.dataset import INPUTS, FlowData, as_flow_data, pixel_uv
+from pixelmpc_jax.perception.flow import flow_to_polar
+from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
 # --------------------------------------------------------------------------------------------------
-# Configuration, data, state.
+# Configuration, state.
 # --------------------------------------------------------------------------------------------------
 
 
@@ -89,8 +87,8 @@ class TrainConfig:
         probe_size: rows of the fixed, seeded probe batch whose deterministic loss is logged.
         eval_chunk_pixels: rows per compiled chunk in :func:`evaluate_aee` (bounds memory).
         progress: show the tqdm progress bar.
-        loss: ``"polar"`` (the paper's MSE on (l, theta), in the form above) or ``"endpoint"`` (the squared
-            endpoint error of the flow vector; see the module docstring).
+        loss: a name in :data:`LOSS_FUNCTIONS`: ``"polar"`` (the paper's MSE on (l, theta), in the form above)
+            or ``"endpoint"`` (the squared endpoint error of the flow vector; see the module docstring).
         input: what the data's ``u`` is, one of :data:`INPUTS` (recorded with the weights; the training
             itself is the same: the data loader puts the chosen input in ``u``).
     """
@@ -106,7 +104,7 @@ class TrainConfig:
     checkpoint_path: str | None = None
     width: int = PAPER_WIDTH
     height: int = PAPER_HEIGHT
-    dt: float = PAPER_DT
+    dt: float = timing.CONTROL_DT
     probe_size: int = 8192
     eval_chunk_pixels: int = 1 << 18
     progress: bool = True
@@ -114,15 +112,7 @@ class TrainConfig:
     input: str = "command"
 
     def __post_init__(self):
-        for name in (
-            "steps",
-            "batch_size",
-            "log_every",
-            "width",
-            "height",
-            "probe_size",
-            "eval_chunk_pixels",
-        ):
+        for name in ("steps", "batch_size", "log_every", "width", "height", "probe_size", "eval_chunk_pixels"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.checkpoint_every < 0:
@@ -135,14 +125,6 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.schedule must be 'constant' or 'cosine', got {self.schedule!r}")
         if not (self.learning_rate > 0 and self.dt > 0 and 0 <= self.final_lr_fraction <= 1):
             raise ValueError("TrainConfig needs learning_rate > 0, dt > 0, 0 <= final_lr_fraction <= 1")
-
-
-class FlowData(NamedTuple):
-    """Training or test frames. q: (F, 4); u: (F, 4); flow: (F, H, W, 2) pixels per frame."""
-
-    q: Any
-    u: Any
-    flow: Any
 
 
 class Batch(NamedTuple):
@@ -163,41 +145,9 @@ class TrainState:
     key: jax.Array
 
 
-def as_flow_data(data, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT) -> FlowData:
-    """Coerce ``(q, u, flow)`` given as a FlowData, mapping or any object with those attributes, and
-    check shapes early (outside jit), naming what was expected."""
-    if isinstance(data, Mapping):
-        q, u, flow = data["q"], data["u"], data["flow"]
-    elif isinstance(data, tuple) and not hasattr(data, "q"):
-        q, u, flow = data
-    else:
-        q, u, flow = data.q, data.u, data.flow
-    q, u, flow = np.asarray(q), np.asarray(u), np.asarray(flow)
-    n = q.shape[0] if q.ndim else -1
-    if q.shape != (n, 4) or n < 1:
-        raise ValueError(f"q must have shape (F, 4) with F >= 1, got {q.shape}")
-    if u.shape != (n, 4):
-        raise ValueError(f"u must have shape (F, 4) = ({n}, 4), got {u.shape}")
-    if flow.shape != (n, height, width, 2):
-        raise ValueError(f"flow must have shape (F, H, W, 2) = ({n}, {height}, {width}, 2), got {flow.shape}")
-    if not np.issubdtype(flow.dtype, np.floating):
-        raise ValueError(f"flow must be float16 or float32 pixels per frame, got {flow.dtype}")
-    for name, arr in (("q", q), ("u", u)):
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(
-                f"{name} contains non-finite values in frames {np.nonzero(~np.isfinite(arr))[0][:10]}"
-            )
-    return FlowData(q, u, flow)
-
-
 # --------------------------------------------------------------------------------------------------
 # Targets, normalisation, loss.
 # --------------------------------------------------------------------------------------------------
-
-
-def pixel_uv(i: jax.Array, j: jax.Array, width: int, height: int) -> jax.Array:
-    """Pixel column ``i``, row ``j`` -> normalised centre ``((i + 0.5) / W, (j + 0.5) / H)``, (..., 2)."""
-    return jnp.stack([(i + 0.5) / width, (j + 0.5) / height], axis=-1).astype(jnp.float32)
 
 
 def normalisation_constants(
@@ -251,9 +201,10 @@ def _loss_scale(dof_params: dof.DOFParams) -> jax.Array:
 def dof_loss(
     weights, dof_params: dof.DOFParams, batch: Batch, dropout_key: jax.Array | None, kind: str = "polar"
 ) -> tuple[jax.Array, dict]:
-    """The module docstring's loss of ``kind`` ("polar" or "endpoint") on one batch; returns (loss, parts).
-
-    The parts are the polar loss's two terms whichever loss is trained, so histories compare."""
+    """The module docstring's loss of ``kind`` (a name in :data:`LOSS_FUNCTIONS`) on one batch; returns
+    (loss, parts). The parts are the polar loss's two terms whichever loss is trained, so histories compare."""
+    chex.assert_shape(batch.features, (None, dof.INPUT_DIM))
+    chex.assert_shape([batch.l, batch.theta], batch.features.shape[:1])  # (B,): a (B, 1) target would broadcast
     pred = dof.dof_forward(dof_params.replace(weights=weights), batch.features, dropout_key=dropout_key)
     l_hat, theta_hat = pred[:, 0], pred[:, 1]
     inv_s2 = 1.0 / jnp.square(_loss_scale(dof_params))
@@ -261,10 +212,23 @@ def dof_loss(
     chord2 = 2.0 * (1.0 - jnp.cos(theta_hat - batch.theta))
     loss_theta = jnp.mean(jnp.square(batch.l) * chord2) * inv_s2
     parts = {"loss_l": loss_l, "loss_theta": loss_theta}
-    if kind == "endpoint":
-        error = dof.polar_to_euler(l_hat, theta_hat) - dof.polar_to_euler(batch.l, batch.theta)
-        return jnp.mean(jnp.sum(jnp.square(error), axis=-1)) * inv_s2, parts
-    return loss_l + loss_theta, parts
+    return LOSS_FUNCTIONS[kind](l_hat, theta_hat, batch, inv_s2, parts), parts
+
+
+def polar_loss(l_hat, theta_hat, batch: Batch, inv_s2, parts: dict) -> jax.Array:
+    """The paper's MSE on (l, theta) in the module docstring's form: the sum of the two parts."""
+    return parts["loss_l"] + parts["loss_theta"]
+
+
+def endpoint_loss(l_hat, theta_hat, batch: Batch, inv_s2, parts: dict) -> jax.Array:
+    """The squared endpoint error of the flow vector, ``mean |PolarToEuler(l_hat, theta_hat) - v|^2 / s^2``."""
+    error = dof.polar_to_euler(l_hat, theta_hat) - dof.polar_to_euler(batch.l, batch.theta)
+    return jnp.mean(jnp.sum(jnp.square(error), axis=-1)) * inv_s2
+
+
+# The losses by name (TrainConfig.loss): (l_hat, theta_hat (B,), batch, 1 / s^2, the polar parts) -> loss ().
+LOSS_FUNCTIONS = {"polar": polar_loss, "endpoint": endpoint_loss}
+LOSSES = tuple(LOSS_FUNCTIONS)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -304,17 +268,9 @@ def make_train_step(config: TrainConfig) -> Callable:
         (loss, parts), grads = grad_fn(state.dof_params.weights, state.dof_params, batch, key, config.loss)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.dof_params.weights)
         weights = optax.apply_updates(state.dof_params.weights, updates)
-        metrics = {
-            "loss": loss,
-            **parts,
-            "learning_rate": schedule(state.step),
-            "grad_norm": optax.tree.norm(grads),
-        }
-        new_state = state.replace(
-            step=state.step + 1,
-            dof_params=state.dof_params.replace(weights=weights),
-            opt_state=opt_state,
-        )
+        metrics = {"loss": loss, **parts, "learning_rate": schedule(state.step), "grad_norm": optax.tree.norm(grads)}
+        new_state = state.replace(step=state.step + 1, dof_params=state.dof_params.replace(weights=weights),
+                                  opt_state=opt_state)
         return new_state, metrics
 
     return jax.jit(train_step)
@@ -322,18 +278,9 @@ def make_train_step(config: TrainConfig) -> Callable:
 
 def _compile_key(config: TrainConfig) -> TrainConfig:
     """``config`` with the fields that do not reach the compiled step set to fixed values."""
-    return dataclasses.replace(
-        config,
-        steps=config.steps if config.schedule == "cosine" else 1,
-        seed=0,
-        log_every=1,
-        checkpoint_every=0,
-        checkpoint_path=None,
-        probe_size=1,
-        eval_chunk_pixels=1,
-        progress=False,
-        input="command",
-    )
+    return dataclasses.replace(config, steps=config.steps if config.schedule == "cosine" else 1, seed=0, log_every=1,
+                               checkpoint_every=0, checkpoint_path=None, probe_size=1, eval_chunk_pixels=1,
+                               progress=False, input="command")
 
 
 def data_parallel_devices(batch_size: int) -> int:
@@ -393,12 +340,8 @@ def init_train_state(config: TrainConfig, train_data: FlowData) -> TrainState:
     constants = normalisation_constants(train_data, config.width, config.height, config.dt)
     dof_params = dof.init_dof_params(key_init, **constants)
     optimizer, _ = make_optimizer(config)
-    return TrainState(
-        step=jnp.asarray(0, jnp.int32),
-        dof_params=dof_params,
-        opt_state=optimizer.init(dof_params.weights),
-        key=key_train,
-    )
+    return TrainState(step=jnp.asarray(0, jnp.int32), dof_params=dof_params,
+                      opt_state=optimizer.init(dof_params.weights), key=key_train)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -418,14 +361,8 @@ def _run_record(config: TrainConfig, data: FlowData) -> dict:
 
 def save_train_checkpoint(path, state: TrainState, record: dict, history: dict) -> None:
     """Weights + normalisation + config, and what resuming needs: step, Adam state, key, history."""
-    extra = {
-        "train": {
-            "step": np.asarray(state.step),
-            "opt_state": serialization.to_state_dict(state.opt_state),
-            "key": np.asarray(jax.random.key_data(state.key)),
-            "history": strict_json.dumps(history),
-        }
-    }
+    extra = {"train": {"step": np.asarray(state.step), "opt_state": serialization.to_state_dict(state.opt_state),
+                       "key": np.asarray(jax.random.key_data(state.key)), "history": strict_json.dumps(history)}}
     record = {**record, "step": int(state.step)}
     dof.save_checkpoint(path, state.dof_params, record, extra=extra)
 
@@ -468,12 +405,7 @@ def _probe_loss_fn(config: TrainConfig, data: FlowData) -> Callable:
     return functools.partial(_deterministic_loss, batch=probe, kind=config.loss)
 
 
-def train(
-    config: TrainConfig,
-    train_data,
-    test_data=None,
-    resume_from=None,
-) -> tuple[dof.DOFParams, dict]:
+def train(config: TrainConfig, train_data, test_data=None, resume_from=None) -> tuple[dof.DOFParams, dict]:
     """Train the DOF network (Algorithm 1) and return ``(dof_params, history)``.
 
     Args:
@@ -496,26 +428,13 @@ def train(
     else:
         state = init_train_state(config, host_data)
         history = {}
-    for name in (
-        "step",
-        "loss",
-        "loss_window",
-        "loss_l",
-        "loss_theta",
-        "learning_rate",
-        "grad_norm",
-        "wall_s",
-    ):
+    for name in ("step", "loss", "loss_window", "loss_l", "loss_theta", "learning_rate", "grad_norm", "wall_s",
+                 "probe_step", "probe_loss"):
         history.setdefault(name, [])
-    history.setdefault("probe_step", [])
-    history.setdefault("probe_loss", [])
     history["interrupted"] = False
 
-    data = FlowData(
-        jnp.asarray(host_data.q, jnp.float32),
-        jnp.asarray(host_data.u, jnp.float32),
-        jnp.asarray(host_data.flow),
-    )
+    data = FlowData(jnp.asarray(host_data.q, jnp.float32), jnp.asarray(host_data.u, jnp.float32),
+                    jnp.asarray(host_data.flow))
     record = _run_record(config, host_data)
     num_devices = data_parallel_devices(config.batch_size)
     if num_devices > 1:  # replicate the dataset and the state on every device; the batch is split in the step
@@ -549,9 +468,7 @@ def train(
                 history["wall_s"].append(time.perf_counter() - t0)
                 history["probe_step"].append(step)
                 history["probe_loss"].append(float(probe_loss(state.dof_params)))
-                bar.set_postfix(
-                    loss=f"{history['loss_window'][-1]:.4f}", probe=f"{history['probe_loss'][-1]:.4f}"
-                )
+                bar.set_postfix(loss=f"{history['loss_window'][-1]:.4f}", probe=f"{history['probe_loss'][-1]:.4f}")
             if checkpoint_path and config.checkpoint_every and step % config.checkpoint_every == 0:
                 save_train_checkpoint(checkpoint_path, state, record, history)
     except KeyboardInterrupt:
@@ -563,145 +480,94 @@ def train(
 
     if test_data is not None and not history["interrupted"]:
         test = as_flow_data(test_data, config.width, config.height)
-        history["test_aee_px"] = evaluate_aee(
-            state.dof_params,
-            test.q,
-            test.u,
-            test.flow,
-            config.width,
-            config.height,
-            config.dt,
-            chunk_pixels=config.eval_chunk_pixels,
-        )
+        history["test_aee_px"] = evaluate_aee(state.dof_params, test.q, test.u, test.flow, config.width, config.height,
+                                              config.dt, chunk_pixels=config.eval_chunk_pixels)
         history["test_zero_flow_aee_px"] = zero_flow_aee(test.q, test.u, test.flow)
     return state.dof_params, history
 
 
 # --------------------------------------------------------------------------------------------------
-# Evaluation and baselines (AEE in pixels per frame).
+# The `pixelmpc train` entry point.
 # --------------------------------------------------------------------------------------------------
 
 
-def _epe_sum_chunk(dof_params, q, u, flow, frame_mask, width: int, height: int, dt: float):
-    """Sum of endpoint errors over a chunk of frames. q, u: (C, 4); flow: (C, H, W, 2); mask: (C,)."""
-    jj, ii = jnp.meshgrid(jnp.arange(height), jnp.arange(width), indexing="ij")
-    uv = pixel_uv(ii, jj, width, height)  # (H, W, 2)
-
-    def frame_epe(qf, uf, flow_f):
-        feats = dof.dof_features(
-            jnp.broadcast_to(qf, (height, width, 4)), uv, jnp.broadcast_to(uf, (height, width, 4))
-        )
-        pred = dof.dof_forward(dof_params, feats)  # (H, W, 2)
-        pred_px = polar_to_flow(pred[..., 0], pred[..., 1], width, height, dt)
-        err = pred_px - flow_f.astype(jnp.float32)
-        return jnp.sum(jnp.hypot(err[..., 0], err[..., 1]))
-
-    per_frame = jax.vmap(frame_epe)(q, u, flow)  # (C,)
-    return jnp.sum(jnp.where(frame_mask, per_frame, 0.0))
+def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
+    """Weights-only checkpoint (parameters + normalisation, ~140 KB) with ``record`` as its config, and the
+    same record as readable JSON beside it (``.json``)."""
+    path = Path(path)
+    dof.save_checkpoint(path, dof_params, record)
+    strict_json.write_json_atomic(path.with_suffix(".json"), record)
 
 
-_epe_sum_chunk_jit = jax.jit(_epe_sum_chunk, static_argnames=("width", "height", "dt"))
+def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
+              learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
+              ship: bool = False, loss: str = "polar", input: str = "command") -> dict:
+    """Train the DOF on ``data_dir``'s train laps (:func:`train`, Algorithm 1), report the test-lap AEE, and
+    write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
+    (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
+    the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
 
-
-def evaluate_aee(
-    dof_params: dof.DOFParams,
-    q,
-    u,
-    flow,
-    width: int = PAPER_WIDTH,
-    height: int = PAPER_HEIGHT,
-    dt: float = PAPER_DT,
-    *,
-    chunk_pixels: int = 1 << 18,
-) -> float:
-    """Average endpoint error, pixels per frame, of the DOF prediction over every pixel of every frame.
-
-    The prediction (l, theta) is converted back to pixels per frame; frames go through one compiled
-    chunk function (``~chunk_pixels`` rows at a time, the last chunk padded and masked).
-    """
-    data = as_flow_data((q, u, flow), width, height)
-    n = data.q.shape[0]
-    chunk = max(1, min(n, chunk_pixels // (width * height)))
-    total = 0.0
-    for start in range(0, n, chunk):
-        stop = min(start + chunk, n)
-        pad = chunk - (stop - start)
-        qc, uc, fc = (np.concatenate([a[start:stop], np.zeros((pad, *a.shape[1:]), a.dtype)]) for a in data)
-        mask = np.arange(chunk) < (stop - start)
-        total += float(
-            _epe_sum_chunk_jit(dof_params, qc, uc, fc, mask, width=width, height=height, dt=float(dt))
-        )
-    return total / (n * width * height)
-
-
-def zero_flow_aee(q, u, flow, chunk_frames: int = 256) -> float:
-    """AEE (pixels per frame) of predicting no motion: the mean flow magnitude. q, u unused (every
-    evaluator takes the same arrays)."""
-    flow = np.asarray(flow)
-    total = 0.0
-    for start in range(0, flow.shape[0], chunk_frames):
-        chunk = flow[start : start + chunk_frames].astype(np.float32)
-        total += float(np.hypot(chunk[..., 0], chunk[..., 1]).sum(dtype=np.float64))
-    return total / (flow.shape[0] * flow.shape[1] * flow.shape[2])
-
-
-@dataclasses.dataclass(frozen=True)
-class OrientationBinBaseline:
-    """Mean flow field per (roll, pitch, yaw) bin.
-
-    Attributes:
-        edges: (3, bins + 1) quantile bin edges of roll, pitch, yaw (rad) on the fitting frames.
-        mean_flow: (bins^3, H, W, 2) per-bin mean flow, pixels per frame (empty bins: the global mean).
-        counts: (bins^3,) fitting frames per bin.
-    """
-
-    edges: np.ndarray
-    mean_flow: np.ndarray
-    counts: np.ndarray
-
-
-def _euler(q) -> np.ndarray:
-    q = np.asarray(q, np.float32)
-    return np.asarray(jax.vmap(quadrotor.euler_angles)(jnp.asarray(quadrotor.normalize_quat(q))))  # (F, 3)
-
-
-def _bin_index(edges: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    bins = edges.shape[1] - 1
-    idx = np.stack(
-        [np.clip(np.searchsorted(edges[k, 1:-1], angles[:, k], side="right"), 0, bins - 1) for k in range(3)],
-        axis=1,
-    )
-    return (idx[:, 0] * bins + idx[:, 1]) * bins + idx[:, 2]
-
-
-def fit_orientation_bin_baseline(q, u, flow, bins_per_angle: int = 4) -> OrientationBinBaseline:
-    """Bin frames by roll, pitch and yaw quantiles and average the flow field per bin. u unused."""
-    flow = np.asarray(flow)
-    angles = _euler(q)
-    edges = np.quantile(angles, np.linspace(0.0, 1.0, bins_per_angle + 1), axis=0).T  # (3, bins + 1)
-    idx = _bin_index(edges, angles)
-    n_bins = bins_per_angle**3
-    sums = np.zeros((n_bins, *flow.shape[1:]), np.float64)
-    for start in range(0, flow.shape[0], 256):  # bounded memory: one chunk of frames at a time
-        chunk, chunk_idx = flow[start : start + 256].astype(np.float64), idx[start : start + 256]
-        for b in np.unique(chunk_idx):
-            sums[b] += chunk[chunk_idx == b].sum(0)
-    counts = np.bincount(idx, minlength=n_bins)
-    global_mean = sums.sum(0) / flow.shape[0]
-    mean_flow = np.where(
-        counts[:, None, None, None] > 0, sums / np.maximum(counts, 1)[:, None, None, None], global_mean
-    )
-    return OrientationBinBaseline(edges=edges, mean_flow=mean_flow.astype(np.float32), counts=counts)
-
-
-def orientation_bin_aee(baseline: OrientationBinBaseline, q, u, flow, chunk_frames: int = 256) -> float:
-    """AEE (pixels per frame) of predicting each frame's orientation-bin mean flow. u unused."""
-    flow = np.asarray(flow)
-    idx = _bin_index(baseline.edges, _euler(q))
-    total = 0.0
-    for start in range(0, flow.shape[0], chunk_frames):
-        err = baseline.mean_flow[idx[start : start + chunk_frames]] - flow[
-            start : start + chunk_frames
-        ].astype(np.float32)
-        total += float(np.hypot(err[..., 0], err[..., 1]).sum(dtype=np.float64))
-    return total / (flow.shape[0] * flow.shape[1] * flow.shape[2])
+    ``loss``: "polar" (the paper's) or "endpoint"; ``input``: the network's control input, "command" (the
+    paper's) or "flown" (the rates flown over the frame; ``dataset.INPUTS``). The variant is recorded in the
+    weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
+    if input not in INPUTS:
+        raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
+    data_dir, out = Path(data_dir), Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = dataset_lib.read_manifest(data_dir)
+    W, H = manifest["image_size_wh"]
+    train_data = dataset_lib.load_dataset(data_dir, "train", input=input)
+    has_test = bool(manifest["split"]["test"]) and manifest["frames"]["test"] > 0
+    test_data = dataset_lib.load_dataset(data_dir, "test", input=input) if has_test else None
+    checkpoint = out / "checkpoint.msgpack"
+    config = TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed, width=W,
+                         height=H, dt=float(manifest["frame_dt_s"]), checkpoint_path=str(checkpoint),
+                         progress=progress, loss=loss, input=input)
+    t0 = time.perf_counter()
+    dof_params, history = train(config, train_data, test_data,
+                                resume_from=checkpoint if (resume and checkpoint.exists()) else None)
+    wall = time.perf_counter() - t0
+    strict_json.write_json_atomic(out / "history.json", history)
+    record = {
+        "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
+        "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
+        "variant": {"input": input, "loss": loss, "layer_sizes": list(dof.LAYER_SIZES),
+                    "input_means": "the body rates commanded at the frame's tick (the paper's)" if input == "command"
+                    else "the body rates flown over the frame interval (dataset w_flown), commanded thrust"},
+        "train_wall_s": wall,
+        "steps_done": history["step"][-1] if history["step"] else 0,
+        "interrupted": history["interrupted"],
+        "data": {
+            "dir": str(data_dir),
+            "collect_config": manifest["config"],
+            "policy": manifest.get("policy"),
+            "format_version": manifest.get("format_version"),
+            "excited_laps": manifest.get("excited_laps", []),
+            "frames": manifest["frames"],
+            "bytes": manifest.get("bytes"),
+            "laps": [{k: e[k] for k in ("lap", "split", "speed", "seed", "frames", "end", "gates_passed")}
+                     for e in manifest["laps"]],
+        },
+        "results": {"test_aee_px": history.get("test_aee_px"),
+                    "test_zero_flow_aee_px": history.get("test_zero_flow_aee_px")},
+        "calls": [
+            f"pixelmpc_jax.learn.collect.collect({str(data_dir)!r}, "
+            f"CollectConfig(**{json.dumps(manifest['config'])}))",
+            f"pixelmpc_jax.learn.train.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
+            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r}, input={input!r})",
+        ],
+        "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
+        "created": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+    weights = out / dof.PACKAGED_WEIGHTS.name  # dof_weights.msgpack, with its record dof_weights.json
+    export_weights(weights, dof_params, record)
+    if ship:
+        shutil.copyfile(weights, dof.PACKAGED_WEIGHTS)
+        shutil.copyfile(weights.with_suffix(".json"), dof.PACKAGED_WEIGHTS.with_suffix(".json"))
+    aee = history.get("test_aee_px")
+    zero = history.get("test_zero_flow_aee_px")
+    print(f"trained {record['steps_done']} steps ({input} input, {loss} loss) in {wall / 60:.1f} min on "
+          f"{manifest['frames']['train']} frames; "
+          f"test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
+          f"{'-' if zero is None else f'{zero:.2f}'}); weights: {weights}")
+    return record

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from pixelmpc_jax import timing  # noqa: E402
 from pixelmpc_jax.perception import flow as flow_lib  # noqa: E402
 from pixelmpc_jax.world import camera as camera_lib  # noqa: E402
 from pixelmpc_jax.world import render as render_lib  # noqa: E402
@@ -103,6 +104,6 @@ def write_render_figures(
     x0 = render_lib.pose_before_gate(track.gate(gate_index), distance, lateral=0.5, height=0.3)
     results = {}
     for name, speed, rates in FIGURE_CASES:
-        x1 = render_lib.advance_pose(x0, flow_lib.FRAME_DT, speed, rates)
+        x1 = render_lib.advance_pose(x0, timing.CONTROL_DT, speed, rates)
         results[name] = render_figure(track, x0, x1, camera, Path(out_dir) / f"render_{name}.png")
     return results

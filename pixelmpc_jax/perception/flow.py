@@ -3,7 +3,8 @@
 Pixel flow follows Farneback's convention: ``flow[y, x] = (dx, dy)`` pixels per frame with
 ``prev(y, x) ~ next(y + dy, x + dx)``. The DOF (README, "Conventions") predicts ``(l, theta)``: ``l`` the flow
 magnitude in normalised image units per second and ``theta`` its angle, ``u_dot = l cos(theta)``,
-``v_dot = l sin(theta)``, with ``u_dot = dx / W / dt`` and ``v_dot = dy / H / dt`` (frames at 40 Hz).
+``v_dot = l sin(theta)``, with ``u_dot = dx / W / dt`` and ``v_dot = dy / H / dt`` (frames at the control rate,
+``timing.CONTROL_DT``).
 """
 
 from __future__ import annotations
@@ -14,8 +15,6 @@ import numpy as np
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
-
-FRAME_DT = timing.CONTROL_DT  # s, frames at the control rate, 40 Hz
 
 # The paper's Farneback parameters (Sec. IV-A), exactly.
 FARNEBACK_PARAMS = dict(pyr_scale=0.5, levels=10, winsize=51, iterations=15, poly_n=5, poly_sigma=1.1, flags=0)
@@ -64,7 +63,7 @@ def farneback(grey0, grey1, shape: tuple[int, int] | None = (PAPER_HEIGHT, PAPER
     return flow.astype(np.float32)
 
 
-def flow_to_polar(flow_px, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT, dt: float = FRAME_DT):
+def flow_to_polar(flow_px, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT, dt: float = timing.CONTROL_DT):
     """Pixel flow per frame (..., 2) -> DOF units ``(l, theta)``, each (...,).
 
     ``u_dot = dx / W / dt``, ``v_dot = dy / H / dt``; ``l = |(u_dot, v_dot)|`` (normalised units per
@@ -79,7 +78,7 @@ def flow_to_polar(flow_px, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT,
     return xp.hypot(u_dot, v_dot), xp.arctan2(v_dot, u_dot)
 
 
-def polar_to_flow(l, theta, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT, dt: float = FRAME_DT):
+def polar_to_flow(l, theta, width: int = PAPER_WIDTH, height: int = PAPER_HEIGHT, dt: float = timing.CONTROL_DT):
     """DOF units ``(l, theta)`` (...,) -> pixel flow per frame (..., 2), the inverse of ``flow_to_polar``."""
     xp = np if isinstance(l, np.ndarray) and isinstance(theta, np.ndarray) else jnp
     dx = l * xp.cos(theta) * (width * dt)
