@@ -17,6 +17,7 @@ import argparse
 from pathlib import Path
 
 from pixelmpc_jax.apps.grid import Cell, run_grid
+from pixelmpc_jax.apps.spec import RaceSpec
 
 KEYS = ("time_vis_below_50_s", "time_vis_below_50_unavoidable_s", "time_vis_zero_s", "lap_time_s", "mean_speed")
 LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap time [s]", "mean speed [m/s]")
@@ -24,8 +25,9 @@ LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap ti
 
 def cells_for(speed: float, models, c_pixels, t_f: float) -> list[Cell]:
     """Nominal MPPI, then PixelMPC for every (pixel model, c_pixel) at ``speed``."""
-    return [Cell("mppi", "mppi", speed=speed)] + [
-        Cell(f"pixelmpc_{model}_tf{t_f:g}_c{c:.0e}", "pixelmpc", t_f=t_f, c_pixel=c, pixel_model=model, speed=speed)
+    return [Cell("mppi", RaceSpec("mppi", speed=speed))] + [
+        Cell(f"pixelmpc_{model}_tf{t_f:g}_c{c:.0e}", RaceSpec("pixelmpc", t_f=t_f, c_pixel=c, pixel_model=model,
+                                                              speed=speed))
         for model in models for c in c_pixels]
 
 
@@ -43,7 +45,7 @@ def report(results: dict, cells: list[Cell], speed: float, dof_weights: str = ""
         lines += [f"DOF cells: {dof_weights}.", ""]
     lines += [header, "|" + "---|" * (header.count("|") - 1)]
     for cell in cells:
-        agg = results.get(cell.key(), {}).get("aggregate")
+        agg = results.get(cell.name, {}).get("aggregate")
         if not agg:
             continue
         figures = []
@@ -53,13 +55,13 @@ def report(results: dict, cells: list[Cell], speed: float, dof_weights: str = ""
         changes = []
         for key in ("time_vis_below_50_s", "lap_time_s"):
             ours, base = _mean(agg, key), _mean(nominal, key)
-            missing = cell.key() == "mppi" or ours is None or not base
+            missing = cell.name == "mppi" or ours is None or not base
             if not missing and key == "time_vis_below_50_s" and agg["success_rate"] < 1.0:
                 changes.append("n/a (laps lost)")  # a lap that ends early also ends its loss of visibility
                 continue
             changes.append("-" if missing else f"{(ours / base - 1) * 100:+.0f} %")
         done = f"{round(agg['success_rate'] * agg['num_laps'])}/{agg['num_laps']}"
-        lines.append(f"| {cell.key()} | {done} | " + " | ".join(figures + changes) + " |")
+        lines.append(f"| {cell.name} | {done} | " + " | ".join(figures + changes) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -72,13 +74,13 @@ def plot(results: dict, cells: list[Cell], path: Path, speed: float) -> None:
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for cell in cells:
-        agg = results.get(cell.key(), {}).get("aggregate")
+        agg = results.get(cell.name, {}).get("aggregate")
         if not agg or _mean(agg, "lap_time_s") is None:
             continue
         lap, vis = agg["lap_time_s"], agg["time_vis_below_50_s"]
-        marker = "s" if cell.controller == "mppi" else ("o" if cell.pixel_model == "projection" else "^")
+        marker = "s" if cell.spec.controller == "mppi" else ("o" if cell.spec.pixel_model == "projection" else "^")
         done = round(agg["success_rate"] * agg["num_laps"])
-        label = cell.key() if done == agg["num_laps"] else f"{cell.key()} ({done}/{agg['num_laps']} laps; faded)"
+        label = cell.name if done == agg["num_laps"] else f"{cell.name} ({done}/{agg['num_laps']} laps; faded)"
         # lost laps end early, and so does their low visibility: such a cell is drawn faded
         ax.errorbar(lap["mean"], vis["mean"], xerr=lap["two_sigma"], yerr=vis["two_sigma"], fmt=marker, capsize=3,
                     label=label, alpha=1.0 if done == agg["num_laps"] else 0.35)

@@ -194,17 +194,26 @@ def _cmd_demo(args) -> int:
     return 0 if error[-1] < 0.5 else EXIT_FAILED
 
 
-def _check_race(args) -> None:
-    """Build the controller's settings from the arguments (a ValueError names any the library refuses)."""
-    from pixelmpc_jax.sim import controllers
+def _race_spec(args, dof_params=None):
+    """The race the arguments ask for (a ValueError names a setting the library refuses); ``dof_params``, the
+    weights :func:`_race_dof` loads, enter it as their fingerprint."""
+    from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
 
-    controllers.make_policy(args.controller, args.temperature, pixel_model=args.pixel_model, t_f=args.t_f,
-                     c_pixel=args.c_pixel, options=_race_options(args))
-    _race_dof(args)  # a missing or damaged weights file is refused before anything runs
+    return RaceSpec(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
+                    perturb=args.perturb, course=args.course, detector=args.detector, estimator=args.estimator,
+                    pixel_model=args.pixel_model, t_f=args.t_f, c_pixel=args.c_pixel, temperature=args.temperature,
+                    max_time_s=args.max_time, options=_race_options(args),
+                    dof_weights=None if dof_params is None else dof_weights_hash(dof_params))
+
+
+def _check_race(args) -> None:
+    """Build the race and its controller before anything runs: a ValueError names a setting the library refuses,
+    and a missing or damaged weights file is refused."""
+    _race_spec(args, _race_dof(args)).policy()
 
 
 def _race_options(args) -> dict:
-    """The controller options the race flags set away from their defaults (see controllers.make_policy)."""
+    """The controller options the race flags set away from their defaults (see RaceSpec.options)."""
     options = {}
     if args.controller == "pixelmpc":
         if args.pixel_cost != "l1":
@@ -237,12 +246,9 @@ def _cmd_race(args) -> int:
     course = "the AlphaPilot course" if args.course == "alphapilot" else "the straight lane"
     print(f"{args.controller} racing {course} at {args.speed:g} m/s: {args.laps} lap(s), "
           f"seeds {args.seed}..{args.seed + args.laps - 1}, output {args.out}")
-    results = race.run_laps(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
-                            out=args.out, batch_size=args.batch, perturb=args.perturb,
-                            max_time_s=args.max_time, temperature=args.temperature,
-                            pixel_model=args.pixel_model, detector=args.detector, t_f=args.t_f,
-                            c_pixel=args.c_pixel, estimator=args.estimator, video=args.video,
-                            course=args.course, options=_race_options(args), dof_params=_race_dof(args))
+    dof_params = _race_dof(args)
+    results = race.run_laps(_race_spec(args, dof_params), out=args.out, batch_size=args.batch, video=args.video,
+                            dof_params=dof_params)
     laps = results["laps"]
     if laps:
         print(metrics.format_table(laps, results["aggregate"]))

@@ -5,6 +5,7 @@ import json
 import pytest
 
 from pixelmpc_jax import cli
+from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
 
 
 def _reject(constant):
@@ -77,8 +78,8 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
         return real(log, *args, **kwargs)
 
     monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
-    results = race.run_laps("mppi", speed=10.0, laps=3, seed=4, out=tmp_path, batch_size=1, max_time_s=0.2,
-                            progress=False, num_samples=32)
+    spec = RaceSpec("mppi", speed=10.0, laps=3, seed=4, max_time_s=0.2, num_samples=32)
+    results = race.run_laps(spec, out=tmp_path, batch_size=1, progress=False)
     assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4 and results["interrupted"]
     saved = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=_reject)  # strict JSON
     assert len(saved["laps"]) == 1 and saved["interrupted"] is True
@@ -86,21 +87,29 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
     assert saved["aggregate"]["num_laps"] == 1 and "success_rate" in saved["aggregate"]
 
 
-def test_race_lever_flags_reach_the_controller_options(monkeypatch, tmp_path):
-    """--pixel-cost, --border-margin, --noise-exponent and --heading-weight become race options."""
+def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
+    """Every race flag lands in the RaceSpec (the levers as controller options); execution flags beside it."""
     from pixelmpc_jax.apps import race
 
     seen = {}
 
-    def fake_run_laps(**kwargs):
-        seen.update(kwargs)
+    def fake_run_laps(spec, **kwargs):
+        seen.update(kwargs, spec=spec)
         return {"laps": [], "aggregate": {}, "interrupted": False}
 
     monkeypatch.setattr(race, "run_laps", fake_run_laps)
     cli.main(["race", "--out", str(tmp_path), "--pixel-cost", "border", "--border-margin", "0.2",
-              "--noise-exponent", "1", "--heading-weight", "0.5"])
-    assert seen["options"] == {"pixel_cost": "border", "border_margin": 0.2, "mppi.noise_exponent": 1.0,
-                               "racing.heading_weight": 0.5}
+              "--noise-exponent", "1", "--heading-weight", "0.5", "--speed", "9", "--laps", "3", "--seed", "5",
+              "--course", "straight", "--estimator", "pf", "--detector", "image", "--pixel-model", "projection",
+              "--t-f", "0.5", "--c-pixel", "3e6", "--max-time", "20", "--temperature", "100", "--perturb",
+              "--batch", "2", "--video"])
+    assert seen["spec"] == RaceSpec(
+        "pixelmpc", speed=9.0, laps=3, seed=5, perturb=True, course="straight", detector="image", estimator="pf",
+        pixel_model="projection", t_f=0.5, c_pixel=3e6, temperature=100.0, max_time_s=20.0,
+        options={"pixel_cost": "border", "border_margin": 0.2, "mppi.noise_exponent": 1.0,
+                 "racing.heading_weight": 0.5})
+    assert seen["batch_size"] == 2 and seen["video"] is True and seen["out"] == tmp_path
+    assert seen["dof_params"] is None
 
 
 def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
@@ -120,12 +129,12 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
         return runner._replace(batch=batch)
 
     monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
-    results = race.run_laps("mppi", speed=10.0, laps=3, seed=4, batch_size=2, max_time_s=0.1, progress=False,
-                            num_samples=32)
+    spec = RaceSpec("mppi", speed=10.0, laps=3, seed=4, max_time_s=0.1, num_samples=32)
+    results = race.run_laps(spec, batch_size=2, progress=False)
     assert [lap["seed"] for lap in results["laps"]] == [4, 5, 6] and len(results["trajectories"]) == 3
     assert len(shapes) == 2 and shapes[0] == shapes[1] and shapes[0][0][0] == 2
     shapes.clear()
-    race.run_laps("mppi", speed=10.0, laps=1, seed=4, batch_size=4, max_time_s=0.1, progress=False, num_samples=32)
+    race.run_laps(spec.replace(laps=1), batch_size=4, progress=False)
     assert [s[0][0] for s in shapes] == [1]  # a run shorter than a batch is not padded
 
 
@@ -137,12 +146,14 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     from pixelmpc_jax.dynamics import dof
 
     seen = {}
-    monkeypatch.setattr(race, "run_laps", lambda **kwargs: seen.update(kwargs) or {"laps": [], "aggregate": {}})
+    monkeypatch.setattr(race, "run_laps",
+                        lambda spec, **kwargs: seen.update(kwargs, spec=spec) or {"laps": [], "aggregate": {}})
     cli.main(["race", "--out", str(tmp_path), "--dof-weights", "flown"])
     flown = dof.load_packaged_dof("flown")
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda a, b: bool((a == b).all()), seen["dof_params"], flown))
+    assert seen["spec"].dof_weights == dof_weights_hash(flown)  # the spec names the weights it flies
     cli.main(["race", "--out", str(tmp_path), "--dof-weights", "paper"])
-    assert seen["dof_params"] is None  # the race loads the packaged paper weights itself
+    assert seen["dof_params"] is None and seen["spec"].dof_weights is None  # the race loads the packaged weights
     code = cli.main(["race", "--out", str(tmp_path / "new"), "--dof-weights", str(tmp_path / "missing.msgpack")])
     assert code == 2 and "missing.msgpack" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()

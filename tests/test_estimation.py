@@ -17,9 +17,9 @@ def _lap(success, lap_time, cov_max, error, crash=None):
 def test_cells_cover_the_paper_grid():
     names = [c.name for c in E.race_cells()]
     assert len(names) == 4 and len(set(names)) == 4
-    assert all(c.estimator == "pf" and c.t_f == 1.0 and c.c_pixel == 9e6 for c in E.race_cells())
-    assert {(c.controller, c.speed) for c in E.race_cells()} == set(E.PAPER_TABLE_IV)
-    assert all(c.course == "straight" and c.speed == 20.0 for c in E.straight_cells())
+    assert all(c.spec.estimator == "pf" and c.spec.t_f == 1.0 and c.spec.c_pixel == 9e6 for c in E.race_cells())
+    assert {(c.spec.controller, c.spec.speed) for c in E.race_cells()} == set(E.PAPER_TABLE_IV)
+    assert all(c.spec.course == "straight" and c.spec.speed == 20.0 for c in E.straight_cells())
 
 
 def test_summary_counts_successes_failures_and_covariance_maxima():

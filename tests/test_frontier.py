@@ -1,6 +1,5 @@
 """The speed frontier: interpolation and gain, strict JSON, report and plot, the CLI, a tiny flight."""
 
-import dataclasses
 import importlib.util
 import json
 import math
@@ -163,8 +162,8 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     monkeypatch.setattr(cli.frontier_lib, "run_frontier", stop)
     assert cli.main(["--out", str(tmp_path), "--quick"]) == 130
     assert seen["speeds"] == F.QUICK_SPEEDS and seen["laps"] == 4
-    assert [c.options for c in seen["cells"]] == [(("pixel_cost", "border"),)] * 2
-    assert {c.pixel_model for c in seen["cells"]} == {"projection", "dof"}
+    assert [c.spec.options for c in seen["cells"]] == [(("pixel_cost", "border"),)] * 2
+    assert {c.spec.pixel_model for c in seen["cells"]} == {"projection", "dof"}
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
 
 
@@ -176,7 +175,8 @@ def test_reproduce_has_a_frontier_part():
 
 
 def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
-    cell = dataclasses.replace(F.pixel_cell("projection", "border"), max_time_s=0.2)
+    pixel = F.pixel_cell("projection", "border")
+    cell = grid.Cell(pixel.name, pixel.spec.replace(max_time_s=0.2))
     frontier = F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=False, max_time_s=0.2)
     assert [p["speed"] for p in frontier["nominal"]] == [8.0] and frontier["missing"] == []
     row = frontier["cells"][0]

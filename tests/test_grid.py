@@ -1,4 +1,5 @@
-"""Experiment grids: which finished cells a rerun keeps (settings, seed, laps, DOF weights)."""
+"""Experiment grids and the race specification: which finished cells a rerun keeps (settings, seed, laps, DOF
+weights), the cache key of a RaceSpec."""
 
 import json
 from pathlib import Path
@@ -8,11 +9,12 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax.apps import grid, race
+from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
 from pixelmpc_jax.dynamics import dof
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
-CELLS = [grid.Cell("nominal"), grid.Cell("dof", "pixelmpc"), grid.Cell("projection", "pixelmpc",
-                                                                         pixel_model="projection")]
+CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
+         grid.Cell("projection", RaceSpec("pixelmpc", pixel_model="projection"))]
 
 
 @pytest.fixture
@@ -20,10 +22,12 @@ def flown(monkeypatch):
     """Replace race.run_laps by a fake that records which cells it flies, with which seed and weights."""
     calls = []
 
-    def run_laps(controller, speed, laps, seed, pixel_model, dof_params, **kwargs):
-        calls.append((controller, pixel_model, seed, dof_params))
-        return {"laps": [{"success": True, "seed": seed + i} for i in range(laps)], "aggregate": {},
-                "seed": seed, "interrupted": False, "trajectories": [np.zeros((2, 10))] * laps, "covariances": []}
+    def run_laps(spec, dof_params=None, **kwargs):
+        spec.check_weights(dof_params)  # the grid names the weights it passes
+        calls.append((spec.controller, spec.pixel_model, spec.seed, dof_params))
+        return {"laps": [{"success": True, "seed": spec.seed + i} for i in range(spec.laps)], "aggregate": {},
+                "seed": spec.seed, "interrupted": False, "trajectories": [np.zeros((2, 10))] * spec.laps,
+                "covariances": []}
 
     monkeypatch.setattr(race, "run_laps", run_laps)
     return calls
@@ -53,16 +57,16 @@ def test_other_seeds_laps_or_weights_fly_the_cell_again(tmp_path, flown):
 
     saved = json.loads((tmp_path / "results.json").read_text())
     assert {entry["seed"] for entry in saved.values()} == {1}
-    assert saved["dof"]["dof_weights_sha256"] == grid.packaged_dof_hash()
+    assert saved["dof"]["dof_weights_sha256"] == packaged_dof_hash()
     assert saved["nominal"]["dof_weights_sha256"] is None and saved["projection"]["dof_weights_sha256"] is None
 
 
 def test_the_weights_hash_follows_the_values():
     packaged = dof.load_packaged_dof()
-    assert grid.dof_weights_hash(packaged) == grid.dof_weights_hash(dof.load_packaged_dof())
+    assert dof_weights_hash(packaged) == dof_weights_hash(dof.load_packaged_dof())
     changed = jax.tree_util.tree_map(lambda a: a, packaged).replace(input_mean=packaged.input_mean + 1e-3)
-    assert grid.dof_weights_hash(changed) != grid.dof_weights_hash(packaged)
-    assert len(grid.dof_weights_hash(packaged)) == 16
+    assert dof_weights_hash(changed) != dof_weights_hash(packaged)
+    assert len(dof_weights_hash(packaged)) == 16
 
 
 def test_results_without_seed_or_hash_count_as_the_defaults(tmp_path, flown):
@@ -84,10 +88,24 @@ def test_results_without_seed_or_hash_count_as_the_defaults(tmp_path, flown):
 def test_the_committed_results_stay_valid_for_a_default_run(folder):
     results = grid.load_results(RESULTS / folder)
     assert results, f"no committed results in {folder}"
-    packaged = grid.packaged_dof_hash()
-    for entry in results.values():
-        cell = grid.Cell(**entry["config"])
-        assert grid.is_current(entry, cell, len(entry["laps"]), 0, packaged if grid.uses_dof(cell) else None)
+    for name, entry in results.items():
+        settings = {k: v for k, v in entry["config"].items() if k != "name"}
+        cell = grid.Cell(name, RaceSpec(**settings))
+        assert grid.is_current(entry, cell.race(len(entry["laps"]), seed=0, dof_weights=None))
+        assert not grid.is_current(entry, cell.race(len(entry["laps"]), seed=1, dof_weights=None))
+
+
+def test_the_apps_cells_find_their_committed_results():
+    """The cells the paper's tables and the frontier define now are the ones their committed results answer."""
+    from pixelmpc_jax.apps import estimation, frontier, paper
+
+    runs = {"reproduce/table2": (paper.visibility_cells("dof"), 10),
+            "reproduce/table2_projection": (paper.visibility_cells("projection"), 10),
+            "reproduce/table4": (estimation.race_cells() + estimation.straight_cells(), 25),
+            "frontier": ([frontier.nominal_cell(v) for v in (6.0, 7.0, 8.0, 10.0, 14.0)]
+                         + list(frontier.default_cells()), 10)}
+    for folder, (cells, laps) in runs.items():
+        assert sorted(grid.current_results(cells, RESULTS / folder, laps)) == sorted(c.name for c in cells), folder
 
 
 def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
@@ -99,3 +117,69 @@ def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
     assert grid.current_results(CELLS, tmp_path, laps=3) == {}
     other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
     assert sorted(grid.current_results(CELLS, tmp_path, laps=2, dof_params=other)) == ["nominal", "projection"]
+
+
+# --------------------------------------------------------------------------------------------------
+# The race specification's cache key.
+# --------------------------------------------------------------------------------------------------
+
+
+def test_identical_races_have_one_key_and_any_difference_another():
+    spec = RaceSpec("pixelmpc", speed=8.0, laps=4, seed=2, options={"pixel_cost": "border", "border_margin": 0.2})
+    same = RaceSpec("pixelmpc", speed=8, laps=4, seed=2, options={"border_margin": 0.2, "pixel_cost": "border"})
+    assert same == spec and same.key() == spec.key()
+    # the packaged weights named by their fingerprint are the packaged weights
+    assert spec.replace(dof_weights=packaged_dof_hash()).key() == spec.key()
+    other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
+    changes = {"controller": "mppi", "seed": 3, "laps": 5, "dof_weights": dof_weights_hash(other), "speed": 8.5,
+               "course": "straight", "perturb": True, "detector": "image", "estimator": "pf",
+               "pixel_model": "projection", "t_f": 2.0, "c_pixel": 3e6, "temperature": 100.0, "num_samples": 256,
+               "max_time_s": 30.0, "options": {"pixel_cost": "border"}}
+    keys = {name: spec.replace(**{name: value}).key() for name, value in changes.items()}
+    assert spec.key() not in keys.values() and len(set(keys.values())) == len(keys)
+
+
+def test_the_dof_weights_count_only_for_a_race_that_flies_the_dof():
+    other = dof_weights_hash(jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof()))
+    for spec in (RaceSpec("mppi"), RaceSpec("pixelmpc", pixel_model="projection")):
+        named = spec.replace(dof_weights=other)
+        assert named.key() == spec.key() and named.dof_weights is None
+    dof_race = RaceSpec("pixelmpc")
+    assert dof_race.replace(dof_weights=other).key() != dof_race.key()
+
+
+def test_a_race_flies_only_the_weights_it_names():
+    packaged = dof.load_packaged_dof()
+    other = jax.tree_util.tree_map(lambda a: a * 2, packaged)
+    spec = RaceSpec("pixelmpc")
+    spec.check_weights(None)
+    spec.check_weights(packaged)
+    with pytest.raises(ValueError, match="fingerprint"):
+        spec.check_weights(other)
+    named = spec.replace(dof_weights=dof_weights_hash(other))
+    named.check_weights(other)
+    with pytest.raises(ValueError, match="pass them as dof_params"):
+        named.check_weights(None)
+    with pytest.raises(ValueError, match="fingerprint"):
+        race.run_laps(spec, dof_params=other, progress=False)  # refused before anything flies
+
+
+def test_a_spec_refuses_bad_settings_and_a_cell_its_run_fields():
+    for bad, match in (({"controller": "lqr"}, "unknown controller"), ({"course": "moon"}, "unknown course"),
+                       ({"speed": 0.0}, "speed must be"), ({"speed": float("inf")}, "speed must be"),
+                       ({"laps": 0}, "laps must be")):
+        with pytest.raises(ValueError, match=match):
+            RaceSpec(**bad)
+    for run_field in ({"laps": 3}, {"seed": 1}, {"dof_weights": "0" * 16}):
+        with pytest.raises(ValueError, match="takes them from the run"):
+            grid.Cell("c", RaceSpec("pixelmpc", **run_field))
+
+
+def test_a_record_reads_back_as_the_race_it_was_flown_as(tmp_path, flown):
+    """The recorded settings, seed, laps and weights make the same race, so the same key."""
+    other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
+    cells = [grid.Cell("dof", RaceSpec("pixelmpc", speed=9.0, options={"pixel_cost": "border"}))]
+    grid.run_grid(cells, tmp_path, laps=2, seed=4, progress=False, batch_size=1, dof_params=other)
+    entry = grid.load_results(tmp_path)["dof"]
+    assert grid.recorded_race(entry) == cells[0].race(2, 4, dof_weights_hash(other))
+    assert grid.recorded_race({**entry, "config": {**entry["config"], "wings": 4}}) is None  # unknown setting

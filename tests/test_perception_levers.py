@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import grid
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
@@ -139,11 +139,11 @@ def test_options_reach_the_controller_config_and_unknown_ones_are_rejected():
         controllers.split_options({"pixel_kost": "border"})
     with pytest.raises(ValueError, match="configure PixelMPC"):
         controllers.make_policy("mppi", options={"pixel_cost": "border"})
-    # a grid cell's options are part of what it is: same options in another order, same cell
-    a = grid.Cell("a", "pixelmpc", options={"pixel_cost": "border", "border_margin": 0.2})
-    b = grid.Cell("a", "pixelmpc", options={"border_margin": 0.2, "pixel_cost": "border"})
-    assert a == b and grid.cell_record(a)["options"] == {"border_margin": 0.2, "pixel_cost": "border"}
-    assert "options" not in grid.cell_record(grid.Cell("plain"))
+    # a race's options are part of what it is: same options in another order, same race
+    a = RaceSpec("pixelmpc", options={"pixel_cost": "border", "border_margin": 0.2})
+    b = RaceSpec("pixelmpc", options={"border_margin": 0.2, "pixel_cost": "border"})
+    assert a == b and a.key() == b.key() and a.record()["options"] == {"border_margin": 0.2, "pixel_cost": "border"}
+    assert a.key() != RaceSpec("pixelmpc", options={"pixel_cost": "border"}).key()
 
 
 def test_loss_causes_split_the_low_visibility_ticks_by_where_the_gate_projects():

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -32,14 +33,16 @@ STRAIGHT_SPEED = 20.0
 
 def race_cells(speeds=RACE_SPEEDS) -> list[Cell]:
     """Nominal MPPI and PixelMPC (the paper's t_f = 1, c_pixel = 9e6) with the filter, per speed."""
-    return [Cell(f"{controller}_{speed:g}ms_pf", controller=controller, t_f=1.0, c_pixel=9e6, speed=speed,
-                 estimator="pf") for speed in speeds for controller in CONTROLLERS]
+    return [Cell(f"{controller}_{speed:g}ms_pf", RaceSpec(controller=controller, t_f=1.0, c_pixel=9e6, speed=speed,
+                                                          estimator="pf"))
+            for speed in speeds for controller in CONTROLLERS]
 
 
 def straight_cells(speed: float = STRAIGHT_SPEED) -> list[Cell]:
     """Both controllers with the filter on the straight lane (five gates 20 m apart)."""
-    return [Cell(f"{controller}_straight_{speed:g}ms_pf", controller=controller, t_f=1.0, c_pixel=9e6, speed=speed,
-                 estimator="pf", course="straight", max_time_s=20.0) for controller in CONTROLLERS]
+    return [Cell(f"{controller}_straight_{speed:g}ms_pf",
+                 RaceSpec(controller=controller, t_f=1.0, c_pixel=9e6, speed=speed, estimator="pf", course="straight",
+                          max_time_s=20.0)) for controller in CONTROLLERS]
 
 
 def summarise(results: dict, cells: list[Cell]) -> list[dict]:
@@ -57,9 +60,9 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
         for lap in laps:
             if not lap["success"]:
                 crashes[lap["crash"]] = crashes.get(lap["crash"], 0) + 1
-        paper = PAPER_TABLE_IV.get((cell.controller, cell.speed))
+        paper = PAPER_TABLE_IV.get((cell.spec.controller, cell.spec.speed))
         rows.append({
-            "cell": cell.name, "controller": cell.controller, "speed": cell.speed, "course": cell.course,
+            "cell": cell.name, "controller": cell.spec.controller, "speed": cell.spec.speed, "course": cell.spec.course,
             "success_rate": res["aggregate"]["success_rate"], "num_laps": len(laps),
             "lap_time_s": res["aggregate"]["lap_time_s"], "gates_passed": res["aggregate"]["gates_passed"],
             "failures": crashes,
@@ -68,7 +71,7 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
             "mean_position_error_m": float(errors.mean()) if errors.size else None,
             "wall_time_s": res.get("wall_time_s"),
             "paper": {"success_rate": paper[0], "lap_time_s": paper[1:]} if paper else
-            {"sigma_max": PAPER_SIGMA_MAX.get(cell.controller)},
+            {"sigma_max": PAPER_SIGMA_MAX.get(cell.spec.controller)},
         })
     return rows
 
@@ -119,8 +122,8 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
         colours = [np.concatenate([c[:1], c]) if c.size else np.zeros(len(t)) for t, c in zip(trajectories,
                                                                                               covariances)]
         path = out / f"fig9_{cell.name}.png"
-        plot_trajectories(make_course(cell.course), trajectories, path,
-                          title=f"{cell.controller} with the particle filter, {cell.speed:g} m/s, "
+        plot_trajectories(make_course(cell.spec.course), trajectories, path,
+                          title=f"{cell.spec.controller} with the particle filter, {cell.spec.speed:g} m/s, "
                                 f"{len(trajectories)} runs", colour_by=colours,
                           colour_label="position covariance trace [m²]")
         written.append(path)

@@ -23,9 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps import grid, race
+from pixelmpc_jax.apps import grid
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.sim.episode import CONTROL_DT
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+from pixelmpc_jax.strict_json import json_safe, write_json_atomic
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
 AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
@@ -50,8 +52,8 @@ def pixel_cell(model: str, cost: str = "l1", c_pixel: float = 9e6, speed: float 
     extra = "".join(f"_{k.replace('.', '-')}{v:g}" if isinstance(v, float) else f"_{k}{v}"
                     for k, v in sorted(options.items()) if k != "pixel_cost")
     weight = f"{c_pixel:.0e}".replace("e+0", "e").replace("e+", "e")  # 9e6
-    return grid.Cell(f"pixelmpc_{model}_{cost}_c{weight}_tf{t_f:g}_v{speed:g}{extra}", "pixelmpc",
-                     t_f=t_f, c_pixel=c_pixel, pixel_model=model, speed=speed, options=options)
+    return grid.Cell(f"pixelmpc_{model}_{cost}_c{weight}_tf{t_f:g}_v{speed:g}{extra}",
+                     RaceSpec("pixelmpc", t_f=t_f, c_pixel=c_pixel, pixel_model=model, speed=speed, options=options))
 
 
 BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the best weights of the 4-lap sweep at 8 m/s (README)
@@ -78,7 +80,7 @@ def quick_spec() -> FrontierSpec:
 
 
 def nominal_cell(speed: float, max_time_s: float = 60.0) -> grid.Cell:
-    return grid.Cell(f"nominal_{speed:g}", "mppi", speed=float(speed), max_time_s=max_time_s)
+    return grid.Cell(f"nominal_{speed:g}", RaceSpec("mppi", speed=float(speed), max_time_s=max_time_s))
 
 
 def _stats(values: list[float]) -> tuple[float | None, float | None]:
@@ -148,8 +150,9 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         if cell.name not in results:
             missing.append(cell.name)
             continue
-        row = {"name": cell.name, "pixel_model": cell.pixel_model, "speed": cell.speed, "t_f": cell.t_f,
-               "c_pixel": cell.c_pixel, "options": dict(cell.options), "estimator": cell.estimator,
+        spec = cell.spec
+        row = {"name": cell.name, "pixel_model": spec.pixel_model, "speed": spec.speed, "t_f": spec.t_f,
+               "c_pixel": spec.c_pixel, "options": dict(spec.options), "estimator": spec.estimator,
                **summarise(results[cell.name])}
         frontier = interpolate(nominal, row["lap_time_s"])
         row["bracketed"] = frontier is not None
@@ -198,7 +201,7 @@ def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0
 
 def write(frontier: dict, out: Path) -> None:
     out = Path(out)
-    race.write_json_atomic(out / "frontier.json", race.json_safe(frontier))
+    write_json_atomic(out / "frontier.json", json_safe(frontier))
     plot(frontier, out / "frontier.png")
     (out / "REPORT.md").write_text(report(frontier))
 

@@ -1,16 +1,16 @@
 """Experiment grids: named cells of laps, run batched, resumable, reported beside the paper's figures.
 
-A grid is a list of :class:`Cell` (a controller and its settings); each cell flies ``laps`` races
-(seeds ``seed .. seed + laps - 1``, batched with ``vmap``). After every cell the results file is
-rewritten atomically, and a cell already in the file is not recomputed, so an interrupted run resumes.
-A cell is kept only when it was flown with the same settings (:func:`cell_record`), seed, number of laps and
-DOF weights (:func:`dof_weights_hash`) as the new run; otherwise it is flown again and replaced.
+A grid is a list of :class:`Cell` (a name and the race it flies, a :class:`~pixelmpc_jax.apps.spec.RaceSpec`);
+each cell flies ``laps`` laps (seeds ``seed .. seed + laps - 1``, batched with ``vmap``) with the grid's DOF
+weights. After every cell the results file is rewritten atomically, and a cell already in the file is not
+recomputed, so an interrupted run resumes. A finished cell is kept only while the race it recorded has the same
+:meth:`~pixelmpc_jax.apps.spec.RaceSpec.key` as the race asked now (settings, seed, number of laps, DOF
+weights); otherwise it is flown again and replaced.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import time
 from pathlib import Path
@@ -18,30 +18,30 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps import race
+from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.strict_json import write_json_atomic
+
+RUN_FIELDS = ("laps", "seed", "dof_weights")  # a cell's race takes these from the grid run, not from the cell
 
 
 @dataclasses.dataclass(frozen=True)
 class Cell:
-    """One cell of an experiment grid."""
+    """One cell of an experiment grid: its name (the key in ``results.json``) and the race it flies. The race's
+    laps, seed and DOF weights are the grid run's (:func:`run_grid`), so the cell's own stay at their defaults."""
 
     name: str
-    controller: str = "mppi"
-    t_f: float = 1.0
-    c_pixel: float = 9e6
-    pixel_model: str = "dof"
-    speed: float = 14.0
-    estimator: str = "truth"
-    course: str = "alphapilot"
-    max_time_s: float = 60.0
-    options: tuple = ()
+    spec: RaceSpec = RaceSpec()
 
     def __post_init__(self):
-        # options: (name, value) pairs of further controller settings (see race.make_policy), kept sorted
-        # so that the same settings always make the same cell
-        object.__setattr__(self, "options", tuple(sorted((str(k), v) for k, v in dict(self.options).items())))
+        default = RaceSpec()
+        set_here = [f for f in RUN_FIELDS if getattr(self.spec, f) != getattr(default, f)]
+        if set_here:
+            raise ValueError(f"cell {self.name!r} sets {', '.join(set_here)}: a grid cell takes them from the run")
 
-    def key(self) -> str:
-        return self.name
+    def race(self, laps: int, seed: int, dof_weights: str | None) -> RaceSpec:
+        """The race this cell flies in a run of ``laps`` laps from ``seed`` with DOF weights ``dof_weights``
+        (a fingerprint, None for the packaged weights)."""
+        return self.spec.replace(laps=laps, seed=seed, dof_weights=dof_weights)
 
 
 CPU_BATCH = 4  # laps per vmapped batch on the CPU (see default_batch_size)
@@ -66,53 +66,32 @@ def default_batch_size(laps: int) -> int:
 
 
 def cell_record(cell: Cell) -> dict:
-    """The cell's settings as stored in results.json (JSON types: the options as a name -> value mapping)."""
-    record = dataclasses.asdict(cell)
-    record["options"] = dict(cell.options)
-    if not record["options"]:
-        del record["options"]  # cells without options keep the record older results files hold
+    """The cell as stored in results.json (``"config"``): its name and its race's settings in JSON types, less
+    the run's laps, seed and DOF weights (recorded beside them: the laps flown, ``seed``, ``dof_weights_sha256``)."""
+    record = {"name": cell.name, **cell.spec.record()}
+    for field in RUN_FIELDS:
+        del record[field]
     return record
 
 
-def uses_dof(cell: Cell) -> bool:
-    """Whether the cell's controller evaluates the DOF network (PixelMPC with the "dof" pixel model)."""
-    return cell.controller == "pixelmpc" and cell.pixel_model == "dof"
+def recorded_race(done: dict) -> RaceSpec | None:
+    """The race a finished cell's results ``done`` were flown as; None if they name no race this version knows.
+
+    A setting a record lacks counts as its default (older files record fewer settings), and results written
+    before the seed and the weights were recorded count as seed 0 and the packaged weights: the defaults they
+    were flown with."""
+    settings = {k: v for k, v in done.get("config", {}).items() if k != "name"}
+    try:
+        return RaceSpec(**settings, laps=len(done.get("laps", [])), seed=done.get("seed", 0),
+                        dof_weights=done.get("dof_weights_sha256"))
+    except (TypeError, ValueError):  # an unknown setting, no laps
+        return None
 
 
-def dof_weights_hash(params) -> str:
-    """A short fingerprint of DOF weights: the first 16 hex digits of the sha256 of every leaf's dtype, shape
-    and bytes (in ``jax.tree_util.tree_leaves`` order)."""
-    import jax
-
-    digest = hashlib.sha256()
-    for leaf in jax.tree_util.tree_leaves(params):
-        array = np.ascontiguousarray(np.asarray(leaf))
-        digest.update(f"{array.dtype.str}{array.shape}".encode())
-        digest.update(array.tobytes())
-    return digest.hexdigest()[:16]
-
-
-def packaged_dof_hash() -> str:
-    """:func:`dof_weights_hash` of the DOF weights shipped inside the package."""
-    from pixelmpc_jax.dynamics import dof
-
-    return dof_weights_hash(dof.load_packaged_dof())
-
-
-def is_current(done: dict | None, cell: Cell, laps: int, seed: int, dof_hash: str | None,
-               packaged_hash=packaged_dof_hash) -> bool:
-    """Whether a finished cell's results ``done`` answer a run of ``cell`` for ``laps`` laps from ``seed`` with
-    DOF weights of fingerprint ``dof_hash`` (None for a cell that uses no DOF).
-
-    Results written before the seed and the weights were recorded count as seed 0 and the packaged weights
-    (``packaged_hash``: called only for such a record of a DOF cell), the defaults they were flown with."""
-    if not done or len(done.get("laps", [])) != laps or done.get("config") != cell_record(cell):
-        return False
-    if done.get("seed", 0) != seed:
-        return False
-    if "dof_weights_sha256" in done:
-        return done["dof_weights_sha256"] == dof_hash
-    return dof_hash is None or dof_hash == packaged_hash()
+def is_current(done: dict | None, spec: RaceSpec) -> bool:
+    """Whether a finished cell's results ``done`` answer the race ``spec``: the same :meth:`RaceSpec.key`."""
+    flown = recorded_race(done) if done else None
+    return flown is not None and flown.key() == spec.key()
 
 
 def load_results(out: Path) -> dict:
@@ -121,42 +100,23 @@ def load_results(out: Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {}
 
 
-def _fingerprints(dof_params):
-    """``(run_hash, packaged_hash)``: callables giving the fingerprint of the weights a DOF cell flies with
-    (``dof_params``, or the packaged weights when None) and of the packaged weights, each computed once."""
-    hashes: dict[str, str] = {}
-
-    def packaged_hash() -> str:
-        if "packaged" not in hashes:
-            hashes["packaged"] = packaged_dof_hash()
-        return hashes["packaged"]
-
-    def run_hash() -> str:
-        if "run" not in hashes:
-            hashes["run"] = packaged_hash() if dof_params is None else dof_weights_hash(dof_params)
-        return hashes["run"]
-
-    return run_hash, packaged_hash
-
-
 def current_results(cells: list[Cell], out: Path, laps: int, seed: int = 0, dof_params=None) -> dict:
     """``{cell name: race results}`` of the cells in ``out/results.json`` that answer a run of ``cells`` with
     ``laps``, ``seed`` and ``dof_params`` (:func:`is_current`): what :func:`run_grid` would keep."""
     results = load_results(out)
-    run_hash, packaged_hash = _fingerprints(dof_params)
-    return {cell.key(): results[cell.key()] for cell in cells
-            if is_current(results.get(cell.key()), cell, laps, seed, run_hash() if uses_dof(cell) else None,
-                          packaged_hash)}
+    weights = None if dof_params is None else dof_weights_hash(dof_params)
+    return {cell.name: results[cell.name] for cell in cells
+            if is_current(results.get(cell.name), cell.race(laps, seed, weights))}
 
 
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
              progress: bool = True, dof_params=None) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
 
-    A cell in the file is kept only if it was flown with the same settings, ``laps``, ``seed`` and DOF weights
-    (``dof_params``, or the packaged weights when None) as asked now (see :func:`is_current`); each cell's
-    results record its ``seed`` and ``dof_weights_sha256`` (:func:`dof_weights_hash`, null for a cell that
-    uses no DOF).
+    Each cell flies its race with ``laps``, ``seed`` and the DOF weights ``dof_params`` (None: the packaged
+    weights). A cell in the file is kept only if it recorded the same race (see :func:`is_current`); each cell's
+    results record its settings (``config``, :func:`cell_record`), ``seed`` and ``dof_weights_sha256``
+    (:func:`~pixelmpc_jax.apps.spec.dof_weights_hash`, null for a cell that uses no DOF).
 
     ``batch_size`` laps fly in one vmapped batch (default :func:`default_batch_size`); a lap's result does
     not depend on it (lap i always uses seed ``seed + i``).
@@ -170,20 +130,16 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     path = out / "results.json"
     results = load_results(out)
     batch_size = batch_size or default_batch_size(laps)
-    run_hash, packaged_hash = _fingerprints(dof_params)
+    weights = None if dof_params is None else dof_weights_hash(dof_params)
     for cell in cells:
-        done = results.get(cell.key())
-        dof_hash = run_hash() if uses_dof(cell) else None
-        if is_current(done, cell, laps, seed, dof_hash, packaged_hash):
+        spec = cell.race(laps, seed, weights)
+        done = results.get(cell.name)
+        if is_current(done, spec):
             if progress:
                 print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
             continue
         start = time.perf_counter()
-        res = race.run_laps(controller=cell.controller, speed=cell.speed, laps=laps, seed=seed, out=None,
-                            batch_size=batch_size, max_time_s=cell.max_time_s, progress=progress,
-                            pixel_model=cell.pixel_model, t_f=cell.t_f, c_pixel=cell.c_pixel,
-                            dof_params=dof_params, estimator=cell.estimator, course=cell.course,
-                            options=dict(cell.options))
+        res = race.run_laps(spec, batch_size=batch_size, progress=progress, dof_params=dof_params)
         trajectories = res.pop("trajectories")
         covariances = res.pop("covariances")
         if res.get("interrupted") or len(res["laps"]) < laps:  # interrupted inside the cell: keep what is done
@@ -191,10 +147,10 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
                                     f"{path}; run again to resume")
         res["config"] = cell_record(cell)
         res["seed"] = seed
-        res["dof_weights_sha256"] = dof_hash
+        res["dof_weights_sha256"] = spec.dof_fingerprint()
         res["wall_time_s"] = time.perf_counter() - start
-        results[cell.key()] = res
-        race.write_json_atomic(path, results)
+        results[cell.name] = res
+        write_json_atomic(path, results)
         np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
         if covariances:
             np.savez_compressed(out / f"covariances_{cell.name}.npz", *covariances)

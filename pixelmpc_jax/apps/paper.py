@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -42,11 +43,12 @@ C_PIXEL_VALUES = (3e6, 6e6, 9e6)
 def visibility_cells(pixel_model: str = "dof", speed: float = 14.0, t_f_values=T_F_VALUES,
                      c_pixel_values=C_PIXEL_VALUES) -> list[Cell]:
     """Nominal MPPI, then PixelMPC over the t_f x c_pixel grid."""
-    cells = [Cell("mppi", controller="mppi", t_f=0.0, c_pixel=0.0, speed=speed)]
+    cells = [Cell("mppi", RaceSpec(controller="mppi", t_f=0.0, c_pixel=0.0, speed=speed))]
     for t_f in t_f_values:
         for c_pixel in c_pixel_values:
-            cells.append(Cell(f"pixelmpc_{pixel_model}_tf{t_f:g}_c{c_pixel:.0e}", controller="pixelmpc", t_f=t_f,
-                              c_pixel=c_pixel, pixel_model=pixel_model, speed=speed))
+            cells.append(Cell(f"pixelmpc_{pixel_model}_tf{t_f:g}_c{c_pixel:.0e}",
+                              RaceSpec(controller="pixelmpc", t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model,
+                                       speed=speed)))
     return cells
 
 
@@ -62,18 +64,18 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
         res = results.get(cell.name)
         if res is None:
             continue
-        agg = res["aggregate"]
+        agg, spec = res["aggregate"], cell.spec
         rows.append({
-            "cell": cell.name, "t_f": cell.t_f, "c_pixel": cell.c_pixel, "pixel_model": cell.pixel_model,
+            "cell": cell.name, "t_f": spec.t_f, "c_pixel": spec.c_pixel, "pixel_model": spec.pixel_model,
             "success_rate": agg["success_rate"], "num_laps": agg["num_laps"],
             "time_vis_below_50_s": agg["time_vis_below_50_s"], "time_vis_zero_s": agg["time_vis_zero_s"],
             "lap_time_s": agg["lap_time_s"], "mean_linear_acc": agg["mean_linear_acc"],
             "mean_angular_acc": agg["mean_angular_acc"], "total_variation_roll": agg["total_variation_roll"],
             "total_variation_pitch": agg["total_variation_pitch"], "total_variation_yaw": agg["total_variation_yaw"],
             "wall_time_s": res.get("wall_time_s"),
-            "paper": {"time_vis_below_50_s": PAPER_VIS_BELOW_50.get((cell.t_f, cell.c_pixel)),
-                      "time_vis_zero_s": PAPER_VIS_ZERO.get((cell.t_f, cell.c_pixel)),
-                      "lap_time_s": PAPER_LAP_TIME.get((cell.t_f, cell.c_pixel))},
+            "paper": {"time_vis_below_50_s": PAPER_VIS_BELOW_50.get((spec.t_f, spec.c_pixel)),
+                      "time_vis_zero_s": PAPER_VIS_ZERO.get((spec.t_f, spec.c_pixel)),
+                      "lap_time_s": PAPER_LAP_TIME.get((spec.t_f, spec.c_pixel))},
         })
     return rows
 

@@ -11,13 +11,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from pixelmpc_jax.apps.spec import COURSES, RaceSpec
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
-from pixelmpc_jax.sim.controllers import make_policy
-from pixelmpc_jax.strict_json import json_safe, write_json_atomic  # noqa: F401 (json_safe: re-exported)
+from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world import track as track_lib
-
-COURSES = ("alphapilot", "straight")
 
 
 def make_course(course: str = "alphapilot") -> track_lib.Track:
@@ -41,75 +39,56 @@ def lap_worlds(base: episode_lib.World, seeds: list[int], perturb: bool) -> epis
     return episode_lib.stack_worlds(worlds)
 
 
-def run_laps(
-    controller: str = "mppi",
-    speed: float = 14.0,
-    laps: int = 1,
-    seed: int = 0,
-    out: Path | None = None,
-    batch_size: int = 1,
-    perturb: bool = False,
-    max_time_s: float = 60.0,
-    progress: bool = True,
-    temperature: float | None = None,
-    num_samples: int = 512,
-    pixel_model: str = "dof",
-    detector: str = "geometry",
-    t_f: float = 1.0,
-    c_pixel: float = 9e6,
-    dof_params=None,
-    estimator: str = "truth",
-    video: bool = False,
-    course: str = "alphapilot",
-    options: dict | None = None,
-) -> dict:
-    """Fly ``laps`` laps (seeds ``seed .. seed + laps - 1``) and return ``{"laps": [...], "aggregate": {...}}``.
+def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progress: bool = True,
+             video: bool = False, dof_params=None) -> dict:
+    """Fly the race ``spec`` and return ``{"laps": [...], "aggregate": {...}}`` with its settings.
 
-    Lap i uses PRNG key ``seed + i`` for the plant noise and the controller, so a lap is reproducible on
-    its own and a batch gives the same per-lap result as single runs. ``course`` names the course (see
-    :func:`make_course`), ``options`` further controller settings (see :func:`make_policy`). The result also
-    holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its position
-    covariance at each tick (``covariances``). Laps fly ``batch_size`` at a time; a last, smaller batch is padded
-    to that size (its copies dropped), so the batched episode compiles once. ``interrupted`` is True when
-    Ctrl-C stopped the run: the laps finished before it are kept (and in ``out/metrics.json``).
+    Lap i uses PRNG key ``spec.seed + i`` for the plant noise and the controller, so a lap is reproducible on
+    its own and a batch gives the same per-lap result as single runs. ``dof_params`` are the DOF weights the
+    spec names (None: the packaged weights; a ValueError if their fingerprint is not the spec's). The result
+    also holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its
+    position covariance at each tick (``covariances``). Laps fly ``batch_size`` at a time; a last, smaller batch
+    is padded to that size (its copies dropped), so the batched episode compiles once. With ``out``,
+    ``metrics.json`` is rewritten after every batch, ``trajectories.png`` drawn at the end and, with ``video``,
+    the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C stopped the run: the laps
+    finished before it are kept (and in ``out/metrics.json``).
     """
-    if not (isinstance(speed, (int, float)) and 0 < speed < float("inf")):
-        raise ValueError(f"speed must be a positive finite number of m/s, got {speed!r}")
-    if not (isinstance(laps, int) and laps > 0):
-        raise ValueError(f"laps must be a positive integer, got {laps!r}")
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-    policy = make_policy(controller, temperature, num_samples, pixel_model, t_f, c_pixel, options)
-    episode_config = episode_lib.EpisodeConfig(max_time_s=max_time_s, detector=detector, estimator=estimator)
+    spec.check_weights(dof_params)
+    policy = spec.policy()
+    episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
+                                               estimator=spec.estimator)
     runner = episode_lib.make_runner(policy, episode_config)
-    if controller == "pixelmpc" and pixel_model == "dof" and dof_params is None:
+    if spec.uses_dof and dof_params is None:
         from pixelmpc_jax.dynamics import dof
 
         dof_params = dof.load_packaged_dof()
-    base = episode_lib.make_world(track=make_course(course), target_speed=float(speed), dof=dof_params)
-    results: dict = {"controller": policy.name, "speed": speed, "seed": seed, "perturb": perturb,
-                     "detector": detector, "estimator": estimator, "course": course, "laps": [], "aggregate": {},
-                     "interrupted": False}
-    if controller == "pixelmpc":
-        results.update(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
-    if options:
-        results["options"] = dict(options)
+    base = episode_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
+    results: dict = {"controller": policy.name, "speed": spec.speed, "seed": spec.seed, "perturb": spec.perturb,
+                     "detector": spec.detector, "estimator": spec.estimator, "course": spec.course, "laps": [],
+                     "aggregate": {}, "interrupted": False}
+    if spec.controller == "pixelmpc":
+        results.update(t_f=spec.t_f, c_pixel=spec.c_pixel, pixel_model=spec.pixel_model)
+    if spec.options:
+        results["options"] = dict(spec.options)
     trajectories: list[np.ndarray] = []
     covariances: list[np.ndarray] = []
+    laps, seed = spec.laps, spec.seed
     seeds = list(range(seed, seed + laps))
     batch_size = min(batch_size, laps)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=laps, desc=f"{controller} @ {speed:g} m/s", unit="lap")
+        bar = tqdm(total=laps, desc=f"{spec.controller} @ {spec.speed:g} m/s", unit="lap")
     try:
         for first in range(0, laps, batch_size):
             chunk = seeds[first:first + batch_size]
             # the last chunk is padded to a whole batch (its last lap repeated, the copies dropped) so that
             # every batch has one shape and the vmapped episode compiles once
             padded = chunk + chunk[-1:] * (batch_size - len(chunk))
-            worlds = lap_worlds(base, padded, perturb)
+            worlds = lap_worlds(base, padded, spec.perturb)
             keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
             logs = metrics_lib.unbatch(runner.batch(worlds, keys))[:len(chunk)]
             for lane, (lap_seed, log) in enumerate(zip(chunk, logs)):
@@ -119,7 +98,7 @@ def run_laps(
                     write_onboard_video(base.track, log, Path(out) / "onboard.mp4", base.camera)
                 lap_track = jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], worlds.track)
                 lap = metrics_lib.lap_metrics(log, track=lap_track, camera=base.camera)
-                if estimator == "pf":
+                if spec.estimator == "pf":
                     n = int(log.num_ticks)
                     lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
                     errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
@@ -147,7 +126,7 @@ def run_laps(
             bar.close()
     if out is not None and trajectories:
         plot_trajectories(base.track, trajectories, Path(out) / "trajectories.png",
-                          title=f"{controller}, target {speed:g} m/s, {len(trajectories)} lap(s)")
+                          title=f"{spec.controller}, target {spec.speed:g} m/s, {len(trajectories)} lap(s)")
     results["trajectories"] = trajectories
     results["covariances"] = covariances
     return results

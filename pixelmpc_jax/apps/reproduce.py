@@ -153,7 +153,7 @@ def _read_state(path: Path) -> dict:
 
 def reproduce(parts: list[str], out: Path, quick: bool = False, progress: bool = True) -> dict:
     """Run the named parts (aliases allowed) into ``out`` and write ``out/REPORT.md``; returns the state."""
-    from pixelmpc_jax.apps.race import write_json_atomic
+    from pixelmpc_jax.strict_json import write_json_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
