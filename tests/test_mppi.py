@@ -294,3 +294,88 @@ def test_batch_cost_gives_the_same_rollout_costs_as_the_one_sample_cost():
     x1 = double_integrator(x0, controls[0, 0], goal)
     np.testing.assert_allclose(BatchCost(batch_goal_cost)(x1, controls[0, 0], 0, goal),
                                goal_cost(x1, controls[0, 0], 0, goal), rtol=1e-6)
+
+
+def test_batched_rollout_gives_the_per_step_costs():
+    """The "batched" rollout (dynamics scanned, costs after, once over all steps) and the "per_step" one (costs
+    inside the scan) charge every sample the same total, for one-sample, batch and trajectory costs and with a
+    prefix whose cost differs from the main one."""
+    from pixelmpc_jax.control.mppi import BatchCost, Prefix, TrajectoryCost, rollout_costs
+
+    goal = jnp.asarray([1.0, -0.5])
+
+    def batch_goal_cost(X, U, t, goal):
+        return jax.vmap(goal_cost, in_axes=(0, 0, None, None))(X, U, t, goal) * (1.0 + t)
+
+    def trajectory_goal_cost(X, U, steps, goal):  # (T, N, n) -> (T, N)
+        return jax.vmap(batch_goal_cost, in_axes=(0, 0, 0, None))(X, U, steps, goal)
+
+    prefix = Prefix(4, lambda x, u, p: double_integrator(x, 2.0 * u, p), lambda x, u, t, g: 3.0 * goal_cost(x, u, t, g))
+    controls = jax.random.normal(jax.random.PRNGKey(3), (16, 12, 2))
+    x0 = jnp.asarray([0.0, 0.0, 0.3, 0.0])
+    for cost in (goal_cost, BatchCost(batch_goal_cost), TrajectoryCost(trajectory_goal_cost)):
+        for pre in (None, prefix):
+            per_step = rollout_costs(double_integrator, cost, None, x0, controls, goal, pre, rollout="per_step")
+            batched = rollout_costs(double_integrator, cost, None, x0, controls, goal, pre, rollout="batched")
+            np.testing.assert_allclose(batched, per_step, rtol=1e-6)
+    expected = rollout_costs(double_integrator, BatchCost(batch_goal_cost), None, x0, controls, goal)
+    got = rollout_costs(double_integrator, TrajectoryCost(trajectory_goal_cost), None, x0, controls, goal)
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    # the step costs really depend on the step index: a trajectory cost that ignored it would differ
+    flat = rollout_costs(double_integrator, goal_cost, None, x0, controls, goal)
+    assert not np.allclose(expected, flat)
+    with pytest.raises(ValueError, match="rollout must be one of"):
+        rollout_costs(double_integrator, goal_cost, None, x0, controls, goal, rollout="fused")
+
+
+def test_the_two_rollouts_give_the_same_step():
+    """The batched controller takes the per-step one's steps from the same key and state: equal plans within
+    float rounding (the noise, the weights and the update do not depend on the rollout)."""
+    base = dict(num_samples=64, horizon=10, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-3.0, -3.0), u_max=(3.0, 3.0))
+    goal = jnp.asarray([1.0, 1.0])
+    reference = make_mppi(MPPIConfig(**base, rollout="per_step"), double_integrator, goal_cost)
+    ctrl = make_mppi(MPPIConfig(**base), double_integrator, goal_cost)
+    assert ctrl.config.rollout == "batched"  # the default
+    s_ref = reference.init(jax.random.PRNGKey(4), jnp.zeros(2))
+    s = ctrl.init(jax.random.PRNGKey(4), jnp.zeros(2))
+    x = jnp.asarray([0.2, -0.1, 0.0, 0.3])
+    for _ in range(3):
+        u_ref, s_ref, info_ref = reference.step(s_ref, x, goal)
+        u, s, info = ctrl.step(s, x, goal)
+        np.testing.assert_allclose(info.costs, info_ref.costs, rtol=1e-6)
+        np.testing.assert_allclose(s.plan, s_ref.plan, atol=1e-6)
+        np.testing.assert_allclose(u, u_ref, atol=1e-6)
+        x = double_integrator(x, u, None)
+    with pytest.raises(ValueError, match="rollout"):
+        MPPIConfig(**base, rollout="fused")
+
+
+def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works():
+    from pixelmpc_jax.control.mppi import TrajectoryCost
+
+    config = MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
+    per_sample = TrajectoryCost(lambda X, U, steps, goal: jnp.sum(X, axis=0))  # (N, n): one row per sample, not step
+    ctrl = make_mppi(config, double_integrator, per_sample)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"shape \(T, N\) = \(4, 16\); it returned shape \(16, 4\)"):
+        ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
+    ctrl = make_mppi(MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0), rollout="per_step"),
+                     double_integrator, per_sample)
+    with pytest.raises(ValueError, match=r"shape \(T, N\) = \(1, 16\)"):  # step by step: T = 1
+        ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
+    squared = TrajectoryCost(lambda X, U, steps, goal: jnp.sum(X**2, axis=-1) + steps[:, None])
+    x = jnp.asarray([1.0, 2.0, 0.0, 0.5])
+    np.testing.assert_allclose(squared(x, jnp.zeros(2), 3, None), 1.0 + 4.0 + 0.25 + 3.0, rtol=1e-6)
+
+
+def test_batched_step_is_the_same_with_and_without_jit():
+    cfg = MPPIConfig(num_samples=32, horizon=8, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-2.0, -2.0), u_max=(2.0, 2.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(1), jnp.zeros(2))
+    x, goal = jnp.asarray([0.1, 0.0, 0.0, 0.2]), jnp.asarray([1.0, -1.0])
+    u_jit, s_jit, info_jit = ctrl.step(state, x, goal)
+    with jax.disable_jit():
+        u_eager, s_eager, info_eager = ctrl.step_pure(state, x, goal)
+    np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-5)
+    np.testing.assert_allclose(s_eager.plan, s_jit.plan, atol=1e-5)
+    np.testing.assert_allclose(u_eager, u_jit, atol=1e-5)

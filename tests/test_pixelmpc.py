@@ -1,5 +1,7 @@
 """PixelMPC: one compiled step over robot + pixel; the t_f prefix equals the full-horizon computation."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -160,3 +162,91 @@ def test_pixel_cost_clip_and_dead_zone():
         PM.PixelMPCConfig(pixel_deadzone=0.5)
     with pytest.raises(ValueError, match="pixel_error_clip"):
         PM.PixelMPCConfig(pixel_error_clip=0.0)
+
+
+def _reference_and_batched(config_of):
+    """Controllers built with the former step-by-step costs ("per_step") and with the default ("batched")."""
+    return (config_of(dataclasses.replace(SMALL, rollout="per_step")), config_of(SMALL))
+
+
+@pytest.mark.parametrize("model", ["nominal", "dof", "projection"])
+def test_batched_step_gives_the_reference_plan(setup, model):
+    """For a fixed key and state, the default step (dynamics scanned, costs over the whole horizon at once) gives
+    the reference step's sample costs, plan and control within float rounding, over a few ticks of a closed
+    loop, with the shipped DOF weights and the AlphaPilot course."""
+    track, _ = setup
+    dof_params = dof.load_packaged_dof()
+    u_init = Q.hover_control(Q.QuadParams())
+    if model == "nominal":
+        ctrls = [PM.make_nominal_mppi(c) for c in _reference_and_batched(lambda m: m)]
+        params = costs.racing_params(track, jnp.linspace(0.0, 20.0, SMALL.horizon), 14.0, costs.RacingCostConfig())
+        x = state(track)[:10]
+    else:
+        configs = _reference_and_batched(lambda m: PM.PixelMPCConfig(mppi=m, t_f=0.25, pixel_model=model))
+        ctrls = [PM.make_pixelmpc(c) for c in configs]
+        params = make_params(track, dof_params, configs[1])
+        x = state(track)
+    assert [c.config.rollout for c in ctrls] == ["per_step", "batched"]
+    states = [c.init(jax.random.PRNGKey(5), u_init) for c in ctrls]
+    for _ in range(3):
+        (u_ref, s_ref, i_ref), (u, s, info) = (c.step(st, x, params) for c, st in zip(ctrls, states, strict=True))
+        np.testing.assert_allclose(info.costs, i_ref.costs, rtol=2e-5)
+        np.testing.assert_allclose(s.plan, s_ref.plan, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(u, u_ref, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(info.nominal_trajectory, i_ref.nominal_trajectory, rtol=1e-4, atol=1e-4)
+        states = [s_ref, s]
+        x = x.at[:10].set(Q.step(x[:10], u, SMALL.dt, Q.QuadParams()))
+    assert ctrls[1].num_compilations() == 1
+
+
+def test_batched_pixelmpc_step_is_the_same_with_and_without_jit(setup):
+    track, dof_params = setup
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25)
+    ctrl = PM.make_pixelmpc(config)
+    s = ctrl.init(jax.random.PRNGKey(2), Q.hover_control(Q.QuadParams()))
+    params = make_params(track, dof_params, config)
+    u_jit, s_jit, info_jit = ctrl.step(s, state(track), params)
+    with jax.disable_jit():
+        u_eager, s_eager, info_eager = ctrl.step_pure(s, state(track), params)
+    np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-4)
+    np.testing.assert_allclose(s_eager.plan, s_jit.plan, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("cfg", [costs.RacingCostConfig(),
+                                 costs.RacingCostConfig(heading_weight=0.3, progress_weight=0.0, max_tilt_deg=None)])
+def test_racing_costs_over_the_horizon_equal_each_step_on_its_own(setup, cfg):
+    """racing_costs (all steps and samples at once, short axes unrolled) gives racing_cost_batch's numbers at each
+    step: crashes into a gate frame, the floor and a tilt included, with and without the heading and progress terms."""
+    track, _ = setup
+    steps = 6
+    params = costs.racing_params(track, jnp.linspace(0.0, 20.0, steps), 14.0, cfg)
+    key_p, key_q, key_v = jax.random.split(jax.random.PRNGKey(12), 3)
+    n = 48
+    path = track.path_points[jnp.linspace(0, 80, steps * n).astype(jnp.int32)]
+    pos = path + 1.5 * jax.random.normal(key_p, (steps * n, 3))
+    pos = pos.at[0].set(track.gates.centre[0] + jnp.asarray([0.0, 0.0, 0.5 * float(track.gates.height[0]) + 0.1]))
+    pos = pos.at[1, 2].set(-1.0)  # below the floor
+    q = Q.normalize_quat(jnp.asarray([1.0, 0.0, 0.0, 0.0]) + 0.6 * jax.random.normal(key_q, (steps * n, 4)))
+    v = 8.0 * jax.random.normal(key_v, (steps * n, 3))
+    X = jnp.concatenate([pos, q, v, jnp.zeros((steps * n, 2))], axis=1).reshape(steps, n, 12)
+    got = costs.racing_costs(X, jnp.arange(steps), params, cfg)
+    expected = jnp.stack([costs.racing_cost_batch(X[t], t, params, cfg) for t in range(steps)])
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
+    assert float(got[0, 0]) >= cfg.c1 * cfg.crash_value**2 and float(got[0, 1]) >= cfg.c1 * cfg.crash_value**2
+    # a window of later steps: steps index the params, not the rows
+    np.testing.assert_allclose(costs.racing_costs(X[3:], jnp.arange(3, steps), params, cfg), expected[3:], rtol=1e-5)
+
+
+def test_racing_constants_computed_once_give_the_same_params(setup):
+    track, _ = setup
+    cfg = costs.RacingCostConfig()
+    constants = jax.jit(costs.racing_constants, static_argnames="config")(track, cfg)
+    progress = jnp.linspace(3.0, 30.0, 7)
+    built = jax.jit(costs.racing_params, static_argnames="config")
+    fresh, reused = built(track, progress, 12.0, cfg), built(track, progress, 12.0, cfg, constants)
+    for a, b in zip(jax.tree_util.tree_leaves(fresh), jax.tree_util.tree_leaves(reused), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(constants.attributes[:, 3], costs.speed_cap(track, cfg)[::cfg.path_stride])
+    other = costs.racing_constants(track, dataclasses.replace(cfg, path_stride=2))
+    with pytest.raises(ValueError, match="racing_constants"):
+        costs.racing_params(track, progress, 12.0, cfg, other)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -35,6 +36,7 @@ def waypoint_cost(x: jax.Array, u: jax.Array, waypoint: jax.Array, weights: Wayp
     c = w_p |p - p_d|^2 + w_v |v|^2 + w_tilt (qx^2 + qy^2) + w_yaw (1 - cos(yaw - yaw_d)) + w_r |w|^2,
     where ``qx^2 + qy^2 = (1 - R_33) / 2`` measures the tilt of the body z axis from world up.
     """
+    chex.assert_shape([x, waypoint], [(quadrotor.STATE_DIM,), (4,)])
     p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
     position_error = p - waypoint[:3]
     yaw = quadrotor.euler_angles(q)[2]
@@ -146,8 +148,39 @@ class RacingParams:
     target_speed: jax.Array
 
 
-def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed, config: RacingCostConfig
-                  ) -> RacingParams:
+@struct.dataclass
+class RacingConstants:
+    """The racing cost's inputs that depend only on the track and the config: built once per track and
+    config by :func:`racing_constants` and handed to :func:`racing_params` at every tick (which otherwise
+    rebuilds them, the speed cap's curvature search included, every time).
+
+    Attributes:
+        points: (P', 3) every ``path_stride``-th sample of the track's path.
+        arc: (P',) their arc length, m.
+        attributes: (P', 4) the unit path tangents there and, in column 3, the speed cap (m/s).
+        spacing: () distance between consecutive points, m.
+    """
+
+    points: jax.Array
+    arc: jax.Array
+    attributes: jax.Array
+    spacing: jax.Array
+
+
+def racing_constants(track: track_lib.Track, config: RacingCostConfig) -> RacingConstants:
+    """The per-track constants of the racing cost (jit-able; compute once per track and config)."""
+    stride = config.path_stride
+    cap = speed_cap(track, config)[::stride]
+    return RacingConstants(
+        points=track.path_points[::stride],
+        arc=track.path_s[::stride],
+        attributes=jnp.concatenate([track.path_tangents[::stride], cap[:, None]], axis=1),  # (P', 4)
+        spacing=track.path_spacing * stride,
+    )
+
+
+def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed, config: RacingCostConfig,
+                  constants: RacingConstants | None = None) -> RacingParams:
     """Cut each horizon step's window of the desired path (jit-able).
 
     Args:
@@ -156,24 +189,24 @@ def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed
             plan predicts for that step (a scalar is broadcast to every step, e.g. at the first tick).
         target_speed: () m/s.
         config: the cost's static settings.
+        constants: :func:`racing_constants` of this track and config, computed once; None computes them here.
     """
-    stride = config.path_stride
-    points = track.path_points[::stride]
-    tangents = track.path_tangents[::stride]
-    spacing = track.path_spacing * stride
-    cap = speed_cap(track, config)[::stride]
-    tangents = jnp.concatenate([tangents, cap[:, None]], axis=1)  # (P', 4)
+    expected_points = -(-track.num_path_points // config.path_stride)
+    if constants is None:
+        constants = racing_constants(track, config)
+    elif constants.points.shape != (expected_points, 3):
+        raise ValueError(f"constants hold {constants.points.shape[0]} path points, but this track with path_stride "
+                         f"{config.path_stride} has {expected_points}: build them with racing_constants(track, config)")
+    points, arc, attributes = constants.points, constants.arc, constants.attributes
     length = min(config.window_length(float(track_lib.PATH_SPACING)), points.shape[0])
     step_progress = jnp.atleast_1d(jnp.asarray(step_progress, jnp.float32))
-    first = jnp.floor((step_progress - config.window_behind_m) / spacing).astype(jnp.int32)
+    first = jnp.floor((step_progress - config.window_behind_m) / constants.spacing).astype(jnp.int32)
     starts = jnp.clip(first, 0, points.shape[0] - length)  # (T,)
-
-    arc = track.path_s[::stride]
 
     def window(start):
         return (jax.lax.dynamic_slice_in_dim(points, start, length).T,
                 jax.lax.dynamic_slice_in_dim(arc, start, length),
-                jax.lax.dynamic_slice_in_dim(tangents, start, length).T)
+                jax.lax.dynamic_slice_in_dim(attributes, start, length).T)
 
     path_xyz, path_s, tangent_xyz = jax.vmap(window)(starts)
     return RacingParams(
@@ -225,6 +258,8 @@ def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Arra
     Returns:
         distance: (N,) to the chosen segment; attributes: (C, N).
     """
+    chex.assert_shape([path_xyz, p], [(3, None), (3, None)])
+    chex.assert_equal_shape_suffix([path_xyz, tangent_xyz], 1)  # (., L) both
     a = path_xyz[:, :-1]  # (3, S), S = L - 1 segments
     ab = path_xyz[:, 1:] - a
     len2 = jnp.maximum(jnp.sum(ab * ab, axis=0), 1e-12)  # (S,)
@@ -247,6 +282,7 @@ def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Arra
 
 def crashed(p: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
     """(N,) bool for points p (3, N): inside a gate frame's volume, below the floor or outside the hall."""
+    chex.assert_rank(p, 2)
     gates = params.gates
     r = config.vehicle_radius
     offset = p[:, None, :] - gates.centre.T[:, :, None]  # (3, G, N)
@@ -283,17 +319,13 @@ def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: 
     The work runs with the samples on the last axis (see :func:`closest_on_polyline`); that layout makes
     the cost about 1.6x faster on a CPU than a ``vmap`` of a one-state version (README, "Racing cost layout").
     """
+    chex.assert_rank(X, 2)
     x = X[:, :quadrotor.STATE_DIM].T  # (10, N)
     p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
     distance, attributes = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p, params.path_s[t],
                                                params.expected_s[t], config.progress_weight)
     tangent, cap = attributes[:3], attributes[3]
-    h = jnp.minimum(distance / config.corridor_halfwidth, 1.0)
-    crash = crashed(p, params, config)
-    if config.max_tilt_deg is not None:
-        cos_tilt = 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2)  # R_33: body z against world z
-        crash = crash | (cos_tilt < math.cos(math.radians(config.max_tilt_deg)))
-    h = jnp.where(crash, config.crash_value, h)
+    h = _path_term(distance, crashed(p, params, config), q, config)
     attitude_error = attitude_distance(desired_attitude(tangent), q)
     if config.heading_weight < 1.0:
         own_heading = jnp.stack([2.0 * (q[0] * q[3] + q[1] * q[2]), 1.0 - 2.0 * (q[2] ** 2 + q[3] ** 2)])  # yaw
@@ -302,6 +334,137 @@ def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: 
                           + (1.0 - config.heading_weight) * attitude_distance(level, q))
     velocity_error = jnp.sum((jnp.minimum(params.target_speed, cap) * tangent - v) ** 2, axis=0)
     return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
+
+
+def _path_term(distance: jax.Array, crash: jax.Array, q, config: RacingCostConfig) -> jax.Array:
+    """h of Eq. (19): min(distance / corridor_halfwidth, 1), or ``crash_value`` on a crash (``crash``, or a tilt
+    of the attitude q = [qw, qx, qy, qz] beyond ``max_tilt_deg``)."""
+    h = jnp.minimum(distance / config.corridor_halfwidth, 1.0)
+    if config.max_tilt_deg is not None:
+        cos_tilt = 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2)  # R_33: body z against world z
+        crash = crash | (cos_tilt < math.cos(math.radians(config.max_tilt_deg)))
+    return jnp.where(crash, config.crash_value, h)
+
+
+def racing_costs(X: jax.Array, steps: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
+    """Eq. (19) for a whole batch of predicted states at once: ``X`` (T, N, >= 10) at horizon steps ``steps``
+    (T,) -> (T, N), the numbers :func:`racing_cost_batch` gives step by step (up to float rounding).
+
+    Every operation is elementwise over the (T, N) batch: the short axes (coordinates, the window's
+    segments, the gates, quaternion components) are unrolled here rather than reduced, so XLA fuses the
+    cost into a few loop kernels over all T x N samples instead of running small reductions at every
+    step. The work per sample is the same as :func:`racing_cost_batch`'s.
+    """
+    chex.assert_rank(X, 3)
+    chex.assert_type(X, float)
+    chex.assert_shape(steps, X.shape[:1])
+    if X.shape[-1] < quadrotor.STATE_DIM:
+        raise ValueError(f"X must hold the {quadrotor.STATE_DIM}-state quadrotor first on its last axis, got "
+                         f"shape {X.shape}")
+    comp = [X[..., i] for i in range(quadrotor.STATE_DIM)]  # (T, N) each
+    p, q, v = comp[0:3], comp[3:7], comp[7:10]
+    distance, tangent, cap = _closest_on_windows(params, steps, p, config.progress_weight)
+    h = _path_term(distance, _crashed_elementwise(p, params, config), q, config)
+    attitude_error = _attitude_distance_elementwise(_desired_attitude_elementwise(tangent[0], tangent[1]), q)
+    if config.heading_weight < 1.0:
+        heading_y = 2.0 * (q[0] * q[3] + q[1] * q[2])  # the vehicle's own heading (yaw)
+        heading_x = 1.0 - 2.0 * (q[2] ** 2 + q[3] ** 2)
+        level = _desired_attitude_elementwise(heading_x, heading_y)
+        attitude_error = (config.heading_weight * attitude_error
+                          + (1.0 - config.heading_weight) * _attitude_distance_elementwise(level, q))
+    speed = jnp.minimum(params.target_speed, cap)
+    velocity_error = _sum3([(speed * tangent[i] - v[i]) ** 2 for i in range(3)])
+    return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
+
+
+def _sum3(terms):
+    """a + b + c (left to right) of three equally shaped arrays."""
+    return terms[0] + terms[1] + terms[2]
+
+
+def _closest_on_windows(params: RacingParams, steps: jax.Array, p: list, progress_weight: float):
+    """:func:`closest_on_polyline` for points p = [x, y, z] (T, N) each, step t's against its own window.
+
+    Returns distance (T, N), the unit tangent [tx, ty, tz] and the speed cap, (T, N) each.
+    """
+    path = jnp.take(params.path_xyz, steps, axis=0)  # (T, 3, L)
+    attributes = jnp.take(params.tangent_xyz, steps, axis=0)  # (T, C, L)
+    arc = jnp.take(params.path_s, steps, axis=0)  # (T, L)
+    expected = jnp.take(params.expected_s, steps, axis=0)[:, None]  # (T, 1)
+    # per-step, per-segment constants (T, S), broadcast over the samples as (T, 1) columns
+    start = path[:, :, :-1]
+    delta = path[:, :, 1:] - start
+    len2 = jnp.maximum(_sum3([delta[:, i] ** 2 for i in range(3)]), 1e-12)
+    arc_start, arc_delta = arc[:, :-1], arc[:, 1:] - arc[:, :-1]
+    attr_start, attr_delta = attributes[:, :, :-1], attributes[:, :, 1:] - attributes[:, :, :-1]
+    num_segments = len2.shape[1]
+    fraction, d2, metric = [], [], []
+    for k in range(num_segments):
+        r = [p[i] - start[:, i, k, None] for i in range(3)]
+        ab = [delta[:, i, k, None] for i in range(3)]
+        t = jnp.clip(_sum3([r[i] * ab[i] for i in range(3)]) / len2[:, k, None], 0.0, 1.0)
+        dist2 = _sum3([(r[i] - t * ab[i]) ** 2 for i in range(3)])
+        fraction.append(t)
+        d2.append(dist2)
+        if progress_weight > 0.0:
+            s = arc_start[:, k, None] + t * arc_delta[:, k, None]
+            metric.append(dist2 + progress_weight * (s - expected) ** 2)
+        else:
+            metric.append(dist2)
+    best = metric[0]
+    for m in metric[1:]:
+        best = jnp.minimum(best, m)
+    select = [(m <= best).astype(p[0].dtype) for m in metric]
+    count = select[0]
+    for k in range(1, num_segments):
+        count = count + select[k]
+
+    def chosen(values):  # the mean over the selected segments (one, barring exact ties)
+        total = values[0] * select[0]
+        for k in range(1, num_segments):
+            total = total + values[k] * select[k]
+        return total / count
+
+    distance = jnp.sqrt(chosen(d2))
+    attrs = [chosen([attr_start[:, c, k, None] + fraction[k] * attr_delta[:, c, k, None]
+                     for k in range(num_segments)]) for c in range(attributes.shape[1])]
+    norm = jnp.maximum(jnp.sqrt(_sum3([attrs[i] ** 2 for i in range(3)])), 1e-6)
+    return distance, [attrs[i] / norm for i in range(3)], attrs[3]
+
+
+def _crashed_elementwise(p: list, params: RacingParams, config: RacingCostConfig) -> jax.Array:
+    """:func:`crashed` for points p = [x, y, z], each of any shape, one gate at a time."""
+    gates = params.gates
+    r = config.vehicle_radius
+    frame = jnp.zeros(p[0].shape, bool)
+    for g in range(gates.centre.shape[0]):
+        offset = [p[j] - gates.centre[g, j] for j in range(3)]
+        # gate-frame coordinates [along normal, lateral, up]: local_i = sum_j rotation[g, j, i] offset_j
+        local = [_sum3([gates.rotation[g, j, i] * offset[j] for j in range(3)]) for i in range(3)]
+        slab = jnp.abs(local[0]) <= jnp.maximum(0.5 * gates.depth[g] + r, config.crash_slab_halfwidth)
+        outer = ((jnp.abs(local[1]) <= 0.5 * gates.width[g] + gates.border[g] + r)
+                 & (jnp.abs(local[2]) <= 0.5 * gates.height[g] + gates.border[g] + r))
+        opening = (jnp.abs(local[1]) < 0.5 * gates.width[g] - r) & (jnp.abs(local[2]) < 0.5 * gates.height[g] - r)
+        frame = frame | (slab & outer & ~opening)
+    ground = p[2] < params.hall_min[2] + r
+    wall = ground
+    for i in range(3):
+        wall = wall | (p[i] < params.hall_min[i] + r) | (p[i] > params.hall_max[i] - r)
+    return frame | wall
+
+
+def _desired_attitude_elementwise(tx: jax.Array, ty: jax.Array) -> list:
+    """:func:`desired_attitude` of the tangent (tx, ty, .) as [qw, qx, qy, qz]."""
+    half_yaw = 0.5 * jnp.arctan2(ty, tx)
+    zero = jnp.zeros_like(half_yaw)
+    return [jnp.cos(half_yaw), zero, zero, jnp.sin(half_yaw)]
+
+
+def _attitude_distance_elementwise(q_d: list, q: list) -> jax.Array:
+    """:func:`attitude_distance` of quaternions given as [qw, qx, qy, qz] lists of equally shaped arrays."""
+    minus = ((q_d[0] - q[0]) ** 2 + (q_d[1] - q[1]) ** 2) + ((q_d[2] - q[2]) ** 2 + (q_d[3] - q[3]) ** 2)
+    plus = ((q_d[0] + q[0]) ** 2 + (q_d[1] + q[1]) ** 2) + ((q_d[2] + q[2]) ** 2 + (q_d[3] + q[3]) ** 2)
+    return jnp.minimum(minus, plus)
 
 
 def racing_cost(x: jax.Array, t: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:

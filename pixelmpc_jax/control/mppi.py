@@ -8,9 +8,11 @@ This module knows nothing of quadrotors or pixels. A problem is three functions 
 
 and ``params`` is any pytree (network weights, targets, gate geometry) passed to all of them: new params
 never recompile. A running cost may instead be written for the whole batch of samples at a step and
-wrapped in :class:`BatchCost` (a layout the compiler vectorises better for costs with inner reductions).
+wrapped in :class:`BatchCost`, or for every step and sample at once and wrapped in :class:`TrajectoryCost`
+(layouts the compiler vectorises better for costs with inner reductions).
 One optimisation iteration samples ``N`` noise sequences, rolls all of them out with ``lax.scan`` over
-the horizon (the dynamics ``vmap``-ed over samples at each step), and updates the plan
+the horizon (the dynamics ``vmap``-ed over samples at each step; the running costs are then evaluated
+over all (T, N) predicted states at once, see ``MPPIConfig.rollout``), and updates the plan
 
     S_k = sum_t running_cost + terminal_cost + gamma * sum_t U_t^T Sigma^-1 eps_{k,t}
     w_k = softmax(-(S_k - min_j S_j) / lambda)           (non-finite S_k get w_k = 0)
@@ -38,6 +40,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,6 +48,7 @@ import numpy as np
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
 SIGMA_MIN, SIGMA_MAX = 1e-18, 1e18  # sigma^2 and 1 / sigma^2 (the control cost) stay normal float32 numbers
+ROLLOUTS = ("batched", "per_step")  # MPPIConfig.rollout
 
 
 def _is_number(value) -> bool:
@@ -70,6 +74,13 @@ class MPPIConfig:
             along the horizon, as in iCEM and MPPI-Generic's coloured sampler: 0 (the paper's) samples white
             noise, 1 pink, 2 red (smooth, slowly varying). Every step's marginal std stays ``noise_sigma``;
             see :func:`coloured_noise_filter`.
+        rollout: how the samples' costs are computed; the same plan either way, up to float rounding.
+            "batched" (the default): the scan over the horizon carries only the dynamics; the running costs
+            are evaluated afterwards, once, over all T x N predicted states (a :class:`TrajectoryCost` sees
+            them in one call, and XLA runs the cost as a few large kernels instead of many small ones at
+            every step). "per_step": each step's costs are evaluated inside the scan: the implementation
+            before this option, kept for one release to compare against (PixelMPC and nominal MPPI then
+            also use their former step-by-step racing cost).
     """
 
     num_samples: int = 512
@@ -83,8 +94,11 @@ class MPPIConfig:
     control_cost_weight: float = 0.0
     nominal_sample: bool = True
     noise_exponent: float = 0.0
+    rollout: str = "batched"
 
     def __post_init__(self):
+        if self.rollout not in ROLLOUTS:
+            raise ValueError(f"MPPIConfig.rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
         for name in ("num_samples", "horizon", "iterations"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
@@ -225,6 +239,23 @@ class BatchCost:
         return _checked_costs(self.fn(x[None], u[None], t, params), 1, self.fn, batch=True)[0]
 
 
+@dataclasses.dataclass(frozen=True)
+class TrajectoryCost:
+    """A running cost written for every step and sample at once: ``fn(X (T, N, n), U (T, N, m), steps (T,), params)
+    -> (T, N)``, where ``X[t]`` is the state reached by ``U[t]`` at horizon step ``steps[t]``.
+
+    With the "batched" rollout MPPI calls ``fn`` once on all the predicted states, so the cost can lay its
+    work out over the whole (T, N) batch; the "per_step" rollout calls it at each step with T = 1. Called
+    with one sample, ``TrajectoryCost(fn)(x, u, t, params)`` runs ``fn`` on a batch of one.
+    """
+
+    fn: Callable
+
+    def __call__(self, x, u, t, params):
+        costs = self.fn(x[None, None], u[None, None], jnp.asarray(t)[None], params)
+        return _checked_trajectory_costs(costs, (1, 1), self.fn)[0, 0]
+
+
 def _checked_costs(costs, N: int, fn: Callable, batch: bool) -> jax.Array:
     """``costs`` if it holds one cost per sample, (N,); a ValueError naming ``fn`` otherwise (shapes are known
     when tracing, so a wrong one is caught before anything runs, never broadcast over the samples)."""
@@ -239,11 +270,30 @@ def _checked_costs(costs, N: int, fn: Callable, batch: bool) -> jax.Array:
 
 
 def _stage_costs(cost: Callable, X: jax.Array, U: jax.Array, t, params) -> jax.Array:
-    """(N,) running costs of a batch of states (samples on axis 0)."""
+    """(N,) running costs of a batch of states at one step (samples on axis 0)."""
     N = X.shape[0]
+    if isinstance(cost, TrajectoryCost):
+        return _checked_trajectory_costs(cost.fn(X[None], U[None], jnp.asarray(t)[None], params), (1, N),
+                                         cost.fn)[0]
     if isinstance(cost, BatchCost):
         return _checked_costs(cost.fn(X, U, t, params), N, cost.fn, batch=True)
     return _checked_costs(jax.vmap(cost, in_axes=(0, 0, None, None))(X, U, t, params), N, cost, batch=False)
+
+
+def _trajectory_costs(cost: Callable, X: jax.Array, U: jax.Array, ts: jax.Array, params) -> jax.Array:
+    """(T, N) running costs of the states X (T, N, n) reached by U (T, N, m) at horizon steps ts (T,)."""
+    if isinstance(cost, TrajectoryCost):
+        return _checked_trajectory_costs(cost.fn(X, U, ts, params), X.shape[:2], cost.fn)
+    return jax.vmap(lambda X, U, t: _stage_costs(cost, X, U, t, params))(X, U, ts)
+
+
+def _checked_trajectory_costs(costs, shape: tuple, fn: Callable) -> jax.Array:
+    """``costs`` if it holds one cost per step and sample, ``shape`` = (T, N); a ValueError naming ``fn`` otherwise."""
+    if tuple(jnp.shape(costs)) != tuple(shape):
+        name = getattr(fn, "__qualname__", None) or type(fn).__name__
+        raise ValueError(f"TrajectoryCost {name} must return one cost per step and sample, shape (T, N) = "
+                         f"{tuple(shape)}; it returned shape {tuple(jnp.shape(costs))}")
+    return costs
 
 
 def _segments(dynamics, running_cost, prefix: Prefix | None, horizon: int):
@@ -265,10 +315,11 @@ def rollout_cost(
     controls: jax.Array,
     params: Any,
     prefix: Prefix | None = None,
+    rollout: str = "batched",
 ) -> jax.Array:
     """Total cost of one control sequence from x0. controls: (T, m) -> scalar (:func:`rollout_costs` of a
     batch of one)."""
-    return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls[None], params, prefix)[0]
+    return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls[None], params, prefix, rollout)[0]
 
 
 def rollout_costs(
@@ -279,30 +330,67 @@ def rollout_costs(
     controls: jax.Array,
     params: Any,
     prefix: Prefix | None = None,
+    rollout: str = "batched",
 ) -> jax.Array:
     """Total cost of N control sequences from one x0. controls: (N, T, m) -> (N,).
 
-    One ``lax.scan`` over the horizon carries the batch of states (N, n); the dynamics are vmapped over
-    samples, the running cost is vmapped or, for a :class:`BatchCost`, called on the batch.
+    ``rollout`` (see :class:`MPPIConfig`): "batched" scans the dynamics over the horizon, carrying the batch
+    of states (N, n), then evaluates the running costs once over all (T, N) predicted states; "per_step"
+    evaluates each step's costs inside the scan. The dynamics are vmapped over samples; a one-sample cost is
+    vmapped, a :class:`BatchCost` called on each step's batch, a :class:`TrajectoryCost` on all the steps.
     """
+    if rollout not in ROLLOUTS:
+        raise ValueError(f"rollout must be one of {ROLLOUTS}, got {rollout!r}")
+    chex.assert_rank(controls, 3)
+    chex.assert_rank(x0, 1)
     N = controls.shape[0]
     X = jnp.broadcast_to(x0, (N,) + x0.shape)
     total = jnp.zeros((N,), controls.dtype)
     per_step = jnp.swapaxes(controls, 0, 1)  # (T, N, m)
-    for first, steps, dyn, cost in _segments(dynamics, running_cost, prefix, controls.shape[1]):
+    segments = _segments(dynamics, running_cost, prefix, controls.shape[1])
+    if rollout == "per_step":
+        for first, steps, dyn, cost in segments:
 
-        def body(X, inputs, dyn=dyn, cost=cost):
-            t, U = inputs
-            X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
-            return X_next, _stage_costs(cost, X_next, U, t, params)
+            def body(X, inputs, dyn=dyn, cost=cost):
+                t, U = inputs
+                X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
+                return X_next, _stage_costs(cost, X_next, U, t, params)
 
-        ts = jnp.arange(first, first + steps)
-        X, stage_costs = jax.lax.scan(body, X, (ts, per_step[first:first + steps]))
-        total = total + jnp.sum(stage_costs, axis=0)
+            ts = jnp.arange(first, first + steps)
+            X, stage_costs = jax.lax.scan(body, X, (ts, per_step[first:first + steps]))
+            total = total + jnp.sum(stage_costs, axis=0)
+    else:
+        trajectory = []
+        for first, steps, dyn, _ in segments:
+
+            def body(X, U, dyn=dyn):
+                X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
+                return X_next, X_next
+
+            X, states = jax.lax.scan(body, X, per_step[first:first + steps])
+            trajectory.append(states)
+        states = trajectory[0] if len(trajectory) == 1 else jnp.concatenate(trajectory)  # (T, N, n): x_1 .. x_T
+        for first, stop, cost in _cost_runs(segments):
+            stage_costs = _trajectory_costs(cost, states[first:stop], per_step[first:stop],
+                                            jnp.arange(first, stop), params)  # (steps, N)
+            # summed over the steps as a product with ones: XLA on a CPU fuses a reduction with the cost
+            # before it into one kernel that runs ~3x slower than the cost and a separate product
+            total = total + jnp.ones((stop - first,), stage_costs.dtype) @ stage_costs
     if terminal_cost is not None:
         total = total + _checked_costs(jax.vmap(terminal_cost, in_axes=(0, None))(X, params), N, terminal_cost,
                                        batch=False)
     return total
+
+
+def _cost_runs(segments) -> list:
+    """[(first step, stop step, cost)]: consecutive segments charged by the same cost merged into one run."""
+    runs = []
+    for first, steps, _, cost in segments:
+        if runs and runs[-1][2] is cost:
+            runs[-1] = (runs[-1][0], first + steps, cost)
+        else:
+            runs.append((first, first + steps, cost))
+    return runs
 
 
 def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, params: Any,
@@ -334,6 +422,7 @@ def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array,
         weights: (N,), sums to 1 unless every cost is non-finite (then all zeros).
         finite: (N,) bool mask of the finite costs.
     """
+    chex.assert_rank(costs, 1)
     finite = jnp.isfinite(costs)
     safe = jnp.where(finite, costs, jnp.inf)
     baseline = jnp.min(safe)
@@ -407,7 +496,7 @@ def make_mppi(
         return u
 
     def cost_of(x0, controls, params):
-        return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls, params, prefix)
+        return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls, params, prefix, config.rollout)
 
     def iteration(carry, key_iter, x0, params):
         plan, any_all_nonfinite = carry

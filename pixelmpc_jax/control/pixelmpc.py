@@ -22,12 +22,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import BatchCost, Controller, MPPIConfig, Prefix, make_mppi
+from pixelmpc_jax.control.mppi import BatchCost, Controller, MPPIConfig, Prefix, TrajectoryCost, make_mppi
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as camera_lib
@@ -147,13 +148,14 @@ class PixelMPCParams:
 
 
 def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
-    """Eq. (18)'s integrand per step for a pixel ``uv`` (2,), of the form ``config.pixel_cost``.
+    """Eq. (18)'s integrand per step for a pixel ``uv`` (..., 2) -> (...), of the form ``config.pixel_cost``.
 
     "l1": c_pixel * scale * (|u - 0.5| + |v - 0.5|), each axis less the dead zone (at least 0);
     "border": c_pixel * scale * sum_axes (max(e - (0.5 - m), 0) / m)^2 with e = |uv - 0.5|, m the margin.
     Each axis's distance from the centre is first clipped to ``pixel_error_clip``, so the pixel of a target
     behind the camera (placed :data:`BEHIND_CAMERA_OFFSET` off the image) costs the most any pixel can.
     """
+    chex.assert_axis_dimension(uv, -1, 2)
     error = jnp.abs(uv - jnp.asarray(IMAGE_CENTRE, uv.dtype))
     if config.pixel_error_clip is not None:
         error = jnp.minimum(error, config.pixel_error_clip + config.pixel_deadzone)
@@ -163,7 +165,7 @@ def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
         per_axis = excess**2
     else:
         per_axis = jnp.maximum(error - config.pixel_deadzone, 0.0)
-    return config.c_pixel * config.pixel_cost_scale * jnp.sum(per_axis)
+    return config.c_pixel * config.pixel_cost_scale * (per_axis[..., 0] + per_axis[..., 1])
 
 
 def behind_camera_pixel(dtype=jnp.float32) -> jax.Array:
@@ -186,10 +188,16 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     def dynamics(x, u, p):
         return quadrotor.step(x, u, dt, quad_params)
 
-    def running_cost(X, U, t, p):
-        return costs.racing_cost_batch(X, t, p, cost_config)
+    if mppi_config.rollout == "per_step":
+        def running_cost(X, U, t, p):
+            return costs.racing_cost_batch(X, t, p, cost_config)
 
-    return make_mppi(mppi_config, dynamics, BatchCost(running_cost))
+        return make_mppi(mppi_config, dynamics, BatchCost(running_cost))
+
+    def trajectory_cost(X, U, steps, p):
+        return costs.racing_costs(X, steps, p, cost_config)
+
+    return make_mppi(mppi_config, dynamics, TrajectoryCost(trajectory_cost))
 
 
 def make_pixelmpc(config: PixelMPCConfig | None = None,
@@ -209,21 +217,9 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
     def robot_step(X, u):
         return quadrotor.step(X[:quadrotor.STATE_DIM], u, dt, quad_params)
 
-    def racing(X, t, p):  # X (N, 12) -> (N,)
-        return costs.racing_cost_batch(X, t, p.racing, config.racing)
-
     # The rest of the horizon: the robot alone, the pixel carried unchanged and not costed.
     def dynamics(X, u, p):
         return jnp.concatenate([robot_step(X, u), X[quadrotor.STATE_DIM:]])
-
-    def running_cost(X, U, t, p):
-        return racing(X, t, p)
-
-    def pixel_term(X, p):
-        """The pixel cost of a predicted state while the target is detected and not yet passed."""
-        ahead = jnp.dot(X[quadrotor.POS] - p.target_centre, p.target_normal) < 0.0
-        active = (p.target_active & ahead).astype(X.dtype)
-        return active * pixel_cost(X[quadrotor.STATE_DIM:], config)
 
     if config.pixel_model == "dof":
         def prefix_dynamics(X, u, p):
@@ -239,8 +235,33 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
             uv = jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
             return jnp.concatenate([x_next, uv])
 
-    def prefix_cost(X, U, t, p):
-        return racing(X, t, p) + jax.vmap(pixel_term, in_axes=(0, None))(X, p)
+    if config.mppi.rollout == "per_step":  # the former step-by-step costs (see MPPIConfig.rollout)
+        def racing(X, t, p):  # X (N, 12) -> (N,)
+            return costs.racing_cost_batch(X, t, p.racing, config.racing)
 
-    prefix = Prefix(n_f, prefix_dynamics, BatchCost(prefix_cost)) if n_f > 0 else None
-    return make_mppi(config.mppi, dynamics, BatchCost(running_cost), prefix=prefix)
+        def pixel_term(X, p):
+            """The pixel cost of a predicted state while the target is detected and not yet passed."""
+            ahead = jnp.dot(X[quadrotor.POS] - p.target_centre, p.target_normal) < 0.0
+            active = (p.target_active & ahead).astype(X.dtype)
+            return active * pixel_cost(X[quadrotor.STATE_DIM:], config)
+
+        def prefix_cost(X, U, t, p):
+            return racing(X, t, p) + jax.vmap(pixel_term, in_axes=(0, None))(X, p)
+
+        prefix = Prefix(n_f, prefix_dynamics, BatchCost(prefix_cost)) if n_f > 0 else None
+        return make_mppi(config.mppi, dynamics, BatchCost(lambda X, U, t, p: racing(X, t, p)), prefix=prefix)
+
+    def trajectory_cost(X, U, steps, p):
+        """X (T, N, 12) -> (T, N): the racing cost, plus over the first n_f steps the pixel cost of each predicted
+        state while the target is detected and not yet passed (the gate's plane still ahead)."""
+        total = costs.racing_costs(X, steps, p.racing, config.racing)
+        if n_f == 0:
+            return total
+        offset = [X[..., i] - p.target_centre[i] for i in range(3)]  # elementwise, as in racing_costs
+        ahead = offset[0] * p.target_normal[0] + offset[1] * p.target_normal[1] + offset[2] * p.target_normal[2] < 0.0
+        counted = (steps < n_f)[:, None] & p.target_active & ahead
+        return total + counted.astype(X.dtype) * pixel_cost(X[..., quadrotor.STATE_DIM:], config)
+
+    cost = TrajectoryCost(trajectory_cost)  # one call over the whole horizon: the prefix shares it
+    prefix = Prefix(n_f, prefix_dynamics, cost) if n_f > 0 else None
+    return make_mppi(config.mppi, dynamics, cost, prefix=prefix)

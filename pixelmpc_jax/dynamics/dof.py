@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -207,6 +208,7 @@ def pixel_velocity(dof_params: DOFParams, q: jax.Array, uv: jax.Array, u: jax.Ar
     ``uv``'s floating dtype. Deterministic (no dropout).
     """
     uv = jnp.asarray(uv)
+    chex.assert_rank([q, uv, u], 1)  # one sample; vmap it for a batch
     l, theta = dof_apply(dof_params, q, uv, u)
     uv_dot = polar_to_euler(l, theta)
     return uv_dot.astype(uv.dtype) if jnp.issubdtype(uv.dtype, jnp.floating) else uv_dot
