@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps.bench import problems, roofline, suite
+from pixelmpc_jax.apps.bench import peers, problems, roofline, suite
 from pixelmpc_jax.apps.bench.table1 import SpyNet, spynet_flops_per_image
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as PM
@@ -183,7 +183,7 @@ def test_torch_rollout_cost_equals_jax(port_setup):
 # --------------------------------------------------------------------------------------------------
 
 
-def test_smoke_run_writes_the_schema(tmp_path):
+def test_smoke_run_writes_the_schema(tmp_path, capsys):
     result = suite.run_bench(tmp_path, smoke=True)
     written = json.loads((tmp_path / "bench.json").read_text())
     assert (tmp_path / "bench.md").read_text().startswith("# pixelmpc-jax runtime benchmarks")
@@ -205,6 +205,9 @@ def test_smoke_run_writes_the_schema(tmp_path):
     peer_rows = [r for r in written["rows"] if r["group"] == "peer"]
     if written["versions"]["torch"] is not None:
         assert all(r["ratio"] > 0 for r in peer_rows)
+    else:  # without the bench extra the peer is skipped, and says so
+        assert peer_rows and all(r["status"] == peers.TORCH_MISSING for r in peer_rows)
+        assert f"pytorch-mppi peer {peers.TORCH_MISSING}" in capsys.readouterr().out
     assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
     assert set(written["summary"]["targets"]) == {"pixelmpc_step_ms <= 12", "ratio_vs_pytorch_mppi <= 0.35",
                                                   "dof_fraction >= 0.70"}

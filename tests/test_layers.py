@@ -1,5 +1,6 @@
-"""The import rule of the README's Architecture section: layers import only the layers above them, and no
-module of the library imports the experiment apps (``pixelmpc_jax.apps``)."""
+"""The import rule of the README's Architecture section: layers import only the layers above them, no module of
+the library imports the experiment apps (``pixelmpc_jax.apps``), and the package needs nothing of the checkout
+beside it (``benchmarks/``, ``experiments/``, ``tests/``), so it runs from a plain ``pip install``."""
 
 import ast
 from pathlib import Path
@@ -12,8 +13,8 @@ LAYERS = ("dynamics", "world", "perception", "control", "sim", "learn", "apps")
 SHARED = {"timing", "strict_json", "platform_info"}  # imported by any layer
 
 
-def imported_modules(path: Path) -> set[str]:
-    """Every ``pixelmpc_jax`` module a file imports, at its top or inside a function."""
+def imported_modules(path: Path, package: str = "pixelmpc_jax") -> set[str]:
+    """Every module under ``package`` a file imports, at its top or inside a function."""
     names = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
@@ -21,7 +22,7 @@ def imported_modules(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names.add(node.module)
             names.update(f"{node.module}.{alias.name}" for alias in node.names)
-    return {name for name in names if name.startswith("pixelmpc_jax.")}
+    return {name for name in names if name == package or name.startswith(f"{package}.")}
 
 
 def layer_of(module: str) -> str:
@@ -35,7 +36,7 @@ def violations(path: Path, package: Path = PACKAGE) -> list[str]:
     relative = path.relative_to(package)
     own = relative.parts[0] if len(relative.parts) > 1 else relative.stem
     bad = []
-    for module in sorted(imported_modules(path)):
+    for module in sorted(m for m in imported_modules(path) if m != "pixelmpc_jax"):
         target = layer_of(module)
         if own in LAYERS and target in LAYERS and LAYERS.index(target) > LAYERS.index(own):
             bad.append(f"{relative} imports {module}")
@@ -50,7 +51,16 @@ def test_no_layer_imports_a_later_one_and_the_core_never_imports_the_apps():
     bad = [line for path in files for line in violations(path)]
     assert not bad, "imports against the layer order:\n" + "\n".join(bad)
     core = [path for path in files if path.relative_to(PACKAGE).parts[0] not in ("apps", "cli.py")]
-    assert not [path for path in core if any(layer_of(m) == "apps" for m in imported_modules(path))]
+    assert not [path for path in core if any(m.startswith("pixelmpc_jax.apps") for m in imported_modules(path))]
+
+
+def test_the_package_imports_nothing_of_the_checkout(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("import os\ndef f():\n    from benchmarks import suite\n")
+    assert imported_modules(probe, "benchmarks") == {"benchmarks", "benchmarks.suite"}  # the scan sees one
+    checkout = [f"{path.relative_to(PACKAGE)} imports {module}" for path in sorted(PACKAGE.rglob("*.py"))
+                for folder in ("benchmarks", "experiments", "tests") for module in imported_modules(path, folder)]
+    assert not checkout, "\n".join(checkout)
 
 
 @pytest.mark.parametrize("source, own, bad", [

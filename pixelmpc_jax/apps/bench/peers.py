@@ -28,6 +28,7 @@ MPPI_GENERIC_PUBLISHED = {
     "MPPI-Generic, GTX 1050 Ti": {128: 0.20, 1024: 0.43, 4096: 1.47, 16384: 5.64},
 }
 DIFF_DRIVE_SAMPLES = (128, 1024, 4096, 16384)
+TORCH_MISSING = "not run: torch and pytorch-mppi are not installed (the bench extra: pip install 'pixelmpc-jax[bench]')"
 
 
 def torch_available() -> bool:
@@ -44,8 +45,7 @@ def pytorch_mppi_rows(samples=PEER_SAMPLES, horizon: int = 80, repeats: int = 30
     """Ours and pytorch-mppi at each N (T = 80, t_f = 1 s), one row per (implementation, N), peer rows with
     ``ratio`` = ours / theirs. ``ours`` optionally maps N to an already measured row of ours."""
     if not torch_available():
-        return [make_row("peer", "pytorch-mppi", n, horizon, None, status="not run: torch/pytorch-mppi missing")
-                for n in samples]
+        return [make_row("peer", "pytorch-mppi", n, horizon, None, status=TORCH_MISSING) for n in samples]
     import torch
 
     from pixelmpc_jax.apps.bench import torch_port

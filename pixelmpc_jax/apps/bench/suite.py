@@ -92,7 +92,7 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
     _log("particle filter tick", start)
     rows += particle_filter_step.pf_rows(particles=256 if smoke else 6400, repeats=repeats)
 
-    _log("pytorch-mppi peer", start)
+    _log("pytorch-mppi peer" if peers.torch_available() else f"pytorch-mppi peer {peers.TORCH_MISSING}", start)
     if smoke:
         rows += peers.pytorch_mppi_rows(samples=(16,), horizon=8, repeats=repeats, budget_s=2.0,
                                         ours={16: paper_row})
@@ -306,10 +306,14 @@ def plot_scaling(rows: list[dict], path) -> None:
              title="PixelMPC step (x: pytorch-mppi, T=80)")
     ax_r.set(xscale="log", yscale="log", xlabel="samples N", ylabel="sample-steps per second (N T / step time)",
              title="dashed: the paper's 'over a million'")
+    if not scaling:  # a quick run without the pytorch-mppi peer has no row to draw
+        ax_r.set_ylim(1e5, 1e7)
+        ax_t.text(0.5, 0.5, "no scaling rows in this run", transform=ax_t.transAxes, ha="center")
     ax_r.axhline(1e6, color="grey", ls="--", lw=0.8)
     for ax in (ax_t, ax_r):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
