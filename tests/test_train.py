@@ -288,3 +288,36 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
         module, name = call.split("(")[0].rsplit(".", 1)
         assert callable(getattr(importlib.import_module(module), name)), call
 
+
+
+def test_rotation_augment_is_validated():
+    with pytest.raises(ValueError, match="input='flown'"):
+        TrainConfig(rotation_augment=1.0, input="command")
+    with pytest.raises(ValueError, match="rotation_augment"):
+        TrainConfig(rotation_augment=-1.0, input="flown")
+    with pytest.raises(ValueError, match="rotation_augment"):
+        TrainConfig(rotation_augment=1.0, rotation_augment_fraction=1.5, input="flown")
+
+
+def test_turned_rows_carry_the_flow_of_their_rate():
+    """Frames of a still camera (zero flow, zero rate): every turned row's label must be exactly the
+    rotational flow of the rate written in its features, and the rates must have the configured spread."""
+    W, H = camera_lib.PAPER_WIDTH, camera_lib.PAPER_HEIGHT
+    frames = 4
+    q = np.tile(np.asarray([[1.0, 0.0, 0.0, 0.0]], np.float32), (frames, 1))
+    u = np.tile(np.asarray([[0.0, 0.0, 0.0, 9.8]], np.float32), (frames, 1))
+    data = FlowData(jnp.asarray(q), jnp.asarray(u), jnp.zeros((frames, H, W, 2), jnp.float16))
+    config = TrainConfig(input="flown", rotation_augment=1.5, rotation_augment_fraction=1.0)
+    batch = train_mod.sample_batch(data, jax.random.key(0), 2048, config)
+    uv, w = batch.features[:, 4:6], batch.features[:, 6:9]
+    np.testing.assert_allclose(np.std(np.asarray(w), axis=0), 1.5, rtol=0.1)
+    np.testing.assert_allclose(batch.features[:, 9], 9.8)
+    camera = camera_lib.default_camera()
+    pixel_px = uv * jnp.asarray([W, H])
+    from pixelmpc_jax.learn import rotation_augment
+
+    _, expected = jax.vmap(rotation_augment.augment_row, in_axes=(None, 0, None, 0, None, None))(
+        jnp.zeros(3), pixel_px, jnp.zeros(2), w, camera, config.dt)
+    label = flow_lib.polar_to_flow(batch.l, batch.theta, W, H, config.dt)
+    np.testing.assert_allclose(label, expected, atol=2e-3)
+    assert float(jnp.mean(jnp.abs(label))) > 1.0  # the rows were turned: a still camera has zero flow

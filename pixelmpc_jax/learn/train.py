@@ -58,9 +58,11 @@ from tqdm.auto import tqdm
 from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.learn import dataset as dataset_lib
+from pixelmpc_jax.learn import rotation_augment
 from pixelmpc_jax.learn.aee import evaluate_aee, zero_flow_aee
 from pixelmpc_jax.learn.dataset import INPUTS, FlowData, as_flow_data, pixel_uv
 from pixelmpc_jax.perception.flow import flow_to_polar
+from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
 # --------------------------------------------------------------------------------------------------
@@ -91,6 +93,11 @@ class TrainConfig:
             or ``"endpoint"`` (the squared endpoint error of the flow vector; see the module docstring).
         input: what the data's ``u`` is, one of :data:`INPUTS` (recorded with the weights; the training
             itself is the same: the data loader puts the chosen input in ``u``).
+        rotation_augment: std (rad/s) of the extra body rate a row is turned by
+            (:mod:`pixelmpc_jax.learn.rotation_augment`: the same frame pair as if the camera had turned
+            that much more, label and rate changed exactly); 0 (the paper's) trains on the rows as flown.
+            Needs ``input="flown"``: the turn is a rate flown, not commanded.
+        rotation_augment_fraction: the share of rows turned when ``rotation_augment`` > 0.
     """
 
     steps: int = 20_000
@@ -110,6 +117,8 @@ class TrainConfig:
     progress: bool = True
     loss: str = "polar"
     input: str = "command"
+    rotation_augment: float = 0.0
+    rotation_augment_fraction: float = 1.0
 
     def __post_init__(self):
         for name in ("steps", "batch_size", "log_every", "width", "height", "probe_size", "eval_chunk_pixels"):
@@ -125,6 +134,13 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.schedule must be 'constant' or 'cosine', got {self.schedule!r}")
         if not (self.learning_rate > 0 and self.dt > 0 and 0 <= self.final_lr_fraction <= 1):
             raise ValueError("TrainConfig needs learning_rate > 0, dt > 0, 0 <= final_lr_fraction <= 1")
+        if not (0.0 <= self.rotation_augment < float("inf") and 0.0 <= self.rotation_augment_fraction <= 1.0):
+            raise ValueError(f"TrainConfig needs rotation_augment >= 0 (rad/s, finite) and 0 <= "
+                             f"rotation_augment_fraction <= 1, got {self.rotation_augment}, "
+                             f"{self.rotation_augment_fraction}")
+        if self.rotation_augment > 0 and self.input != "flown":
+            raise ValueError("TrainConfig.rotation_augment needs input='flown': it turns the rate flown over "
+                             "the frame, which a commanded rate is not")
 
 
 class Batch(NamedTuple):
@@ -246,15 +262,26 @@ def make_optimizer(config: TrainConfig) -> tuple[optax.GradientTransformation, C
 
 
 def sample_batch(data: FlowData, key: jax.Array, batch_size: int, config: TrainConfig) -> Batch:
-    """``batch_size`` uniform (frame, x, y) rows gathered from device arrays (no row materialisation)."""
+    """``batch_size`` uniform (frame, x, y) rows gathered from device arrays (no row materialisation), turned
+    by :func:`rotation_augment.augment_batch` when ``config.rotation_augment`` > 0."""
+    if config.rotation_augment:
+        key, key_augment = jax.random.split(key)
     key_frame, key_x, key_y = jax.random.split(key, 3)
     n_frames = data.q.shape[0]
     f = jax.random.randint(key_frame, (batch_size,), 0, n_frames)
     i = jax.random.randint(key_x, (batch_size,), 0, config.width)
     j = jax.random.randint(key_y, (batch_size,), 0, config.height)
     uv = pixel_uv(i, j, config.width, config.height)
-    features = dof.dof_features(data.q[f].astype(jnp.float32), uv, data.u[f].astype(jnp.float32))
-    l, theta = flow_to_polar(data.flow[f, j, i], config.width, config.height, config.dt)  # (B,), (B,)
+    u = data.u[f].astype(jnp.float32)  # (B, 4)
+    flow = data.flow[f, j, i].astype(jnp.float32)  # (B, 2) pixels per frame
+    if config.rotation_augment:
+        camera = camera_lib.default_camera(wh=(config.width, config.height))
+        pixel_px = jnp.stack([i + 0.5, j + 0.5], axis=-1).astype(jnp.float32)
+        w, flow = rotation_augment.augment_batch(key_augment, u[:, :3], pixel_px, flow, config.rotation_augment,
+                                                 config.rotation_augment_fraction, camera, config.dt)
+        u = jnp.concatenate([w, u[:, 3:]], axis=1)
+    features = dof.dof_features(data.q[f].astype(jnp.float32), uv, u)
+    l, theta = flow_to_polar(flow, config.width, config.height, config.dt)  # (B,), (B,)
     return Batch(features, l, theta)
 
 
@@ -501,15 +528,17 @@ def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
 
 def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
               learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
-              ship: bool = False, loss: str = "polar", input: str = "command") -> dict:
+              ship: bool = False, loss: str = "polar", input: str = "command", rotation_augment: float = 0.0,
+              rotation_augment_fraction: float = 1.0) -> dict:
     """Train the DOF on ``data_dir``'s train laps (:func:`train`, Algorithm 1), report the test-lap AEE, and
     write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
     (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
     the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
 
     ``loss``: "polar" (the paper's) or "endpoint"; ``input``: the network's control input, "command" (the
-    paper's) or "flown" (the rates flown over the frame; ``dataset.INPUTS``). The variant is recorded in the
-    weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
+    paper's) or "flown" (the rates flown over the frame; ``dataset.INPUTS``); ``rotation_augment``,
+    ``rotation_augment_fraction``: see :class:`TrainConfig` (0: off, the paper's). The variant is recorded in
+    the weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
     if input not in INPUTS:
         raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
     data_dir, out = Path(data_dir), Path(out_dir)
@@ -522,7 +551,8 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
     checkpoint = out / "checkpoint.msgpack"
     config = TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed, width=W,
                          height=H, dt=float(manifest["frame_dt_s"]), checkpoint_path=str(checkpoint),
-                         progress=progress, loss=loss, input=input)
+                         progress=progress, loss=loss, input=input, rotation_augment=float(rotation_augment),
+                         rotation_augment_fraction=float(rotation_augment_fraction))
     t0 = time.perf_counter()
     dof_params, history = train(config, train_data, test_data,
                                 resume_from=checkpoint if (resume and checkpoint.exists()) else None)
@@ -533,7 +563,9 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
         "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
         "variant": {"input": input, "loss": loss, "layer_sizes": list(dof.LAYER_SIZES),
                     "input_means": "the body rates commanded at the frame's tick (the paper's)" if input == "command"
-                    else "the body rates flown over the frame interval (dataset w_flown), commanded thrust"},
+                    else "the body rates flown over the frame interval (dataset w_flown), commanded thrust",
+                    "rotation_augment": {"sigma_rad_s": float(rotation_augment),
+                                         "fraction": float(rotation_augment_fraction)}},
         "train_wall_s": wall,
         "steps_done": history["step"][-1] if history["step"] else 0,
         "interrupted": history["interrupted"],
@@ -554,7 +586,8 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
             f"pixelmpc_jax.learn.collect.collect({str(data_dir)!r}, "
             f"CollectConfig(**{json.dumps(manifest['config'])}))",
             f"pixelmpc_jax.learn.train.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
-            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r}, input={input!r})",
+            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r}, input={input!r}, "
+            f"rotation_augment={rotation_augment}, rotation_augment_fraction={rotation_augment_fraction})",
         ],
         "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -566,7 +599,8 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
         shutil.copyfile(weights.with_suffix(".json"), dof.PACKAGED_WEIGHTS.with_suffix(".json"))
     aee = history.get("test_aee_px")
     zero = history.get("test_zero_flow_aee_px")
-    print(f"trained {record['steps_done']} steps ({input} input, {loss} loss) in {wall / 60:.1f} min on "
+    turned = f", rows turned by {rotation_augment:g} rad/s" if rotation_augment else ""
+    print(f"trained {record['steps_done']} steps ({input} input, {loss} loss{turned}) in {wall / 60:.1f} min on "
           f"{manifest['frames']['train']} frames; "
           f"test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
           f"{'-' if zero is None else f'{zero:.2f}'}); weights: {weights}")
