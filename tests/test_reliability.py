@@ -38,10 +38,12 @@ def _free_port() -> int:
 # --------------------------------------------------------------------------------------------------
 
 
-def test_importing_the_cli_and_building_its_parser_starts_no_jax_backend():
+def test_importing_the_library_the_apps_and_the_cli_parser_starts_no_jax_backend():
     code = ("import pixelmpc_jax.cli as cli\ncli.build_parser()\n"
             "import pixelmpc_jax.sim.episode, pixelmpc_jax.sim.env, pixelmpc_jax.sim.policies\n"
-            "import pixelmpc_jax.sim.sharding\n"
+            "import pixelmpc_jax.sim.sharding, pixelmpc_jax.control.pixelmpc\n"
+            "import pixelmpc_jax.apps.race, pixelmpc_jax.apps.grid, pixelmpc_jax.apps.reproduce\n"
+            "import pixelmpc_jax.apps.bench.suite\n"
             "from jax._src import xla_bridge\nprint(sorted(xla_bridge._backends))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, JAX_PLATFORMS="cpu"), cwd=ROOT)
