@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import env as env_lib
@@ -153,6 +154,12 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     _, obs = env.observe(world, state, jax.random.PRNGKey(1))
     policy_state = jax.jit(policy.init)(jax.random.PRNGKey(2), world)
     assert bool(jnp.all(jnp.isnan(policy_state.step_progress)))  # no plan yet
+    # the racing cost's per-track constants, once per episode: this world's path and speed cap
+    cost_config = costs.RacingCostConfig()
+    constants = policy_state.racing_constants
+    np.testing.assert_array_equal(constants.points, world.track.path_points[::cost_config.path_stride])
+    np.testing.assert_array_equal(constants.attributes[:, 3],
+                                  costs.speed_cap(world.track, cost_config)[::cost_config.path_stride])
     u, policy_state, prediction = jax.jit(policy.act)(policy_state, obs, world)
     lo, hi = np.asarray(mppi_config.u_min), np.asarray(mppi_config.u_max)
     assert u.shape == (4,) and np.all(np.asarray(u) >= lo) and np.all(np.asarray(u) <= hi)
@@ -160,6 +167,7 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     # the next tick's path windows follow the plan forward from the start
     progress = np.asarray(policy_state.step_progress)
     assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)
+    assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, policy_state.racing_constants, constants))
 
 
 def test_the_old_names_stay_importable_from_the_episode_module():

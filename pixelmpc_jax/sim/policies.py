@@ -37,10 +37,19 @@ class Policy(NamedTuple):
 
 
 class RacingPolicyState(NamedTuple):
-    """MPPI's state and, per horizon step, the path progress (m) its last plan predicted (T,)."""
+    """A racing policy's state.
+
+    Attributes:
+        mppi: the MPPI controller's state.
+        step_progress: (T,) per horizon step, the path progress (m) the last plan predicted (NaN before the
+            first plan).
+        racing_constants: the racing cost's per-track constants (the path's samples, tangents and speed cap),
+            computed once per episode by ``init``.
+    """
 
     mppi: Any
     step_progress: jax.Array
+    racing_constants: costs.RacingConstants
 
 
 def rate_feedforward(u0: jax.Array, u1: jax.Array, gain: float, u_min, u_max) -> jax.Array:
@@ -61,25 +70,28 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
 
     ``build(obs, world, racing_params) -> (x0, params)`` makes the controller's state and params from an
     observation; the nominal trajectory's first 10 columns must be the robot state. Each tick cuts the
-    racing cost's path windows (Eq. 19) around the progress the previous plan predicted for each step.
+    racing cost's path windows (Eq. 19) around the progress the previous plan predicted for each step, from
+    the per-track constants ``init`` computed for the episode's world.
     """
     horizon = mppi_config.horizon
 
     def init(key: jax.Array, world: World) -> RacingPolicyState:
         return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
-                                 jnp.full((horizon,), jnp.nan, jnp.float32))
+                                 jnp.full((horizon,), jnp.nan, jnp.float32),
+                                 costs.racing_constants(world.track, cost_config))
 
     def act(state: RacingPolicyState, obs: Observation, world: World):
         # First tick: no previous plan, every step's path window starts at the current progress.
         step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
-        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config)
+        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config,
+                                     state.racing_constants)
         x0, params = build(obs, world, racing)
         u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
         if feedforward_gain:
             u = rate_feedforward(u, mppi_state.plan[0], feedforward_gain, mppi_config.u_min, mppi_config.u_max)
-        return u, RacingPolicyState(mppi_state, next_progress), info.nominal_trajectory
+        return u, RacingPolicyState(mppi_state, next_progress, state.racing_constants), info.nominal_trajectory
 
     return Policy(init=init, act=act, name=name)
 
