@@ -236,9 +236,10 @@ def _versions() -> dict:
 def _controller_source() -> dict:
     """sha256 (first 16 hex) of the controller's source files: the nominal MPPI's defaults change with them."""
     from pixelmpc_jax.control import costs
+    from pixelmpc_jax.sim import env, policies
 
     return {Path(m.__file__).name: hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest()[:16]
-            for m in (episode_lib, costs, controllers)}
+            for m in (episode_lib, env, policies, costs, controllers)}
 
 
 def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> tuple[np.ndarray, np.ndarray,
