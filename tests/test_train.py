@@ -321,3 +321,13 @@ def test_turned_rows_carry_the_flow_of_their_rate():
     label = flow_lib.polar_to_flow(batch.l, batch.theta, W, H, config.dt)
     np.testing.assert_allclose(label, expected, atol=2e-3)
     assert float(jnp.mean(jnp.abs(label))) > 1.0  # the rows were turned: a still camera has zero flow
+
+
+def test_training_with_turned_rows_runs_and_records_it(train_data, tmp_path):
+    config = TrainConfig(steps=3, batch_size=64, log_every=1, probe_size=64, progress=False, input="flown",
+                         width=W, height=H, rotation_augment=1.0, rotation_augment_fraction=0.5,
+                         checkpoint_path=str(tmp_path / "ckpt.msgpack"))
+    params, history = train_mod.train(config, train_data)
+    assert history["step"][-1] == 3 and np.all(np.isfinite(history["loss"]))
+    _, record = dof.load_checkpoint(tmp_path / "ckpt.msgpack")
+    assert record["train_config"]["rotation_augment"] == 1.0

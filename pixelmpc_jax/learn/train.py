@@ -307,7 +307,7 @@ def _compile_key(config: TrainConfig) -> TrainConfig:
     """``config`` with the fields that do not reach the compiled step set to fixed values."""
     return dataclasses.replace(config, steps=config.steps if config.schedule == "cosine" else 1, seed=0, log_every=1,
                                checkpoint_every=0, checkpoint_path=None, probe_size=1, eval_chunk_pixels=1,
-                               progress=False, input="command")
+                               progress=False, input="flown" if config.rotation_augment else "command")
 
 
 def data_parallel_devices(batch_size: int) -> int:
