@@ -288,7 +288,8 @@ def _cmd_train(args) -> int:
 
     record = run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
                        learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship,
-                       loss=args.loss, input=args.input)
+                       loss=args.loss, input=args.input, rotation_augment=args.rotation_augment,
+                       rotation_augment_fraction=args.rotation_augment_fraction)
     return EXIT_INTERRUPTED if record.get("interrupted") else 0
 
 
@@ -329,6 +330,12 @@ def _seed_range(args) -> str | None:
     if last > SEED_MAX:
         return (f"argument --seed: --seed + --laps - 1 must be at most {SEED_MAX} (lap i uses seed + i), "
                 f"got {last}")
+    return None
+
+
+def _turned_rows_need_flown_input(args) -> str | None:
+    if args.rotation_augment > 0 and args.input != "flown":
+        return "argument --rotation-augment: needs --input flown (it turns the rate flown over the frame)"
     return None
 
 
@@ -395,8 +402,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--input", choices=["command", "flown"], default="command",
                    help="the network's control input: command, the paper's (the rates commanded at the frame's "
                         "tick, default), or flown (the rates flown over the frame: what the MPC's model means)")
+    p.add_argument("--rotation-augment", type=_float_in(0.0, 6.0, unit="rad/s"), default=0.0, metavar="SIGMA",
+                   help="turn training rows by an extra body rate of std SIGMA rad/s, label and rate changed "
+                        "exactly (needs --input flown; default 0: off, the paper's)")
+    p.add_argument("--rotation-augment-fraction", type=_float_in(0.0, 1.0), default=1.0, metavar="P",
+                   help="share of the rows turned, in [0, 1] (default 1)")
     p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
-    p.set_defaults(func=_cmd_train)
+    p.set_defaults(func=_cmd_train, validate=_turned_rows_need_flown_input)
 
     p = sub.add_parser("evaluate", help="DOF accuracy: AEE, baselines, multi-step error, figures")
     p.add_argument("--weights", type=_weights_file, default=None,

@@ -323,6 +323,10 @@ def _one_line(err: str) -> str:
                                              "missing"),
         (["train", "--data", "{tmp}/data", "--learning-rate", "inf"], "argument --learning-rate: must be a finite "
                                                                       "number in (0, 1], got inf"),
+        (["train", "--data", "{tmp}/data", "--rotation-augment", "1"], "argument --rotation-augment: needs --input "
+                                                                        "flown"),
+        (["train", "--data", "{tmp}/data", "--input", "flown", "--rotation-augment", "nan"],
+         "argument --rotation-augment: must be a finite number in [0, 6] rad/s, got nan"),
         (["evaluate", "--weights", "{tmp}/empty"], "argument --weights: no DOF weights file at '{tmp}/empty': "
                                                    "it is a directory"),
         (["evaluate", "--weights", "{tmp}/none.msgpack"], "argument --weights: no DOF weights file"),
