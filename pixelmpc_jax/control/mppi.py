@@ -374,8 +374,10 @@ def rollout_costs(
             stage_costs = _trajectory_costs(cost, states[first:stop], per_step[first:stop],
                                             jnp.arange(first, stop), params)  # (steps, N)
             # summed over the steps as a product with ones: XLA on a CPU fuses a reduction with the cost
-            # before it into one kernel that runs ~3x slower than the cost and a separate product
-            total = total + jnp.ones((stop - first,), stage_costs.dtype) @ stage_costs
+            # before it into one kernel that runs ~3x slower than the cost and a separate product (HIGHEST:
+            # full float32 on accelerators too, where a default product may round its inputs)
+            ones = jnp.ones((stop - first,), stage_costs.dtype)
+            total = total + jnp.matmul(ones, stage_costs, precision=jax.lax.Precision.HIGHEST)
     if terminal_cost is not None:
         total = total + _checked_costs(jax.vmap(terminal_cost, in_axes=(0, None))(X, params), N, terminal_cost,
                                        batch=False)
