@@ -1,8 +1,9 @@
 """Costs for MPPI: the racing cost, Eq. (19), for one state or a batch of samples, its per-step parameters; waypoints.
 
-Each cost is a pure function of one state, or of the batch of samples at one horizon step with the samples on
-the last axis (``racing_cost_batch``); the targets it reads (waypoints, gate geometry, speeds) come in
-``params``, so changing them never recompiles.
+Each cost is a pure function of one state, of the batch of samples at one horizon step with the samples on
+the last axis (``racing_cost_batch``), or of every sample at every step at once (``racing_costs``, what the
+controllers use); the targets it reads (waypoints, gate geometry, speeds) come in ``params``, so changing
+them never recompiles. What depends only on the track (``racing_constants``) can be built once per track.
 """
 
 from __future__ import annotations

@@ -13,7 +13,8 @@ counted over the first ``t_f`` seconds of the horizon, only while the detector r
 for each predicted state only until it passes the target gate's plane (the target then switches).
 The pixel does not feed back into the robot, so the pixel model runs only over those first
 ``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.mppi.Prefix`); the rest of the horizon
-rolls out the robot alone. The whole step is one compiled function; DOF weights, the target pixel and
+rolls out the robot alone. Both costs are then evaluated once over all the predicted states
+(``MPPIConfig.rollout``). The whole step is one compiled function; DOF weights, the target pixel and
 the gates are arguments (new values never recompile), ``t_f``, ``c_pixel`` and sizes are configuration.
 """
 
