@@ -101,12 +101,17 @@ def test_projection_model_predicts_the_projected_target(setup):
         np.testing.assert_allclose(traj[t, 10:], uv, atol=1e-6)
 
 
-def test_no_recompilation_for_new_pixel_gates_or_weights(setup):
-    track, dof_params = setup
+def small_controller(track, dof_params, seed=0):
+    """A PixelMPC controller at the small size with t_f = 0.25 s: (ctrl, config, its first state, params)."""
     config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25)
     ctrl = PM.make_pixelmpc(config)
-    s = ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams()))
-    params = make_params(track, dof_params, config)
+    s = ctrl.init(jax.random.PRNGKey(seed), Q.hover_control(Q.QuadParams()))
+    return ctrl, config, s, make_params(track, dof_params, config)
+
+
+def test_no_recompilation_for_new_pixel_gates_or_weights(setup):
+    track, dof_params = setup
+    ctrl, config, s, params = small_controller(track, dof_params)
     _, s, _ = ctrl.step(s, state(track), params)  # compiles once
     perturbed = T.perturb_course(track, jax.random.PRNGKey(5))
     other_weights = dof.init_dof_params(jax.random.PRNGKey(99))
@@ -200,16 +205,14 @@ def test_batched_step_gives_the_reference_plan(setup, model):
 
 
 def test_batched_pixelmpc_step_is_the_same_with_and_without_jit(setup):
-    track, dof_params = setup
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25)
-    ctrl = PM.make_pixelmpc(config)
-    s = ctrl.init(jax.random.PRNGKey(2), Q.hover_control(Q.QuadParams()))
-    params = make_params(track, dof_params, config)
+    ctrl, _, s, params = small_controller(*setup, seed=2)
+    track = setup[0]
     u_jit, s_jit, info_jit = ctrl.step(s, state(track), params)
     with jax.disable_jit():
         u_eager, s_eager, info_eager = ctrl.step_pure(s, state(track), params)
     np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-4)
     np.testing.assert_allclose(s_eager.plan, s_jit.plan, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(u_eager, u_jit, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("cfg", [costs.RacingCostConfig(),
