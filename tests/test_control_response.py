@@ -56,6 +56,29 @@ def test_multistep_with_a_still_pixel_model_equals_the_zero_motion_error(laps, s
     assert ms["starts"] == 40 and ms["count"][0] == 40  # every frame starts one; the gate stays in view
 
 
+def test_multistep_parts_on_a_lap_that_only_turns(straight, camera):
+    """Hovering in place while yawing at 0.3 rad/s: the exact rotational flow predicts the gate centre to a
+    hundredth of a pixel, with or without a still DOF's zero-rate flow added; a still DOF's response to the
+    rates is no motion, so its error is the zero-motion error, which grows to several pixels."""
+    frames, rate = 40, 0.3
+    yaw = rate * timing.CONTROL_DT * np.arange(frames + 1)
+    states = np.stack([np.asarray(quadrotor.hover_state((0.0, 0.5, 3.0), yaw=float(a))) for a in yaw])
+    states = states.astype(np.float32)
+    u = np.tile(np.asarray([0.0, 0.0, rate, 9.81], np.float32), (frames, 1))
+    lap = Lap(flow=None, q=states[:frames, 3:7], u=u, states=states, target=np.ones(frames + 1, np.int32),
+              exact_flow=None, exact_valid=None, info={}, w_flown=u[:, :3].copy())
+    still = dof.load_packaged_dof().replace(output_mean=jnp.zeros(2), output_std=jnp.asarray([1e-20, 1.0]))
+    parts = {part: R.multistep_error(still, [lap], straight, camera, horizon=HORIZON, input="flown", part=part)
+             for part in R.PIXEL_MODEL_PARTS}
+    for part in ("exact_rotation", "exact_rotation_dof_rest"):
+        assert max(parts[part]["mean_px"]) < 0.01, part
+    zero = parts["dof_rate_response"]["zero_motion_mean_px"]
+    np.testing.assert_allclose(parts["dof_rate_response"]["mean_px"], zero, atol=1e-4)
+    assert zero[-1] > 3.0
+    with pytest.raises(ValueError, match="part"):
+        R.multistep_error(still, [lap], straight, camera, horizon=HORIZON, part="nothing")
+
+
 def test_multistep_error_refuses_a_lap_whose_arrays_disagree(laps, straight, camera):
     """A lap with one state fewer than its controls would be read past its end (JAX clamps the index)."""
     shipped = dof.load_packaged_dof()

@@ -66,6 +66,11 @@ def test_evaluate_writes_the_required_finite_figures(results):
     rank = res["pixel_cost_rank_correlation"]
     assert set(rank) >= {"median", "q25", "q75"} and rank["samples"] == 512 and rank["steps"] == 40
     assert rank["states"] > 0 and -1.0 <= rank["q25"] <= rank["median"] <= rank["q75"] <= 1.0
+    parts = res["multistep_parts"]["mean_px"]
+    assert set(parts) == {"dof_rate_response", "exact_rotation", "exact_rotation_dof_rest"}
+    for part, values in parts.items():
+        assert len(values) == HORIZON and values[0] is not None and math.isfinite(values[0]), part
+    assert parts["exact_rotation"] != ms["mean_px"]  # another pixel model, not the DOF again
 
 
 def test_aee_figures_are_the_aee_modules(results, tiny_dir, shipped):

@@ -5,7 +5,10 @@
   the DOF pixel dynamics with the logged orientation and control, as PixelMPC does, ``uv_{k+1} = uv_k + dt *
   pixel_velocity(q_k, uv_k, u_k)``, and compared with where the gate centre really projects. Each start tick
   where the gate is detected with its centre in the image starts one prediction; step ``k`` counts while the
-  true centre has stayed in the image and the gate detected on every tick up to ``k``.
+  true centre has stayed in the image and the gate detected on every tick up to ``k``. The same prediction
+  with parts of the pixel model swapped (:data:`PIXEL_MODEL_PARTS`: the DOF's response to the rates alone,
+  the camera's exact rotational flow alone, and that plus the DOF's flow at zero rate) says which part of
+  the DOF holds the prediction back.
 * Rotation response (:func:`rotation_response`): the DOF's mean Jacobian at the image centre, px/frame per
   rad/s of the rate given to it (``jax.jacfwd`` over the frames' orientation and input), against the exact
   rotational flow of the pinhole camera per rad/s (``fx dt`` of yaw on u, ``-fy dt`` of pitch on v at the
@@ -33,6 +36,7 @@ from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import BatchCost, coloured_noise_filter, rollout_costs
 from pixelmpc_jax.dynamics import dof, quadrotor
 from pixelmpc_jax.learn.dataset import Lap, lap_input
+from pixelmpc_jax.learn.rotation_augment import rotation_homography
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.world import camera as camera_lib
 
@@ -284,10 +288,41 @@ def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "dt"))
-def _multistep_lap(dof_params, track, camera, states, controls, target, horizon: int, dt: float):
-    """Per start tick s (F,): predicted and true gate-centre pixel for k = 0..K. Returns
-    err (F, K+1) px, err_zero (F, K+1) px (the pixel held still), valid (F, K+1) bool."""
+def _at_zero_rate(u: jax.Array) -> jax.Array:
+    return u.at[:3].set(0.0)
+
+
+def exact_rotational_velocity(camera, dt: float, uv: jax.Array, u: jax.Array) -> jax.Array:
+    """(2,) pixel velocity (normalised units / s) of a point at infinity while the body turns at ``u[:3]`` rad/s
+    for ``dt``: the camera's exact rotational flow (the infinite homography), no translation."""
+    scale = jnp.asarray([camera.width, camera.height], jnp.float32)
+    h = rotation_homography(quadrotor.rotation_matrix(quadrotor.quat_exp(u[:3], dt)), camera) @ jnp.concatenate(
+        [uv * scale, jnp.ones((1,), jnp.float32)])
+    return (h[:2] / h[2] / scale - uv) / dt
+
+
+# Pixel models made of parts of the DOF and of the camera: ``(dof_params, camera, dt, q, uv, u) -> uv_dot``.
+PIXEL_MODEL_PARTS = {
+    # the DOF, as PixelMPC integrates it
+    "dof": lambda p, camera, dt, q, uv, u: dof.pixel_velocity(p, q, uv, u),
+    # the DOF's response to the body rates alone: its flow at zero rate (what it learned of the translation,
+    # a scene average at that pixel and attitude) taken out
+    "dof_rate_response": lambda p, camera, dt, q, uv, u: (dof.pixel_velocity(p, q, uv, u)
+                                                          - dof.pixel_velocity(p, q, uv, _at_zero_rate(u))),
+    # the camera's exact rotational flow, no translation
+    "exact_rotation": lambda p, camera, dt, q, uv, u: exact_rotational_velocity(camera, dt, uv, u),
+    # the exact rotational flow plus the DOF's flow at zero rate
+    "exact_rotation_dof_rest": lambda p, camera, dt, q, uv, u: (
+        exact_rotational_velocity(camera, dt, uv, u) + dof.pixel_velocity(p, q, uv, _at_zero_rate(u))),
+}
+
+
+@functools.partial(jax.jit, static_argnames=("horizon", "dt", "part"))
+def _multistep_lap(dof_params, track, camera, states, controls, target, horizon: int, dt: float, part: str = "dof"):
+    """Per start tick s (F,): predicted and true gate-centre pixel for k = 0..K, the pixel model
+    ``PIXEL_MODEL_PARTS[part]``. Returns err (F, K+1) px, err_zero (F, K+1) px (the pixel held still),
+    valid (F, K+1) bool."""
+    velocity = PIXEL_MODEL_PARTS[part]
     F = controls.shape[0]
     chex.assert_shape([states, controls, target], [(F + 1, quadrotor.STATE_DIM), (F, 4), (F + 1,)])
     scale = jnp.asarray([camera.width, camera.height], jnp.float32)
@@ -302,7 +337,7 @@ def _multistep_lap(dof_params, track, camera, states, controls, target, horizon:
 
         def step(uv, k):
             j = jnp.minimum(s + k, F - 1)
-            uv_next = uv + dt * dof.pixel_velocity(dof_params, states[j, 3:7], uv, controls[j])
+            uv_next = uv + dt * velocity(dof_params, camera, dt, states[j, 3:7], uv, controls[j])
             return uv_next, uv_next
 
         uv0 = det.centre[0]
@@ -316,20 +351,24 @@ def _multistep_lap(dof_params, track, camera, states, controls, target, horizon:
 
 
 def multistep_error(dof_params: dof.DOFParams, laps: list[Lap], track, camera,
-                    horizon: int = 80, dt: float = timing.CONTROL_DT, input: str = "command") -> dict:
+                    horizon: int = 80, dt: float = timing.CONTROL_DT, input: str = "command",
+                    part: str = "dof") -> dict:
     """Mean and std of the pixel error of the gate centre predicted ``k = 1..horizon`` steps ahead (Fig. 7),
-    the DOF given the logged control input ``input`` ("command", or "flown": the rates flown over each frame).
+    the DOF given the logged control input ``input`` ("command", or "flown": the rates flown over each frame);
+    ``part`` swaps the pixel model for one of :data:`PIXEL_MODEL_PARTS` (default the DOF).
 
     Returns lists of length ``horizon`` (``None`` where no prediction reaches that step): ``mean_px``,
     ``std_px``, ``count``, and ``zero_motion_mean_px`` (the error of assuming the pixel does not move).
     """
     if int(horizon) < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
+    if part not in PIXEL_MODEL_PARTS:
+        raise ValueError(f"part must be one of {tuple(PIXEL_MODEL_PARTS)}, got {part!r}")
     errs, zeros, valids = [], [], []
     for lap in laps:
         err, err_zero, valid = _multistep_lap(dof_params, track, camera, jnp.asarray(lap.states),
                                               jnp.asarray(lap_input(lap, input)),
-                                              jnp.asarray(lap.target), int(horizon), float(dt))
+                                              jnp.asarray(lap.target), int(horizon), float(dt), part)
         errs.append(np.asarray(err)[:, 1:])
         zeros.append(np.asarray(err_zero)[:, 1:])
         valids.append(np.asarray(valid)[:, 1:])
@@ -347,4 +386,5 @@ def multistep_error(dof_params: dof.DOFParams, laps: list[Lap], track, camera,
         "zero_motion_mean_px": column_stat(err_zero, np.mean),
         "starts": int(valid[:, 0].sum()),
         "input": input,
+        "part": part,
     }

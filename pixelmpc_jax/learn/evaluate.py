@@ -221,8 +221,14 @@ def plot_flow_fields(path, rgb, exact, valid, farneback, predicted, title: str =
     plt.close(fig)
 
 
-def plot_multistep(path, multistep: dict, title: str = "") -> None:
-    """Fig. 7 (right): mean +- std pixel error of the multi-step prediction vs the horizon step."""
+PART_LABELS = {"dof_rate_response": "the DOF's response to the rates alone",
+               "exact_rotation": "exact rotational flow alone",
+               "exact_rotation_dof_rest": "exact rotation + the DOF's flow at zero rate"}
+
+
+def plot_multistep(path, multistep: dict, title: str = "", parts: dict | None = None) -> None:
+    """Fig. 7 (right): mean +- std pixel error of the multi-step prediction vs the horizon step; ``parts``:
+    ``{part: mean_px list}`` of the pixel models of :data:`control_response.PIXEL_MODEL_PARTS`, drawn beside."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -238,6 +244,9 @@ def plot_multistep(path, multistep: dict, title: str = "") -> None:
     ax.plot(steps, mean, "C0-", label="DOF (Euler, logged q, u)")
     ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.25, label="+- 1 std")
     ax.plot(steps, zero, "C3--", lw=1, label="pixel held still")
+    for colour, (part, values) in zip(("C1", "C2", "C4"), (parts or {}).items()):
+        ax.plot(steps[:len(values)], [np.nan if v is None else v for v in values], f"{colour}-", lw=1,
+                label=PART_LABELS.get(part, part))
     ax.set(xlabel=f"prediction step (dt = {multistep['dt_s']:g} s)", ylabel="gate-centre error [px]",
            title=title or "multi-step pixel prediction error")
     ax.set_ylim(bottom=0)
@@ -318,6 +327,9 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     dt = float(manifest["frame_dt_s"])
     accuracy = flow_accuracy(dof_params, laps, baseline, dt, progress=progress, input=input)
     multistep = control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt, input=input)
+    parts = {part: control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt,
+                                                    input=input, part=part)["mean_px"]
+             for part in control_response.PIXEL_MODEL_PARTS if part != "dof"}
     rotation = control_response.rotation_response(
         dof_params, np.concatenate([lap.q for lap in laps]),
         np.concatenate([dataset_lib.lap_input(lap, input) for lap in laps]), world.camera, dt)
@@ -337,6 +349,10 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         "multistep": multistep,
         "multistep_at": {str(k): {"mean_px": multistep["mean_px"][k - 1], "std_px": multistep["std_px"][k - 1],
                                   "count": multistep["count"][k - 1]} for k in (1, 10, 20, 40, 80) if k <= horizon},
+        # the same prediction with parts of the pixel model swapped: which part holds the DOF back
+        "multistep_parts": {"mean_px": parts,
+                            "at": {part: {str(k): v[k - 1] for k in (10, 20, 40, 80) if k <= horizon}
+                                   for part, v in parts.items()}},
         "data": {
             "dir": str(data_dir),
             "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
@@ -361,7 +377,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
                          lap.flow[t].astype(np.float32), predicted,
                          title=f"test lap {lap.info.get('lap')} frame {t}, {speed:.1f} m/s")
         plot_multistep(out / "dof_multistep.png", multistep,
-                       title=f"multi-step gate-centre prediction, {multistep['starts']} starts")
+                       title=f"multi-step gate-centre prediction, {multistep['starts']} starts", parts=parts)
         results["figures"] = ["dof_flow_fields.png", "dof_multistep.png"]
         results["figure_frame"] = {"lap": lap.info.get("lap"), "frame": t}
     results["wall_s"] = time.perf_counter() - t0
@@ -383,6 +399,10 @@ def summarise(results: dict) -> str:
         extra.append("  rotation response at the image centre, px/frame per rad/s (DOF / exact = ratio): yaw -> u "
                      f"{fmt(yaw['dof'])} / {fmt(yaw['exact'])} = {fmt(yaw['ratio'])}, pitch -> v "
                      f"{fmt(pitch['dof'])} / {fmt(pitch['exact'])} = {fmt(pitch['ratio'])}")
+    parts = (results.get("multistep_parts") or {}).get("at", {})
+    if parts:
+        extra.append("  40-step error with parts of the pixel model swapped: " + ", ".join(
+            f"{PART_LABELS.get(part, part)} {fmt(at.get('40'))} px" for part, at in parts.items()))
     if rank:
         extra.append(f"  pixel-cost rank correlation with the exact projection ({rank['samples']} samples, "
                      f"{rank['steps']} steps, {rank['states']} states): median {fmt(rank['median'])} "
