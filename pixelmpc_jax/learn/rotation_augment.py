@@ -80,3 +80,15 @@ def augment_batch(key: jax.Array, w: jax.Array, pixel_px: jax.Array, flow_px: ja
     w_new, flow_new = jax.vmap(augment_row, in_axes=(0, 0, 0, 0, None, None))(w, pixel_px, flow_px, delta,
                                                                                 camera, dt)
     return jnp.where(picked, w_new, w), jnp.where(picked, flow_new, flow_px)
+
+
+def turn_training_rows(key: jax.Array, u: jax.Array, i: jax.Array, j: jax.Array, flow_px: jax.Array,
+                       config) -> tuple[jax.Array, jax.Array]:
+    """Training rows (control input ``u`` (B, 4) = flown rates and thrust, pixel column ``i`` and row ``j``
+    (B,), label flow (B, 2) px/frame) turned as ``config`` (a ``train.TrainConfig``: ``rotation_augment``,
+    ``rotation_augment_fraction``, ``width``, ``height``, ``dt``) says, for the default camera at that size."""
+    camera = camera_lib.default_camera(wh=(config.width, config.height))
+    pixel_px = jnp.stack([i + 0.5, j + 0.5], axis=-1).astype(jnp.float32)
+    w, flow_px = augment_batch(key, u[:, :3], pixel_px, flow_px, config.rotation_augment,
+                               config.rotation_augment_fraction, camera, config.dt)
+    return jnp.concatenate([w, u[:, 3:]], axis=1), flow_px

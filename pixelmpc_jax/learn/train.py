@@ -62,7 +62,6 @@ from pixelmpc_jax.learn import rotation_augment
 from pixelmpc_jax.learn.aee import evaluate_aee, zero_flow_aee
 from pixelmpc_jax.learn.dataset import INPUTS, FlowData, as_flow_data, pixel_uv
 from pixelmpc_jax.perception.flow import flow_to_polar
-from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
 # --------------------------------------------------------------------------------------------------
@@ -135,9 +134,8 @@ class TrainConfig:
         if not (self.learning_rate > 0 and self.dt > 0 and 0 <= self.final_lr_fraction <= 1):
             raise ValueError("TrainConfig needs learning_rate > 0, dt > 0, 0 <= final_lr_fraction <= 1")
         if not (0.0 <= self.rotation_augment < float("inf") and 0.0 <= self.rotation_augment_fraction <= 1.0):
-            raise ValueError(f"TrainConfig needs rotation_augment >= 0 (rad/s, finite) and 0 <= "
-                             f"rotation_augment_fraction <= 1, got {self.rotation_augment}, "
-                             f"{self.rotation_augment_fraction}")
+            raise ValueError(f"TrainConfig needs finite rotation_augment >= 0 and rotation_augment_fraction in "
+                             f"[0, 1], got {self.rotation_augment}, {self.rotation_augment_fraction}")
         if self.rotation_augment > 0 and self.input != "flown":
             raise ValueError("TrainConfig.rotation_augment needs input='flown': it turns the rate flown over "
                              "the frame, which a commanded rate is not")
@@ -275,11 +273,7 @@ def sample_batch(data: FlowData, key: jax.Array, batch_size: int, config: TrainC
     u = data.u[f].astype(jnp.float32)  # (B, 4)
     flow = data.flow[f, j, i].astype(jnp.float32)  # (B, 2) pixels per frame
     if config.rotation_augment:
-        camera = camera_lib.default_camera(wh=(config.width, config.height))
-        pixel_px = jnp.stack([i + 0.5, j + 0.5], axis=-1).astype(jnp.float32)
-        w, flow = rotation_augment.augment_batch(key_augment, u[:, :3], pixel_px, flow, config.rotation_augment,
-                                                 config.rotation_augment_fraction, camera, config.dt)
-        u = jnp.concatenate([w, u[:, 3:]], axis=1)
+        u, flow = rotation_augment.turn_training_rows(key_augment, u, i, j, flow, config)
     features = dof.dof_features(data.q[f].astype(jnp.float32), uv, u)
     l, theta = flow_to_polar(flow, config.width, config.height, config.dt)  # (B,), (B,)
     return Batch(features, l, theta)
@@ -601,7 +595,6 @@ def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_siz
     zero = history.get("test_zero_flow_aee_px")
     turned = f", rows turned by {rotation_augment:g} rad/s" if rotation_augment else ""
     print(f"trained {record['steps_done']} steps ({input} input, {loss} loss{turned}) in {wall / 60:.1f} min on "
-          f"{manifest['frames']['train']} frames; "
-          f"test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
+          f"{manifest['frames']['train']} frames; test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
           f"{'-' if zero is None else f'{zero:.2f}'}); weights: {weights}")
     return record
