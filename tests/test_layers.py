@@ -77,3 +77,12 @@ def test_the_scan_finds_a_wrong_import(tmp_path, source, own, bad):
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(source)
     assert bool(violations(path, tmp_path)) == bad
+
+
+MAX_MODULE_LINES = 600  # issue 18: a module past this size does more than one job
+
+
+def test_no_module_of_the_package_is_over_600_lines():
+    sizes = {str(path.relative_to(PACKAGE)): len(path.read_text().splitlines()) for path in PACKAGE.rglob("*.py")}
+    assert len(sizes) > 40
+    assert {name: n for name, n in sizes.items() if n > MAX_MODULE_LINES} == {}
