@@ -3,6 +3,8 @@ PixelMPC problem against the JAX functions, and the diff-drive problem's cost-ma
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 
 import jax
@@ -183,9 +185,18 @@ def test_torch_rollout_cost_equals_jax(port_setup):
 # --------------------------------------------------------------------------------------------------
 
 
-def test_smoke_run_writes_the_schema(tmp_path, capsys):
-    result = suite.run_bench(tmp_path, smoke=True)
-    written = json.loads((tmp_path / "bench.json").read_text())
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """One smoke run of the harness shared by the tests below: (folder, result, bench.json, printed output)."""
+    out = tmp_path_factory.mktemp("bench")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        result = suite.run_bench(out, smoke=True)
+    return out, result, json.loads((out / "bench.json").read_text()), printed.getvalue()
+
+
+def test_smoke_run_writes_the_schema(smoke_run):
+    tmp_path, result, written, printed = smoke_run
     assert (tmp_path / "bench.md").read_text().startswith("# pixelmpc-jax runtime benchmarks")
     assert (tmp_path / "scaling.png").stat().st_size > 0
     assert written["mode"] == "smoke" and len(written["rows"]) == len(result["rows"])
@@ -194,7 +205,7 @@ def test_smoke_run_writes_the_schema(tmp_path, capsys):
     for key in ("jax", "jaxlib", "torch", "pytorch_mppi"):
         assert key in written["versions"]
     groups = {r["group"] for r in written["rows"]}
-    assert {"controller", "roofline", "estimator", "peer", "mppi_generic", "table1", "scaling"} <= groups
+    assert {"controller", "roofline", "estimator", "loop", "peer", "mppi_generic", "table1", "scaling"} <= groups
     pf_rows = [r for r in written["rows"] if r["group"] == "estimator"]
     assert all(r["median_ms"] > 0 and r["num_samples"] == 256 for r in pf_rows) and len(pf_rows) == 2
     for row in written["rows"]:
@@ -202,15 +213,64 @@ def test_smoke_run_writes_the_schema(tmp_path, capsys):
             assert field in row, (row["name"], field)
         if row["status"] == "ok":
             assert 0 < row["median_ms"] <= row["max_ms"] and row["mean_ms"] > 0 and row["two_sigma_ms"] >= 0
+            assert row["min_ms"] <= row["median_ms"] <= row["p95_ms"] <= row["max_ms"]
     peer_rows = [r for r in written["rows"] if r["group"] == "peer"]
     if written["versions"]["torch"] is not None:
         assert all(r["ratio"] > 0 for r in peer_rows)
     else:  # without the bench extra the peer is skipped, and says so
         assert peer_rows and all(r["status"] == peers.TORCH_MISSING for r in peer_rows)
-        assert f"pytorch-mppi peer {peers.TORCH_MISSING}" in capsys.readouterr().out
+        assert f"pytorch-mppi peer {peers.TORCH_MISSING}" in printed
     assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
     assert set(written["summary"]["targets"]) == {"pixelmpc_step_ms <= 12", "ratio_vs_pytorch_mppi <= 0.35",
-                                                  "dof_fraction >= 0.70"}
+                                                  "dof_fraction >= 0.70", "loop_tick_ms <= 25"}
+
+
+def test_smoke_run_has_the_closed_loop_rows(smoke_run):
+    tmp_path, _, written, _ = smoke_run
+    loop = {r["controller"]: r for r in written["rows"] if r["group"] == "loop"}
+    assert set(loop) == {"pixelmpc", "mppi"}
+    for row in loop.values():
+        # the smoke lap: N=16, T=8, 0.25 s = 10 ticks from the start, which ends as a timeout
+        assert row["status"] == "ok" and row["runner"] == "single" and row["repeats"] == 2
+        assert (row["num_samples"], row["horizon"], row["ticks"], row["end_cause"]) == (16, 8, 10, "timeout")
+        assert np.isfinite(row["median_ms"]) and np.isfinite(row["p95_ms"]) and row["median_ms"] > 0
+        assert row["sim_s"] == pytest.approx(10 * 0.025)
+        # per-tick time = lap wall time / ticks flown, and the real-time factor = simulated / wall seconds
+        assert row["median_ms"] == pytest.approx(1e3 * row["lap_wall_s"] / row["ticks"])
+        assert row["real_time_factor"] == pytest.approx(row["sim_s"] / row["lap_wall_s"])
+        assert row["compile_s"] > 0 and row["target_ms"] == 25.0
+        assert row["meets_target"] == (row["median_ms"] <= 25.0)
+    summary = written["summary"]
+    assert summary["loop_tick_median_ms"] == loop["pixelmpc"]["median_ms"]
+    assert summary["nominal_loop_tick_median_ms"] == loop["mppi"]["median_ms"]
+    assert summary["targets"]["loop_tick_ms <= 25"] is False  # not the paper's size
+    md = (tmp_path / "bench.md").read_text()
+    assert "## Closed loop: the tick of a lap (target 25 ms median" in md
+    assert md.count("| closed-loop tick: ") == 2
+
+
+def test_smoke_run_times_both_rollouts(smoke_run):
+    _, _, written, _ = smoke_run
+    rows = written["rows"]
+    by_name = {(r["group"], r["name"]): r for r in rows}
+    for name in ("PixelMPC step (DOF, t_f=1 s)", "nominal MPPI step (quadrotor + racing cost)"):
+        batched, per_step = by_name[("controller", name)], by_name[("controller", name + ", per_step rollout")]
+        assert (batched["rollout"], per_step["rollout"]) == ("batched", "per_step")
+        assert per_step["num_samples"] == batched["num_samples"] and per_step["horizon"] == batched["horizon"]
+        assert per_step["median_ms"] > 0
+    assert {r["rollout"] for r in rows if r["group"] == "scaling"} == {"batched", "per_step"}
+    assert written["summary"]["pixelmpc_step_per_step_median_ms"] == \
+        by_name[("controller", "PixelMPC step (DOF, t_f=1 s), per_step rollout")]["median_ms"]
+
+
+def test_loop_row_refuses_an_unknown_runner():
+    from pixelmpc_jax.apps.bench.closed_loop import loop_row
+    from pixelmpc_jax.apps.spec import RaceSpec
+
+    with pytest.raises(ValueError, match="runner"):
+        loop_row(RaceSpec(), runner="threads")
+    with pytest.raises(ValueError, match="repeats"):
+        loop_row(RaceSpec(), repeats=0)
 
 
 def test_a_row_that_aborts_its_process_is_reported_not_fatal():

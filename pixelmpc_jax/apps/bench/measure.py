@@ -31,7 +31,7 @@ def measure(fn: Callable[[], object], repeats: int = 30, warmup: int = 3, slow_s
     repeated only ``slow_repeats`` times with one warm-up (``reduced_repeats`` says so); with ``budget_s`` the
     repeats are cut to fit about that many seconds (never below ``slow_repeats``).
 
-    Returns ms figures: median, mean, two_sigma (2 x std, population), min, max; repeats and first_call_ms.
+    Returns the :func:`time_stats` of the timed calls, reduced_repeats and first_call_ms.
     """
     start = time.perf_counter()
     _block(fn())
@@ -52,23 +52,28 @@ def measure(fn: Callable[[], object], repeats: int = 30, warmup: int = 3, slow_s
         start = time.perf_counter()
         _block(fn())
         times.append((time.perf_counter() - start) * 1e3)
-    arr = np.asarray(times)
+    return {**time_stats(times), "reduced_repeats": bool(reduced), "first_call_ms": float(first * 1e3)}
+
+
+def time_stats(times_ms) -> dict:
+    """The ms figures of timed calls: median, mean, two_sigma (2 x std, population), min, max, p95 (linear
+    interpolation between the calls) and repeats (how many)."""
+    arr = np.asarray(times_ms, dtype=np.float64)
     return {
         "median_ms": float(np.median(arr)),
         "mean_ms": float(arr.mean()),
         "two_sigma_ms": float(2.0 * arr.std()),
         "min_ms": float(arr.min()),
         "max_ms": float(arr.max()),
-        "repeats": int(repeats),
-        "reduced_repeats": bool(reduced),
-        "first_call_ms": float(first * 1e3),
+        "p95_ms": float(np.percentile(arr, 95)),
+        "repeats": int(arr.size),
     }
 
 
 def make_row(group: str, name: str, num_samples: int | None, horizon: int | None, stats: dict | None,
              **extra) -> dict:
     """One row of bench.json; ``stats`` None (not run: OOM, skipped) leaves the timing fields None."""
-    timing = {k: None for k in ("median_ms", "mean_ms", "two_sigma_ms", "min_ms", "max_ms")}
+    timing = {k: None for k in ("median_ms", "mean_ms", "two_sigma_ms", "min_ms", "max_ms", "p95_ms")}
     row = {"group": group, "name": name, "num_samples": num_samples, "horizon": horizon, **timing,
            "repeats": 0, "status": "ok" if stats is not None else "not run"}
     if stats is not None:

@@ -1,6 +1,7 @@
 """Median step time of the quadrotor MPPI at the paper's sizes (N=512, T=80, K=1).
 
     python benchmarks/mppi_step.py [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
+                                   [--rollout batched|per_step]
 
 The step is the public jitted ``ctrl.step`` (inputs validated, one compiled call), timed after
 compilation with ``block_until_ready``; the state changes every call as in a control loop.
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import BatchCost, MPPIConfig, make_mppi
+from pixelmpc_jax.control.mppi import ROLLOUTS, BatchCost, MPPIConfig, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 
@@ -28,12 +29,15 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--cost", choices=("racing", "waypoint"), default="racing",
                         help="racing: Eq. (19) on the AlphaPilot course (default); waypoint: the demo's cost")
+    parser.add_argument("--rollout", choices=ROLLOUTS, default="batched",
+                        help="MPPIConfig.rollout: batched (default) or per_step (the former implementation)")
     args = parser.parse_args(argv)
 
     params = quadrotor.QuadParams()
     lo, hi = params.control_bounds()
     config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=0.025,
-                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
+                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()),
+                        rollout=args.rollout)
     if args.cost == "racing":
         from pixelmpc_jax.world import track as track_lib
 
@@ -66,7 +70,7 @@ def main(argv=None) -> dict:
     rollouts_per_s = args.samples * args.horizon / (result["median_ms"] / 1e3)
     print(f"device: {device['platform']} ({device['device_kind']}; {device['cpu_model']}, "
           f"{device['cpu_count']} cores), jax {device['jax']}")
-    print(f"quadrotor MPPI step ({args.cost} cost), N={args.samples}, T={args.horizon}: "
+    print(f"quadrotor MPPI step ({args.cost} cost, {args.rollout} rollout), N={args.samples}, T={args.horizon}: "
           f"median {result['median_ms']:.2f} ms "
           f"(mean {result['mean_ms']:.2f} +- {result['two_sigma_ms']:.2f} ms 2sigma, max {result['max_ms']:.2f} ms, "
           f"{args.repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")

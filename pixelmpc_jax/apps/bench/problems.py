@@ -65,14 +65,16 @@ _racing_params = jax.jit(costs.racing_params, static_argnames=("config",))
 
 
 def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0, track=None,
-                     dof_params=None, seed: int = 0) -> ControllerProblem:
+                     dof_params=None, seed: int = 0, rollout: str = "batched") -> ControllerProblem:
     """The full PixelMPC step (DOF pixel model over t_f, racing + pixel cost) at the given sizes.
 
-    ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline).
+    ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline);
+    ``rollout`` is ``MPPIConfig.rollout`` ("per_step": the former implementation of the same step).
     """
     track = track or track_lib.load_course()
     dof_params = bench_dof_params() if dof_params is None else dof_params
-    config = pixelmpc_lib.PixelMPCConfig(mppi=pixelmpc_lib.paper_mppi_config(num_samples, horizon), t_f=t_f)
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout)
+    config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f)
     ctrl = pixelmpc_lib.make_pixelmpc(config)
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
     params = pixelmpc_lib.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(True),
@@ -84,10 +86,12 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
     return ControllerProblem(ctrl, state, x0, params, config)
 
 
-def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed: int = 0) -> ControllerProblem:
-    """Nominal MPPI (the paper's baseline): the 10-state quadrotor with the racing cost, no pixel model."""
+def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed: int = 0,
+                    rollout: str = "batched") -> ControllerProblem:
+    """Nominal MPPI (the paper's baseline): the 10-state quadrotor with the racing cost, no pixel model;
+    ``rollout`` as in :func:`pixelmpc_problem`."""
     track = track or track_lib.load_course()
-    mppi_config = pixelmpc_lib.paper_mppi_config(num_samples, horizon)
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout)
     cost_config = costs.RacingCostConfig()
     quad_params = quadrotor.QuadParams()
     dt = mppi_config.dt

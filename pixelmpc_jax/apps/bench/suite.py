@@ -1,19 +1,22 @@
 """The runtime harness behind ``pixelmpc bench``: the paper's Table I, the controller step and its scaling,
-peers on identical work and the hardware limit, written to ``DIR/bench.json``, ``DIR/bench.md`` and
-``DIR/scaling.png``.
+the closed loop's tick, peers on identical work and the hardware limit, written to ``DIR/bench.json``,
+``DIR/bench.md`` and ``DIR/scaling.png``.
 
     pixelmpc bench --out DIR [--quick]
     python -m pixelmpc_jax.apps.bench.suite --out DIR [--quick | --smoke]
 
-Modes: full (everything, ~10 min on 2 CPU cores); ``quick`` (the paper-size controller rows, the
-roofline, the particle filter tick and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke``
-(every code path at N=16, T=8, 3 repeats: a schema check, seconds). CPU by default; JAX's default device
-where it finds a GPU.
+Modes: full (everything, with one closed-loop AlphaPilot lap per controller, ~15 min on 2 CPU cores);
+``quick`` (the paper-size controller rows, the roofline, the particle filter tick, the first 2.5 s of a lap
+in the closed loop and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke`` (every code path at
+N=16, T=8, 3 repeats, laps of 10 ticks timed twice: a schema check, about a minute). CPU by default;
+JAX's default device where it finds a GPU. The controller rows time the MPPI step with
+``MPPIConfig.rollout`` "batched" (the default) and "per_step" (the former implementation) in one run.
 
 bench.json: ``device`` (platform, device kind, CPU model, cores), ``versions`` (jax, jaxlib, numpy, torch,
 pytorch-mppi, python), ``mode``, ``rows`` (each with at least group, name, num_samples, horizon, median_ms,
 mean_ms, two_sigma_ms, max_ms, and ratio = ours / theirs for peer rows) and ``summary`` (the headline
-figures and the targets).
+figures and the targets). Closed-loop rows (group "loop") give the per-tick time of a lap (wall time / ticks
+flown) in the timing fields, with ticks, sim_s, lap_wall_s, real_time_factor and compile_s.
 """
 
 from __future__ import annotations
@@ -26,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps.bench import controller, particle_filter_step, peers, table1
+from pixelmpc_jax.apps.bench import closed_loop, controller, particle_filter_step, peers, table1
 from pixelmpc_jax.apps.bench.measure import fmt_ms
 from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
 
 REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "mean_ms", "two_sigma_ms", "max_ms")
-TARGETS = {"pixelmpc_step_ms": 12.0, "ratio_vs_pytorch_mppi": 0.35, "dof_fraction_of_matmul_rate": 0.70}
+TARGETS = {"pixelmpc_step_ms": 12.0, "ratio_vs_pytorch_mppi": 0.35, "dof_fraction_of_matmul_rate": 0.70,
+           "loop_tick_ms": closed_loop.TICK_TARGET_MS}
 
 
 def versions() -> dict:
@@ -65,8 +69,9 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
 
     Args:
         out_dir: folder for the outputs (created).
-        quick: the paper-size controller rows, roofline and the pytorch-mppi peer only (< 5 min, 2 CPU cores).
-        smoke: every code path at tiny sizes (N=16, T=8, 3 repeats), for tests.
+        quick: the paper-size controller rows, roofline, a short closed loop and the pytorch-mppi peer only
+            (< 5 min, 2 CPU cores).
+        smoke: every code path at tiny sizes (N=16, T=8, 3 repeats, 10-tick laps), for tests.
 
     Returns:
         the bench.json content.
@@ -92,6 +97,9 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
     _log("particle filter tick", start)
     rows += particle_filter_step.pf_rows(particles=256 if smoke else 6400, repeats=repeats)
 
+    _log(f"closed loop ({'one lap' if mode == 'full' else 'a short lap'} per controller)", start)
+    rows += closed_loop.loop_rows(mode)
+
     _log("pytorch-mppi peer" if peers.torch_available() else f"pytorch-mppi peer {peers.TORCH_MISSING}", start)
     if smoke:
         rows += peers.pytorch_mppi_rows(samples=(16,), horizon=8, repeats=repeats, budget_s=2.0,
@@ -106,7 +114,8 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
         rows += table1.table1_rows(smoke=smoke, repeats=repeats)
         _log("scaling over N and T", start)
         if smoke:
-            rows += controller.scaling_rows(repeats=repeats, samples=(32,), horizons=(8,), max_seconds_per_row=1.0)
+            rows += controller.scaling_rows(repeats=repeats, samples=(32,), horizons=(8,), max_seconds_per_row=1.0,
+                                            per_step_samples=(32,), per_step_horizon=8)
         else:
             rows += controller.scaling_rows(repeats=repeats)
 
@@ -136,7 +145,12 @@ def _first(rows, **match):
 def summarize(rows: list[dict]) -> dict:
     """Headline figures and the targets (met or not)."""
     step = rows[0]
-    nominal = _first(rows, group="controller", name="nominal MPPI step (quadrotor + racing cost)")
+    nominal = _first(rows, group="controller", name=controller.NOMINAL_NAME)
+    step_per_step = _first(rows, group="controller", name=controller.rollout_name(step["name"], "per_step")) or {}
+    nominal_per_step = _first(rows, group="controller",
+                              name=controller.rollout_name(controller.NOMINAL_NAME, "per_step")) or {}
+    loop = _first(rows, group="loop", controller="pixelmpc", runner="single") or {}
+    loop_nominal = _first(rows, group="loop", controller="mppi", runner="single") or {}
     roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate") or {}
     ratios = {r["num_samples"]: r["ratio"] for r in rows if r["group"] == "peer" and r.get("best_peer")}
     summary = {
@@ -147,6 +161,14 @@ def summarize(rows: list[dict]) -> dict:
         "samples_per_s": step.get("samples_per_s"),
         "sample_steps_per_s": step.get("sample_steps_per_s"),
         "nominal_mppi_median_ms": nominal and nominal["median_ms"],
+        "pixelmpc_step_per_step_median_ms": step_per_step.get("median_ms"),
+        "nominal_mppi_per_step_median_ms": nominal_per_step.get("median_ms"),
+        "loop_tick_median_ms": loop.get("median_ms"),
+        "loop_tick_p95_ms": loop.get("p95_ms"),
+        "loop_ticks": loop.get("ticks"),
+        "loop_real_time_factor": loop.get("real_time_factor"),
+        "nominal_loop_tick_median_ms": loop_nominal.get("median_ms"),
+        "nominal_loop_real_time_factor": loop_nominal.get("real_time_factor"),
         "ratio_vs_pytorch_mppi": ratios,
         "matmul_rate_gflops": roof.get("matmul_rate_gflops"),
         "step_fraction_of_matmul_rate": roof.get("step_fraction_of_matmul_rate"),
@@ -161,6 +183,8 @@ def summarize(rows: list[dict]) -> dict:
         "ratio_vs_pytorch_mppi <= 0.35": bool(ratios) and all(v <= TARGETS["ratio_vs_pytorch_mppi"]
                                                               for v in ratios.values()),
         "dof_fraction >= 0.70": (roof.get("dof_alone_fraction") or 0.0) >= TARGETS["dof_fraction_of_matmul_rate"],
+        "loop_tick_ms <= 25": (loop.get("num_samples") == 512 and loop.get("horizon") == 80
+                               and loop.get("median_ms") is not None and loop["median_ms"] <= TARGETS["loop_tick_ms"]),
     }
     return summary
 
@@ -168,10 +192,18 @@ def summarize(rows: list[dict]) -> dict:
 def headline(summary: dict) -> str:
     ratio = ", ".join(f"N={n}: {v:.3f}" for n, v in summary["ratio_vs_pytorch_mppi"].items()) or "n/a"
     nominal = summary["nominal_mppi_median_ms"]
+    loop = ""
+    if summary.get("loop_tick_median_ms") is not None:
+        loop = (f"closed-loop tick (PixelMPC, {summary['loop_ticks']} ticks) median "
+                f"{summary['loop_tick_median_ms']:.2f} ms, p95 {summary['loop_tick_p95_ms']:.2f} ms, "
+                f"{summary['loop_real_time_factor']:.2f}x real time; nominal MPPI "
+                f"{_num(summary['nominal_loop_tick_median_ms'])} ms; ")
     return (f"PixelMPC step N={summary['num_samples']} T={summary['horizon']}: median "
-            f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}), "
+            f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}; per_step "
+            f"rollout {_num(summary.get('pixelmpc_step_per_step_median_ms'))} ms), "
             f"{summary['samples_per_s'] / 1e3:.1f} k samples/s, {summary['sample_steps_per_s'] / 1e6:.2f} M "
-            f"sample-steps/s; nominal MPPI {nominal:.2f} ms; ours/pytorch-mppi {ratio}; "
+            f"sample-steps/s; nominal MPPI {nominal:.2f} ms (per_step rollout "
+            f"{_num(summary.get('nominal_mppi_per_step_median_ms'))} ms); {loop}ours/pytorch-mppi {ratio}; "
             f"matmul {summary['matmul_rate_gflops']:.1f} GFLOP/s, step at "
             f"{summary['step_fraction_of_matmul_rate']:.1%}, DOF alone at {summary['dof_alone_fraction']:.1%}, "
             f"DOF in step at {summary['dof_fraction_in_step']:.1%}; targets {summary['targets']}")
@@ -211,12 +243,33 @@ def markdown(result: dict) -> str:
     ctrl = [r for r in rows if r["group"] in ("controller", "roofline") and r.get("median_ms") is not None]
     if ctrl:
         lines += ["## Controller step and matmul rate", "",
-                  "| row | N | T | median | mean ± 2σ (max) | min | repeats | samples/s | GFLOP/s |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "Rows named \"per_step rollout\" time the former implementation of the same step "
+                  "(`MPPIConfig.rollout=\"per_step\"`, the costs inside the scan) beside the default "
+                  "(\"batched\": the costs over all (T, N) states after it).", "",
+                  "| row | N | T | median | p95 | mean ± 2σ (max) | min | repeats | samples/s | GFLOP/s |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for r in ctrl:
             lines.append(f"| {r['name']} | {_num(r['num_samples'])} | {_num(r['horizon'])} | {_num(r['median_ms'])} | "
-                         f"{fmt_ms(r)} | {_num(r['min_ms'])} | {r['repeats']} | {_num(r.get('samples_per_s'), 0)} | "
-                         f"{_num(r.get('gflops_per_s'), 1)} |")
+                         f"{_num(r.get('p95_ms'))} | {fmt_ms(r)} | {_num(r['min_ms'])} | {r['repeats']} | "
+                         f"{_num(r.get('samples_per_s'), 0)} | {_num(r.get('gflops_per_s'), 1)} |")
+        lines.append("")
+    loop = [r for r in rows if r["group"] == "loop"]
+    if loop:
+        lines += [f"## Closed loop: the tick of a lap (target {TARGETS['loop_tick_ms']:g} ms median, one tick of "
+                  f"wall time per 40 Hz tick flown)", "",
+                  "A lap flown as `pixelmpc race` flies it (14 m/s, geometric detector, true state, the "
+                  "FlightGoggles-like plant), the compiled episode timed whole and divided by the ticks flown; "
+                  "compilation excluded (its time is given). Real-time factor: simulated s / wall s (above 1: "
+                  "faster than real time).", "",
+                  "| row | N | T | course (max s) | ticks | per-tick median | p95 | mean ± 2σ (max) | repeats | "
+                  "simulated s | wall s | real-time factor | compile s | end | ≤ target |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in loop:
+            lines.append(f"| {r['name']} | {r['num_samples']} | {r['horizon']} | {r['course']} "
+                         f"({r['max_time_s']:g}) | {r['ticks']} | {_num(r['median_ms'])} | {_num(r['p95_ms'])} | "
+                         f"{fmt_ms(r)} | {r['repeats']} | {_num(r['sim_s'])} | {_num(r['lap_wall_s'], 3)} | "
+                         f"{_num(r['real_time_factor'])} | {_num(r['compile_s'], 1)} | {r['end_cause']} | "
+                         f"{'yes' if r['meets_target'] else 'no'} |")
         lines.append("")
     roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate")
     if roof:
@@ -284,7 +337,8 @@ def markdown(result: dict) -> str:
 
 
 def plot_scaling(rows: list[dict], path) -> None:
-    """Median step time and samples/s against N, one line per T (scaling rows; else the controller rows)."""
+    """Median step time and samples/s against N, one line per T and rollout (scaling rows; else the peer rows
+    of ours); the former per_step rollout dotted."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -293,12 +347,14 @@ def plot_scaling(rows: list[dict], path) -> None:
     scaling = [r for r in rows if r["group"] == "scaling"] or [
         r for r in rows if r["group"] == "peer" and r["name"].startswith("ours")]
     fig, (ax_t, ax_r) = plt.subplots(1, 2, figsize=(10, 4))
-    for horizon in sorted({r["horizon"] for r in scaling}):
-        sel = sorted((r for r in scaling if r["horizon"] == horizon), key=lambda r: r["num_samples"])
+    lines = sorted({(r.get("rollout", "batched"), r["horizon"]) for r in scaling})
+    for rollout, horizon in lines:
+        sel = sorted((r for r in scaling if r["horizon"] == horizon and r.get("rollout", "batched") == rollout),
+                     key=lambda r: r["num_samples"])
         n = [r["num_samples"] for r in sel]
-        ax_t.plot(n, [r["median_ms"] for r in sel], "o-", label=f"T={horizon}")
-        ax_r.plot(n, [r["num_samples"] * r["horizon"] / (r["median_ms"] / 1e3) for r in sel], "o-",
-                  label=f"T={horizon}")
+        style, label = ("o-", f"T={horizon}") if rollout == "batched" else ("s:", f"T={horizon}, {rollout}")
+        ax_t.plot(n, [r["median_ms"] for r in sel], style, label=label)
+        ax_r.plot(n, [r["num_samples"] * r["horizon"] / (r["median_ms"] / 1e3) for r in sel], style, label=label)
     for r in rows:
         if r["group"] == "peer" and r.get("best_peer"):
             ax_t.plot(r["num_samples"], r["median_ms"], "kx")

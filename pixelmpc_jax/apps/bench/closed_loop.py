@@ -1,0 +1,149 @@
+"""The closed loop's tick: one lap flown as ``pixelmpc race`` flies it (the controller, the geometric detector,
+the true state and the FlightGoggles-like plant at 40 Hz), timed as a whole compiled episode and divided by
+the ticks it flew.
+
+The episode (:func:`~pixelmpc_jax.sim.episode.make_runner`) is compiled ahead of the timing (its compile time
+is recorded apart), then run ``repeats`` times on the same world and key, each call blocked until ready. The
+lap is the same every repeat; each repeat gives one per-tick time: its wall time / the ticks it flew.
+
+    python benchmarks/closed_loop.py [--mode full|quick|smoke] [--repeats 3]
+
+The harness (``pixelmpc bench``) writes these rows into bench.json with ``group`` "loop".
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+
+from pixelmpc_jax.apps import race
+from pixelmpc_jax.apps.bench.measure import make_row, time_stats
+from pixelmpc_jax.apps.bench.problems import bench_dof_params
+from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.sim.controllers import split_options
+
+GROUP = "loop"
+TICK_TARGET_MS = 1e3 * episode_lib.CONTROL_DT  # 25 ms: one tick of wall time per tick flown is real time
+RUNNERS = ("single", "batch")  # Runner.single(world, key); Runner.batch of one lap, as ``pixelmpc race`` runs it
+
+
+def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_params=None) -> dict:
+    """Time the race ``spec``'s first lap in the closed loop.
+
+    Args:
+        spec: the race (controller, course, max_time_s, ...); its ``options`` may shrink the controller.
+        repeats: timed laps after the compilation.
+        runner: "single" (the jitted episode) or "batch" (the vmapped episode with a batch of one lap, the
+            way ``pixelmpc race`` flies it).
+        dof_params: the DOF weights for PixelMPC with the DOF (None: the packaged weights).
+
+    Returns:
+        a bench.json row: the per-tick ms figures (median, mean, 2 sigma, min, max, p95 over the repeats), the
+        ticks flown, simulated and wall seconds of the lap (median), the real-time factor (simulated s / wall s),
+        the compile time (for "batch", its first call less the median lap) and how the lap ended.
+    """
+    if runner not in RUNNERS:
+        raise ValueError(f"runner must be one of {RUNNERS}, got {runner!r}")
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats!r}")
+    policy = spec.policy()
+    config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector, estimator=spec.estimator)
+    runners = episode_lib.make_runner(policy, config)
+    if spec.uses_dof and dof_params is None:
+        dof_params = bench_dof_params()
+    world = episode_lib.make_world(track=race.make_course(spec.course), target_speed=spec.speed,
+                                   dof=dof_params if spec.uses_dof else None)
+    key = jax.random.PRNGKey(spec.seed)
+    start = time.perf_counter()
+    if runner == "single":
+        call = runners.single.lower(world, key).compile()
+        args = (world, key)
+    else:
+        # Runner.batch shards, runs the jitted vmap and gathers; its first call compiles (and flies one lap)
+        args = (episode_lib.stack_worlds([world]), key[None])
+        call = runners.batch
+        jax.block_until_ready(call(*args))
+    first_call_s = time.perf_counter() - start
+
+    walls, ticks = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        log = jax.block_until_ready(call(*args))
+        walls.append(time.perf_counter() - start)
+        ticks.append(int(np.asarray(log.num_ticks).reshape(-1)[0]))
+    # the same world and key fly the same lap, so ticks are equal; each repeat is divided by its own anyway
+    num_ticks = int(np.median(ticks))
+    stats = time_stats(1e3 * np.asarray(walls) / np.maximum(ticks, 1))
+    lap_wall_s = float(np.median(walls))
+    # Runner.single is compiled ahead of time; Runner.batch's first call also flew a lap
+    compile_s = first_call_s - (lap_wall_s if runner == "batch" else 0.0)
+    sim_s = num_ticks * episode_lib.CONTROL_DT
+    end = int(np.asarray(log.end_cause).reshape(-1)[0])
+    finished = bool(np.asarray(log.finished).reshape(-1)[0])
+    mppi = policy_sizes(spec)
+    controller = (f"PixelMPC ({spec.pixel_model}, t_f={spec.t_f:g} s)" if spec.controller == "pixelmpc"
+                  else "nominal MPPI")
+    name = f"closed-loop tick: {controller}, {spec.detector} detector, plant"
+    if runner == "batch":
+        name += ", batch of 1 (as pixelmpc race)"
+    return make_row(GROUP, name, mppi["num_samples"], mppi["horizon"], stats,
+                    first_call_ms=1e3 * first_call_s, compile_s=compile_s, controller=spec.controller, runner=runner,
+                    course=spec.course, max_time_s=spec.max_time_s, speed=spec.speed, ticks=num_ticks,
+                    ticks_per_repeat=ticks,
+                    sim_s=sim_s, lap_wall_s=lap_wall_s, real_time_factor=sim_s / lap_wall_s,
+                    end_cause="finished" if finished else episode_lib.END_NAMES.get(end, "flying"),
+                    gates_passed=int(np.asarray(log.gates_passed).reshape(-1)[0]),
+                    target_ms=TICK_TARGET_MS, meets_target=stats["median_ms"] <= TICK_TARGET_MS)
+
+
+def policy_sizes(spec: RaceSpec) -> dict:
+    """The MPPI samples and horizon the spec's controller plans with."""
+    horizon = split_options(dict(spec.options))[1].get("horizon", episode_lib.paper_mppi_config().horizon)
+    return {"num_samples": spec.num_samples, "horizon": horizon}
+
+
+def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -> list[dict]:
+    """The closed-loop rows of the harness: PixelMPC (packaged DOF) and nominal MPPI at the defaults of
+    ``pixelmpc race`` (N=512, T=80, t_f=1 s, 14 m/s, geometric detector, true state).
+
+    Modes: "full": one AlphaPilot lap (max 60 s), 3 repeats, and PixelMPC once more as ``pixelmpc race`` runs
+    it (a batch of one); "quick": the first 2.5 s of the lap, 3 repeats; "smoke": N=16, T=8, t_f=0.1 s,
+    0.25 s (10 ticks), 2 repeats.
+    """
+    if mode not in ("full", "quick", "smoke"):
+        raise ValueError(f"mode must be full, quick or smoke, got {mode!r}")
+    repeats = repeats or (2 if mode == "smoke" else 3)
+    base = RaceSpec(controller="pixelmpc", max_time_s={"full": 60.0, "quick": 2.5, "smoke": 0.25}[mode])
+    if mode == "smoke":
+        base = base.replace(num_samples=16, t_f=0.1, options={"mppi.horizon": 8})
+    rows = [loop_row(base, repeats, dof_params=dof_params),
+            loop_row(base.replace(controller="mppi"), repeats)]
+    if mode == "full":
+        rows.append(loop_row(base, repeats, runner="batch", dof_params=dof_params))
+    return rows
+
+
+def main(argv=None) -> list[dict]:
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--mode", choices=("full", "quick", "smoke"), default="quick",
+                        help="full: one AlphaPilot lap per controller; quick: 2.5 s of it (default); smoke: tiny")
+    parser.add_argument("--repeats", type=int, default=None, help="timed laps per row (default 3; smoke 2)")
+    args = parser.parse_args(argv)
+    rows = loop_rows(args.mode, args.repeats)
+    for r in rows:
+        print(f"{r['name']} (N={r['num_samples']}, T={r['horizon']}, {r['course']}, {r['ticks']} ticks, "
+              f"{r['end_cause']}): per tick median {r['median_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms over "
+              f"{r['repeats']} laps; lap {r['sim_s']:.2f} s simulated in {r['lap_wall_s']:.2f} s wall "
+              f"({r['real_time_factor']:.2f}x real time); compile {r['compile_s']:.1f} s")
+    print(json.dumps(rows))
+    return rows
+
+
+if __name__ == "__main__":
+    main()
