@@ -444,9 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pixelmpc (default) or mppi, the paper's nominal baseline")
     p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
                    help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
-    p.add_argument("--dof-weights", default="paper", metavar="paper|flown|FILE",
+    p.add_argument("--dof-weights", default="paper", metavar="paper|flown|turned|FILE",
                    help="the DOF's weights: the packaged paper weights (command input; default), the packaged "
-                        "flown-rate weights, or a weights file from `pixelmpc train`")
+                        "flown-rate weights, those trained with turned rows, or a weights file from `pixelmpc train`")
     p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
                    help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
     p.add_argument("--course", choices=COURSES, default="alphapilot",

@@ -195,3 +195,19 @@ def test_checkpoint_variant_defaults_to_the_papers_for_old_records():
     assert dof.checkpoint_variant({"train_config": {"loss": "endpoint"}}) == {"input": "command", "loss": "endpoint"}
     assert dof.checkpoint_variant({"variant": {"input": "flown", "loss": "polar"}}) == {"input": "flown",
                                                                                         "loss": "polar"}
+
+
+def test_every_packaged_variant_loads_and_its_record_says_how_it_was_trained():
+    """The shipped weights: the paper's (command input), the flown-rate ones, and those trained with turned
+    rows; each record names its input, and only the turned one was trained with rotation augmentation."""
+    expected = {"paper": ("command", 0.0), "flown": ("flown", 0.0), "turned": ("flown", 1.0)}
+    assert set(dof.PACKAGED_VARIANTS) == set(expected)
+    for variant, (input_, sigma) in expected.items():
+        params, record = dof.load_checkpoint(dof.PACKAGED_VARIANTS[variant])
+        assert dof.num_trainable_params(params) == 34_690
+        assert dof.checkpoint_variant(record)["input"] == input_, variant
+        assert record.get("train_config", {}).get("rotation_augment", 0.0) == sigma, variant
+        leaves = jax.tree_util.tree_leaves(dof.load_packaged_dof(variant))
+        assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
+    with pytest.raises(ValueError, match="turned"):
+        dof.load_packaged_dof("nonexistent")

@@ -364,13 +364,15 @@ PACKAGED_VARIANTS = {
     "paper": PACKAGED_WEIGHTS,
     # the flown-rate variant: trained on the body rates flown over each frame (the MPC's own meaning of u)
     "flown": PACKAGED_WEIGHTS.with_name("dof_weights_flown.msgpack"),
+    # the flown-rate variant trained with rows turned by an extra camera rotation (train --rotation-augment 1)
+    "turned": PACKAGED_WEIGHTS.with_name("dof_weights_turned.msgpack"),
 }
 
 
 def load_packaged_dof(variant: str = "paper") -> DOFParams:
     """DOF weights shipped inside the package: ``variant`` "paper" (``data/dof_weights.msgpack``, the paper's
-    command input; the default) or "flown" (``data/dof_weights_flown.msgpack``); each has a ``.json`` beside it
-    saying how it was made."""
+    command input; the default), "flown" (``data/dof_weights_flown.msgpack``) or "turned"
+    (``data/dof_weights_turned.msgpack``); each has a ``.json`` beside it saying how it was made."""
     if variant not in PACKAGED_VARIANTS:
         raise ValueError(f"unknown packaged DOF weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
     path = PACKAGED_VARIANTS[variant]
