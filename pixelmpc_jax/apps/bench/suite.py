@@ -35,8 +35,18 @@ from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
 
 REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "mean_ms", "two_sigma_ms", "max_ms")
-TARGETS = {"pixelmpc_step_ms": 12.0, "ratio_vs_pytorch_mppi": 0.35, "dof_fraction_of_matmul_rate": 0.70,
-           "loop_tick_ms": closed_loop.TICK_TARGET_MS}
+# issue 17's targets on a 2-core CPU (medians unless named): the PixelMPC step and its p95, the nominal step, ours /
+# pytorch-mppi per N, the step's growth from 512 to 2048 samples (T = 80), the closed loop's tick
+TARGETS = {"pixelmpc_step_ms": 12.0, "pixelmpc_step_p95_ms": 25.0, "nominal_step_ms": 5.0,
+           "ratio_vs_pytorch_mppi": {512: 0.1, 2048: 0.15}, "step_2048_over_512": 4.5,
+           "dof_fraction_of_matmul_rate": 0.70, "loop_tick_ms": closed_loop.TICK_TARGET_MS}
+
+
+def _scaling_growth(rows: list[dict], small: int = 512, large: int = 2048, horizon: int = 80) -> float | None:
+    """The default step's median at ``large`` samples over that at ``small`` (the scaling rows, T = ``horizon``)."""
+    times = {r["num_samples"]: r["median_ms"] for r in rows if r["group"] == "scaling" and r["horizon"] == horizon
+             and r.get("rollout", "batched") == "batched" and r.get("median_ms")}
+    return times[large] / times[small] if small in times and large in times else None
 
 
 def versions() -> dict:
@@ -170,6 +180,7 @@ def summarize(rows: list[dict]) -> dict:
         "nominal_loop_tick_median_ms": loop_nominal.get("median_ms"),
         "nominal_loop_real_time_factor": loop_nominal.get("real_time_factor"),
         "ratio_vs_pytorch_mppi": ratios,
+        "step_2048_over_512": _scaling_growth(rows),
         "matmul_rate_gflops": roof.get("matmul_rate_gflops"),
         "step_fraction_of_matmul_rate": roof.get("step_fraction_of_matmul_rate"),
         "dof_fraction_in_step": roof.get("dof_fraction_in_step"),
@@ -180,8 +191,14 @@ def summarize(rows: list[dict]) -> dict:
     paper_size = step["num_samples"] == 512 and step["horizon"] == 80
     summary["targets"] = {
         "pixelmpc_step_ms <= 12": paper_size and step["median_ms"] <= TARGETS["pixelmpc_step_ms"],
-        "ratio_vs_pytorch_mppi <= 0.35": bool(ratios) and all(v <= TARGETS["ratio_vs_pytorch_mppi"]
-                                                              for v in ratios.values()),
+        "pixelmpc_step_p95_ms <= 25": paper_size and step.get("p95_ms") is not None
+                                      and step["p95_ms"] <= TARGETS["pixelmpc_step_p95_ms"],
+        "nominal_step_ms <= 5": paper_size and nominal is not None
+                                and nominal["median_ms"] <= TARGETS["nominal_step_ms"],
+        "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)": all(
+            n in ratios and ratios[n] <= limit for n, limit in TARGETS["ratio_vs_pytorch_mppi"].items()),
+        "step_2048_over_512 <= 4.5": (summary["step_2048_over_512"] is not None
+                                      and summary["step_2048_over_512"] <= TARGETS["step_2048_over_512"]),
         "dof_fraction >= 0.70": (roof.get("dof_alone_fraction") or 0.0) >= TARGETS["dof_fraction_of_matmul_rate"],
         "loop_tick_ms <= 25": (loop.get("num_samples") == 512 and loop.get("horizon") == 80
                                and loop.get("median_ms") is not None and loop["median_ms"] <= TARGETS["loop_tick_ms"]),
@@ -323,11 +340,12 @@ def markdown(result: dict) -> str:
     scaling = [r for r in rows if r["group"] == "scaling"]
     if scaling:
         lines += ["## Scaling of the PixelMPC step (t_f = 1 s)", "",
-                  "| N | T | median | mean ± 2σ (max) | repeats | samples/s | sample-steps/s |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| N | T | rollout | median | mean ± 2σ (max) | repeats | samples/s | sample-steps/s |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in scaling:
-            lines.append(f"| {r['num_samples']} | {r['horizon']} | {_num(r['median_ms'])} | {fmt_ms(r)} | "
-                         f"{r['repeats']} | {_num(r['samples_per_s'], 0)} | {_num(r['sample_steps_per_s'], 0)} |")
+            lines.append(f"| {r['num_samples']} | {r['horizon']} | {r.get('rollout', 'batched')} | "
+                         f"{_num(r['median_ms'])} | {fmt_ms(r)} | {r['repeats']} | {_num(r['samples_per_s'], 0)} | "
+                         f"{_num(r['sample_steps_per_s'], 0)} |")
         lines.append("")
     reduced = [r["name"] + f" (N={r['num_samples']}, T={r['horizon']})" for r in rows if r.get("reduced_repeats")]
     if reduced:
