@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import timing
+
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
 SIGMA_MIN, SIGMA_MAX = 1e-18, 1e18  # sigma^2 and 1 / sigma^2 (the control cost) stay normal float32 numbers
@@ -85,7 +87,7 @@ class MPPIConfig:
 
     num_samples: int = 512
     horizon: int = 80
-    dt: float = 0.025
+    dt: float = timing.CONTROL_DT
     noise_sigma: tuple[float, ...] = (0.2, 0.2, 0.3, 2.2)
     temperature: float = 1.0
     iterations: int = 1

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import BatchCost, Controller, MPPIConfig, Prefix, TrajectoryCost, make_mppi
 from pixelmpc_jax.dynamics import dof as dof_lib
@@ -43,7 +44,7 @@ PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a 
 
 
 def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: float = 200.0,
-                      rate_max: float = 6.0, dt: float = 0.025) -> MPPIConfig:
+                      rate_max: float = 6.0, dt: float = timing.CONTROL_DT) -> MPPIConfig:
     """The paper's MPPI settings: dt 0.025 s, T 80, N 512, K 1, sigma (0.2, 0.2, 0.3, 2.2).
 
     The temperature (lambda) and the body-rate limit are not given in the paper: lambda = 200 suits the

@@ -11,6 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench import problems, roofline
 from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.dynamics import dof as dof_lib
@@ -68,7 +69,7 @@ def dof_part_row(num_samples: int, pixel_steps: int, dof_params, repeats: int = 
 
     def one(uv, q, controls):
         def body(uv, u_t):
-            return uv + 0.025 * dof_lib.pixel_velocity(dof_params, q, uv, u_t), None
+            return uv + timing.CONTROL_DT * dof_lib.pixel_velocity(dof_params, q, uv, u_t), None
         return jax.lax.scan(body, uv, controls)[0]
 
     fn = jax.jit(jax.vmap(one))

@@ -15,6 +15,7 @@ import json
 import jax
 import jax.numpy as jnp
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import ROLLOUTS, BatchCost, MPPIConfig, make_mppi
@@ -35,7 +36,7 @@ def main(argv=None) -> dict:
 
     params = quadrotor.QuadParams()
     lo, hi = params.control_bounds()
-    config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=0.025,
+    config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=timing.CONTROL_DT,
                         noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()),
                         rollout=args.rollout)
     if args.cost == "racing":

@@ -18,6 +18,7 @@ import json
 
 import jax
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import particle_filter as pf
@@ -36,7 +37,7 @@ def _problem(particles: int):
     x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)
     detection = detector_lib.detect_from_geometry(
         track.gate(gate_index), x_true, camera, jax.random.PRNGKey(1), 0.5, 0.0, gate_index)
-    imu = hover_tick_imu(0.025)
+    imu = hover_tick_imu(timing.CONTROL_DT)
     holder = {"state": pf.pf_init(jax.random.PRNGKey(0), x_true, config, spread=(0.5, 0.03, 0.2))}
 
     def step():

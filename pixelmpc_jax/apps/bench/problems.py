@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import Controller, MPPIConfig, MPPIState, make_mppi
@@ -55,7 +56,7 @@ class ControllerProblem(NamedTuple):
     config: Any
 
 
-def step_progress(horizon: int, dt: float = 0.025, speed: float = TARGET_SPEED) -> jax.Array:
+def step_progress(horizon: int, dt: float = timing.CONTROL_DT, speed: float = TARGET_SPEED) -> jax.Array:
     """(T,) the arc length each horizon step's path window is cut around: flying the path at ``speed``."""
     return speed * dt * jnp.arange(1, horizon + 1, dtype=jnp.float32)
 

@@ -16,15 +16,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import make_row, measure, run_in_child
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
 GROUP = "table1"
-IMAGE_WH = (204, 153)
+IMAGE_WH = (PAPER_WIDTH, PAPER_HEIGHT)
 SPYNET_WH = (192, 160)
-DT = 0.025
+DT = timing.CONTROL_DT
 
 # The paper's Table I, ms: (mean, 2 sigma, max), None for OOM.
 PAPER = {
