@@ -204,6 +204,7 @@ def test_batched_step_gives_the_reference_plan(setup, model):
     assert ctrls[1].num_compilations() == 1
 
 
+@pytest.mark.slow  # ~18 s of op-by-op execution; test_mppi checks jit == no-jit for the generic step
 def test_batched_pixelmpc_step_is_the_same_with_and_without_jit(setup):
     ctrl, _, s, params = small_controller(*setup, seed=2)
     track = setup[0]

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 SCRIPT = r"""
 import json, sys
@@ -62,6 +63,7 @@ def test_four_device_run_equals_one_device_run():
     np.testing.assert_allclose(np.asarray(four["states"]), np.asarray(one["states"]), atol=1e-4)
 
 
+@pytest.mark.slow  # ~22 s: the four-device run above covers the sharding, test_reliability the two processes
 def test_two_processes_of_two_devices_equal_one_device_run():
     one = run(1)
     for out in run_two_processes(2):  # every process gets every episode back
