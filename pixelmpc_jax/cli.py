@@ -24,6 +24,8 @@ FLOAT32_MAX = 3.4028234663852886e38
 RACE_T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer t_f acts as 2 s)
 RACE_SPEED_MAX = 50.0  # m/s; the vehicle's top speed is about 19 m/s (thrust 36.98 N against drag 0.1 |v| v)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
+HOST_CPU_DEVICES_MAX = 8  # as control.sampling.HOST_CPU_DEVICES_MAX (not imported: the parser starts no JAX)
+SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce")  # the commands that split the CPU into devices by default
 
 
 class _Parser(argparse.ArgumentParser):
@@ -352,6 +354,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "JAX_NUM_PROCESSES, JAX_PROCESS_ID); run the same command on every host")
     parser.add_argument("--debug", action="store_true",
                         help="show the full traceback of an error instead of one line")
+    parser.add_argument("--cpu-devices", type=_int_in(1, 1024), default=None, metavar="N",
+                        help="split the CPU into N JAX devices (default for race, bench and reproduce: one per "
+                             f"core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller splits its "
+                             "samples over them and batches of laps spread over them: XLA runs one device's "
+                             "program on one core")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("version", help="print the package, JAX version and devices")
@@ -514,12 +521,19 @@ def _one_line(err: BaseException, limit: int = 600) -> str:
     return text if len(text) <= limit else text[:limit] + " ... (--debug shows all of it)"
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
+    """Run the command ``argv`` (default: the process's arguments). With ``split_cpu`` (the ``pixelmpc``
+    command), race, bench and reproduce split the CPU into one device per core unless ``--cpu-devices`` says
+    otherwise; called from Python, only ``--cpu-devices`` does (and only before JAX has started)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
+    if args.cpu_devices is not None or (split_cpu and args.command in SPLIT_CPU_COMMANDS):
+        from pixelmpc_jax.control.sampling import split_host_cpu
+
+        split_host_cpu(args.cpu_devices)
     command_parser = _command_parser(parser, args.command)
     validate = getattr(args, "validate", None)
     problem = validate(args) if validate is not None else None
@@ -570,5 +584,10 @@ def _initialize_distributed() -> None:
           f"{jax.device_count()} global device(s)", flush=True)
 
 
+def console_main() -> int:
+    """The ``pixelmpc`` command."""
+    return main(split_cpu=True)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

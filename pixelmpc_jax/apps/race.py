@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from pixelmpc_jax.apps.spec import COURSES, RaceSpec
+from pixelmpc_jax.control.sampling import usable_sample_devices
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.strict_json import write_json_atomic
@@ -48,7 +49,10 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     spec names (None: the packaged weights; a ValueError if their fingerprint is not the spec's). The result
     also holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its
     position covariance at each tick (``covariances``). Laps fly ``batch_size`` at a time; a last, smaller batch
-    is padded to that size (its copies dropped), so the batched episode compiles once. With ``out``,
+    is padded to that size (its copies dropped), so the batched episode compiles once. With a batch of one and
+    several local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the controller's
+    samples split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to float
+    rounding); ``sample_devices`` in the result says how many. With ``out``,
     ``metrics.json`` is rewritten after every batch, ``trajectories.png`` drawn at the end and, with ``video``,
     the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C stopped the run: the laps
     finished before it are kept (and in ``out/metrics.json``).
@@ -56,7 +60,8 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     spec.check_weights(dof_params)
-    policy = spec.policy()
+    sample_devices = usable_sample_devices(spec.num_samples) if batch_size == 1 and jax.process_count() == 1 else 1
+    policy = spec.policy(sample_devices=sample_devices)
     episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
                                                estimator=spec.estimator)
     runner = episode_lib.make_runner(policy, episode_config)
@@ -67,7 +72,7 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     base = episode_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
     results: dict = {"controller": policy.name, "speed": spec.speed, "seed": spec.seed, "perturb": spec.perturb,
                      "detector": spec.detector, "estimator": spec.estimator, "course": spec.course, "laps": [],
-                     "aggregate": {}, "interrupted": False}
+                     "aggregate": {}, "interrupted": False, "sample_devices": sample_devices}
     if spec.controller == "pixelmpc":
         results.update(t_f=spec.t_f, c_pixel=spec.c_pixel, pixel_model=spec.pixel_model)
     if spec.options:
@@ -90,7 +95,10 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
             padded = chunk + chunk[-1:] * (batch_size - len(chunk))
             worlds = lap_worlds(base, padded, spec.perturb)
             keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
-            logs = metrics_lib.unbatch(runner.batch(worlds, keys))[:len(chunk)]
+            if sample_devices > 1:  # one lap, its samples over the devices
+                logs = metrics_lib.unbatch(runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
+            else:
+                logs = metrics_lib.unbatch(runner.batch(worlds, keys))[:len(chunk)]
             for lane, (lap_seed, log) in enumerate(zip(chunk, logs)):
                 if video and out is not None and lap_seed == seed:
                     from pixelmpc_jax.apps.video import write_onboard_video

@@ -110,12 +110,17 @@ class RaceSpec:
         record = {**self.record(), "dof_weights": self.dof_fingerprint()}
         return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
 
-    def policy(self):
-        """The controller as an episode Policy (:func:`~pixelmpc_jax.sim.controllers.make_policy`)."""
+    def policy(self, sample_devices: int = 1):
+        """The controller as an episode Policy (:func:`~pixelmpc_jax.sim.controllers.make_policy`), its samples
+        split over ``sample_devices`` devices (``MPPIConfig.sample_devices``: how the step runs, not what it
+        computes, so not part of the spec)."""
         from pixelmpc_jax.sim.controllers import make_policy
 
+        options = dict(self.options)
+        if sample_devices != 1:
+            options["mppi.sample_devices"] = sample_devices
         return make_policy(self.controller, self.temperature, self.num_samples, self.pixel_model, self.t_f,
-                           self.c_pixel, dict(self.options))
+                           self.c_pixel, options)
 
     def check_weights(self, dof_params) -> None:
         """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names."""

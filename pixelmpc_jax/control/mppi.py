@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import timing
+from pixelmpc_jax.control.sampling import coloured_noise_filter, sample_shardings
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
@@ -83,6 +84,10 @@ class MPPIConfig:
             every step). "per_step": each step's costs are evaluated inside the scan: the implementation
             before this option, kept for one release to compare against (PixelMPC and nominal MPPI then
             also use their former step-by-step racing cost).
+        sample_devices: split the N samples over this many local devices (1: one device, the default). The
+            samples are the same (drawn whole from the same key) and so is the plan, up to float rounding;
+            each device rolls out N / sample_devices of them. N must split evenly. On a CPU the cores become
+            devices only if asked before JAX starts (:func:`~pixelmpc_jax.control.sampling.split_host_cpu`).
     """
 
     num_samples: int = 512
@@ -97,14 +102,18 @@ class MPPIConfig:
     nominal_sample: bool = True
     noise_exponent: float = 0.0
     rollout: str = "batched"
+    sample_devices: int = 1
 
     def __post_init__(self):
         if self.rollout not in ROLLOUTS:
             raise ValueError(f"MPPIConfig.rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
-        for name in ("num_samples", "horizon", "iterations"):
+        for name in ("num_samples", "horizon", "iterations", "sample_devices"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
+        if self.num_samples % self.sample_devices:
+            raise ValueError(f"MPPIConfig.num_samples={self.num_samples} does not split evenly over "
+                             f"sample_devices={self.sample_devices}")
         if not (_is_number(self.dt) and 0 < self.dt <= FLOAT32_MAX):
             raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {self.dt!r}")
         if not (_is_number(self.temperature) and TEMPERATURE_MIN <= self.temperature <= FLOAT32_MAX):
@@ -204,6 +213,9 @@ class Controller(NamedTuple):
         config: the MPPIConfig it was built with.
         num_compilations: ``() -> int``, how many versions of the jitted step exist (one per distinct
             input signature); a control loop must keep it at 1.
+        shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live
+            (:class:`~pixelmpc_jax.control.sampling.SampleShardings`; put params there once with
+            ``jax.device_put(params, ctrl.shardings.replicated)`` to save a copy per call); else None.
     """
 
     init: Callable[..., MPPIState]
@@ -211,6 +223,7 @@ class Controller(NamedTuple):
     step_pure: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
     config: MPPIConfig
     num_compilations: Callable[[], int]
+    shardings: Any = None
 
 
 class Prefix(NamedTuple):
@@ -438,28 +451,6 @@ def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array,
     return jnp.where(any_finite, weights, 0.0), finite
 
 
-def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
-    """(T, T) matrix L such that ``L @ w``, w white unit noise along the horizon, has the power spectrum 1/f^beta
-    (beta = ``exponent``) and unit variance at every step.
-
-    The covariance of a stationary process with that spectrum on a circle of T steps is circulant,
-    ``C[s, t] = c(|s - t|)`` with ``c(tau) = sum_f S_f cos(2 pi f tau / T)``, ``S_f = max(f, 1)^-beta`` over the
-    integer frequencies (the zero frequency gets the lowest nonzero one's power, as iCEM does); L is its
-    symmetric square root, scaled to unit diagonal. beta = 0 gives the identity (white noise).
-    """
-    if exponent == 0.0:
-        return np.eye(horizon, dtype=np.float32)
-    freqs = np.fft.fftfreq(horizon) * horizon  # integer frequencies, both signs
-    power = np.maximum(np.abs(freqs), 1.0) ** (-float(exponent))
-    lags = np.arange(horizon)
-    autocov = np.real(np.fft.ifft(power))  # c(tau), tau = 0 .. T-1 (circular)
-    cov = autocov[np.abs(lags[:, None] - lags[None, :]) % horizon]
-    values, vectors = np.linalg.eigh(cov)
-    root = (vectors * np.sqrt(np.maximum(values, 0.0))) @ vectors.T
-    root = root / np.sqrt(np.sum(root**2, axis=1, keepdims=True))  # unit variance at every step
-    return root.astype(np.float32)
-
-
 def make_mppi(
     config: MPPIConfig,
     dynamics: Callable,
@@ -483,6 +474,7 @@ def make_mppi(
     gamma = float(config.control_cost_weight)
     colour = None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent))
     lam = float(config.temperature)
+    shardings = sample_shardings(config.sample_devices, N) if config.sample_devices > 1 else None
     # What a non-finite plan is reset to: the middle of the bounds, zero where a channel is unbounded.
     if lo is not None and hi is not None:
         reset_control = 0.5 * lo + 0.5 * hi  # (lo + hi) / 2 could overflow float32
@@ -505,6 +497,8 @@ def make_mppi(
     def iteration(carry, key_iter, x0, params):
         plan, any_all_nonfinite = carry
         white = jax.random.normal(key_iter, (N, T, m), dtype=plan.dtype)
+        if shardings is not None:  # each device draws, rolls out and costs its own rows
+            white = jax.lax.with_sharding_constraint(white, shardings.samples)
         if colour is not None:
             white = jnp.einsum("ts,nsm->ntm", colour, white)  # time-correlated, unit variance per step
         noise = white * sigma  # (N, T, m)
@@ -532,7 +526,8 @@ def make_mppi(
 
     def init(key, u_init) -> MPPIState:
         u_init = _validate_u_init(u_init, T, m)
-        return MPPIState(plan=clip(jnp.broadcast_to(u_init, (T, m)).astype(jnp.float32)), key=key)
+        state = MPPIState(plan=clip(jnp.broadcast_to(u_init, (T, m)).astype(jnp.float32)), key=key)
+        return state if shardings is None else jax.device_put(state, shardings.replicated)
 
     def step_pure(state: MPPIState, x0, params):
         key, key_iters = jax.random.split(state.key)
@@ -572,10 +567,13 @@ def make_mppi(
         if signature not in checked_state_shapes:
             _validate_x0(dynamics, x0, m, params)
             checked_state_shapes.add(signature)
+        if shardings is not None and not all(getattr(leaf, "sharding", None) == shardings.replicated
+                                             for leaf in jax.tree_util.tree_leaves((state, x0, params))):
+            state, x0, params = jax.device_put((state, x0, params), shardings.replicated)  # onto every device
         return step_jit(state, x0, params)
 
     return Controller(init=init, step=step, step_pure=step_pure, config=config,
-                      num_compilations=step_jit._cache_size)
+                      num_compilations=step_jit._cache_size, shardings=shardings)
 
 
 def _validate_u_init(u_init, T: int, m: int) -> jax.Array:

@@ -22,6 +22,7 @@ from pixelmpc_jax.apps import race
 from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.control.sampling import usable_sample_devices
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim.controllers import split_options
 
@@ -30,7 +31,8 @@ TICK_TARGET_MS = 1e3 * episode_lib.CONTROL_DT  # 25 ms: one tick of wall time pe
 RUNNERS = ("single", "batch")  # Runner.single(world, key); Runner.batch of one lap, as ``pixelmpc race`` runs it
 
 
-def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_params=None) -> dict:
+def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_params=None,
+             sample_devices: int = 1) -> dict:
     """Time the race ``spec``'s first lap in the closed loop.
 
     Args:
@@ -39,6 +41,8 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
         runner: "single" (the jitted episode) or "batch" (the vmapped episode with a batch of one lap, the
             way ``pixelmpc race`` flies it).
         dof_params: the DOF weights for PixelMPC with the DOF (None: the packaged weights).
+        sample_devices: ``MPPIConfig.sample_devices`` of the controller ("single" only): ``pixelmpc race`` flies
+            a lap at a time with its samples over every device (:func:`usable_sample_devices`).
 
     Returns:
         a bench.json row: the per-tick ms figures (median, mean, 2 sigma, min, max, p95 over the repeats), the
@@ -49,7 +53,9 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
         raise ValueError(f"runner must be one of {RUNNERS}, got {runner!r}")
     if repeats < 1:
         raise ValueError(f"repeats must be at least 1, got {repeats!r}")
-    policy = spec.policy()
+    if sample_devices > 1 and runner != "single":
+        raise ValueError("sample_devices > 1 needs runner 'single' (a batch spreads its laps over the devices)")
+    policy = spec.policy(sample_devices=sample_devices)
     config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector, estimator=spec.estimator)
     runners = episode_lib.make_runner(policy, config)
     if spec.uses_dof and dof_params is None:
@@ -88,11 +94,13 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
                   else "nominal MPPI")
     name = f"closed-loop tick: {controller}, {spec.detector} detector, plant"
     if runner == "batch":
-        name += ", batch of 1 (as pixelmpc race)"
+        name += ", vmapped batch of 1"
+    elif sample_devices > 1:
+        name += f", samples over {sample_devices} devices (as pixelmpc race)"
     return make_row(GROUP, name, mppi["num_samples"], mppi["horizon"], stats,
                     first_call_ms=1e3 * first_call_s, compile_s=compile_s, controller=spec.controller, runner=runner,
-                    course=spec.course, max_time_s=spec.max_time_s, speed=spec.speed, ticks=num_ticks,
-                    ticks_per_repeat=ticks,
+                    course=spec.course, max_time_s=spec.max_time_s, sample_devices=sample_devices, speed=spec.speed,
+                    ticks=num_ticks, ticks_per_repeat=ticks,
                     sim_s=sim_s, lap_wall_s=lap_wall_s, real_time_factor=sim_s / lap_wall_s,
                     end_cause="finished" if finished else episode_lib.END_NAMES.get(end, "flying"),
                     gates_passed=int(np.asarray(log.gates_passed).reshape(-1)[0]),
@@ -109,9 +117,10 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     """The closed-loop rows of the harness: PixelMPC (packaged DOF) and nominal MPPI at the defaults of
     ``pixelmpc race`` (N=512, T=80, t_f=1 s, 14 m/s, geometric detector, true state).
 
-    Modes: "full": one AlphaPilot lap (max 60 s), 3 repeats, and PixelMPC once more as ``pixelmpc race`` runs
-    it (a batch of one); "quick": the first 2.5 s of the lap, 3 repeats; "smoke": N=16, T=8, t_f=0.1 s,
-    0.25 s (10 ticks), 2 repeats.
+    Each controller flies with its samples over every local device (as ``pixelmpc race`` flies a lap), and,
+    where there are several, once more on one device. Modes: "full": one AlphaPilot lap (max 60 s), 3 repeats,
+    and PixelMPC once more in the vmapped runner (a batch of one lap); "quick": the first 2.5 s of the lap,
+    3 repeats; "smoke": N=16, T=8, t_f=0.1 s, 0.25 s (10 ticks), 2 repeats.
     """
     if mode not in ("full", "quick", "smoke"):
         raise ValueError(f"mode must be full, quick or smoke, got {mode!r}")
@@ -119,8 +128,11 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     base = RaceSpec(controller="pixelmpc", max_time_s={"full": 60.0, "quick": 2.5, "smoke": 0.25}[mode])
     if mode == "smoke":
         base = base.replace(num_samples=16, t_f=0.1, options={"mppi.horizon": 8})
-    rows = [loop_row(base, repeats, dof_params=dof_params),
-            loop_row(base.replace(controller="mppi"), repeats)]
+    devices = usable_sample_devices(base.num_samples)
+    rows = [loop_row(base, repeats, dof_params=dof_params, sample_devices=devices),
+            loop_row(base.replace(controller="mppi"), repeats, sample_devices=devices)]
+    if devices > 1:
+        rows += [loop_row(base, repeats, dof_params=dof_params), loop_row(base.replace(controller="mppi"), repeats)]
     if mode == "full":
         rows.append(loop_row(base, repeats, runner="batch", dof_params=dof_params))
     return rows

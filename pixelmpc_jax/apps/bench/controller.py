@@ -14,6 +14,7 @@ import jax.numpy as jnp
 from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench import problems, roofline
 from pixelmpc_jax.apps.bench.measure import make_row, measure
+from pixelmpc_jax.control.sampling import usable_sample_devices
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import track as track_lib
@@ -37,24 +38,44 @@ def rollout_name(name: str, rollout: str) -> str:
     return name if rollout == "batched" else f"{name}, {rollout} rollout"
 
 
+ONE_DEVICE = ", one device"  # the suffix of a row whose step runs on one device where more are present
+
+
+def devices_name(name: str, sample_devices: int, auto: int) -> str:
+    """A row's name with ``ONE_DEVICE`` where it runs on fewer devices than the harness's default ``auto``."""
+    if sample_devices == auto:
+        return name
+    return f"{name}{ONE_DEVICE}" if sample_devices == 1 else f"{name}, {sample_devices} devices"
+
+
+def default_devices(num_samples: int) -> int:
+    """The harness's sample devices for a step of N samples: every local device over which N splits evenly
+    (``MPPIConfig.sample_devices``; on a CPU the cores are devices under ``pixelmpc bench``)."""
+    return usable_sample_devices(num_samples)
+
+
 def pixelmpc_row(num_samples: int, horizon: int, t_f: float = 1.0, repeats: int = 30, group: str = GROUP,
-                 track=None, dof_params=None, rollout: str = "batched") -> dict:
+                 track=None, dof_params=None, rollout: str = "batched", sample_devices: int | None = None) -> dict:
+    auto = default_devices(num_samples)
+    devices = auto if sample_devices is None else sample_devices
     problem = problems.pixelmpc_problem(num_samples, horizon, t_f, track=track, dof_params=dof_params,
-                                        rollout=rollout)
+                                        rollout=rollout, sample_devices=devices)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
     name = PIXELMPC_NAME if t_f > 0 else "PixelMPC step without pixel model (t_f=0)"
-    row = make_row(group, rollout_name(name, rollout), num_samples, horizon, stats, t_f=t_f,
-                   pixel_steps=problem.config.pixel_steps, rollout=rollout)
+    row = make_row(group, devices_name(rollout_name(name, rollout), devices, auto), num_samples, horizon, stats,
+                   t_f=t_f, pixel_steps=problem.config.pixel_steps, rollout=rollout, sample_devices=devices)
     row.update(_rates(row))
     return row
 
 
 def nominal_row(num_samples: int, horizon: int, repeats: int = 30, group: str = GROUP, track=None,
-                rollout: str = "batched") -> dict:
-    problem = problems.nominal_problem(num_samples, horizon, track=track, rollout=rollout)
+                rollout: str = "batched", sample_devices: int | None = None) -> dict:
+    auto = default_devices(num_samples)
+    devices = auto if sample_devices is None else sample_devices
+    problem = problems.nominal_problem(num_samples, horizon, track=track, rollout=rollout, sample_devices=devices)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
-    row = make_row(group, rollout_name(NOMINAL_NAME, rollout), num_samples,
-                   horizon, stats, rollout=rollout)
+    row = make_row(group, devices_name(rollout_name(NOMINAL_NAME, rollout), devices, auto), num_samples,
+                   horizon, stats, rollout=rollout, sample_devices=devices)
     row.update(_rates(row))
     return row
 
@@ -92,6 +113,9 @@ def paper_size_rows(repeats: int = 30, smoke: bool = False) -> list[dict]:
     full_per_step = pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params, rollout="per_step")
     nominal_per_step = nominal_row(n, t, repeats, track=track, rollout="per_step")
     rows = [full, full_per_step, without, nominal, nominal_per_step, dof_alone]
+    if full["sample_devices"] > 1:  # the same steps on one device, measured in the same run
+        rows += [pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params, sample_devices=1),
+                 nominal_row(n, t, repeats, track=track, sample_devices=1)]
 
     matmuls = roofline.matmul_rows(smoke=smoke, repeats=repeats)
     rate = roofline.matmul_rate(matmuls)
@@ -134,10 +158,12 @@ def scaling_rows(repeats: int = 30, max_seconds_per_row: float = 10.0, samples=S
     grid += [(n, per_step_horizon, "per_step") for n in per_step_samples]
     rows = []
     for n, t, rollout in grid:
-        problem = problems.pixelmpc_problem(n, t, 1.0, track=track, dof_params=dof_params, rollout=rollout)
+        devices = default_devices(n)
+        problem = problems.pixelmpc_problem(n, t, 1.0, track=track, dof_params=dof_params, rollout=rollout,
+                                            sample_devices=devices)
         stats = measure(problems.control_loop_call(problem), repeats=repeats, budget_s=max_seconds_per_row)
         row = make_row("scaling", rollout_name(PIXELMPC_NAME, rollout), n, t, stats,
-                       pixel_steps=problem.config.pixel_steps, rollout=rollout)
+                       pixel_steps=problem.config.pixel_steps, rollout=rollout, sample_devices=devices)
         row.update(_rates(row))
         rows.append(row)
     return rows

@@ -66,15 +66,19 @@ _racing_params = jax.jit(costs.racing_params, static_argnames=("config",))
 
 
 def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0, track=None,
-                     dof_params=None, seed: int = 0, rollout: str = "batched") -> ControllerProblem:
+                     dof_params=None, seed: int = 0, rollout: str = "batched",
+                     sample_devices: int = 1) -> ControllerProblem:
     """The full PixelMPC step (DOF pixel model over t_f, racing + pixel cost) at the given sizes.
 
     ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline);
-    ``rollout`` is ``MPPIConfig.rollout`` ("per_step": the former implementation of the same step).
+    ``rollout`` is ``MPPIConfig.rollout`` ("per_step": the former implementation of the same step);
+    ``sample_devices`` is ``MPPIConfig.sample_devices`` (x0 and the params are then placed on every device
+    once, as a control loop keeps them).
     """
     track = track or track_lib.load_course()
     dof_params = bench_dof_params() if dof_params is None else dof_params
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout)
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout,
+                                      sample_devices=sample_devices)
     config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f)
     ctrl = pixelmpc_lib.make_pixelmpc(config)
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
@@ -84,15 +88,24 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
     x = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
     x0 = jnp.concatenate([x, jnp.asarray(START_PIXEL, jnp.float32)])
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quadrotor.QuadParams()))
-    return ControllerProblem(ctrl, state, x0, params, config)
+    return _placed(ControllerProblem(ctrl, state, x0, params, config))
+
+
+def _placed(problem: ControllerProblem) -> ControllerProblem:
+    """The problem with x0 and the params on every device of a controller that splits its samples."""
+    if problem.ctrl.shardings is None:
+        return problem
+    x0, params = jax.device_put((problem.x0, problem.params), problem.ctrl.shardings.replicated)
+    return problem._replace(x0=x0, params=params)
 
 
 def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed: int = 0,
-                    rollout: str = "batched") -> ControllerProblem:
+                    rollout: str = "batched", sample_devices: int = 1) -> ControllerProblem:
     """Nominal MPPI (the paper's baseline): the 10-state quadrotor with the racing cost, no pixel model;
-    ``rollout`` as in :func:`pixelmpc_problem`."""
+    ``rollout`` and ``sample_devices`` as in :func:`pixelmpc_problem`."""
     track = track or track_lib.load_course()
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout)
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout,
+                                      sample_devices=sample_devices)
     cost_config = costs.RacingCostConfig()
     quad_params = quadrotor.QuadParams()
     dt = mppi_config.dt
@@ -100,7 +113,7 @@ def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed:
     params = _racing_params(track, step_progress(horizon, dt), TARGET_SPEED, cost_config)
     x0 = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quad_params))
-    return ControllerProblem(ctrl, state, x0, params, mppi_config)
+    return _placed(ControllerProblem(ctrl, state, x0, params, mppi_config))
 
 
 def control_loop_call(problem: ControllerProblem):

@@ -1,0 +1,107 @@
+"""How MPPI draws and places its samples: time-correlated noise, and the samples split over devices.
+
+* :func:`coloured_noise_filter`: the (T, T) filter that colours white noise along the horizon (1/f^beta).
+* :func:`sample_shardings`: the samples of one step split over several devices (``MPPIConfig.sample_devices``).
+  Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
+  weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
+  lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
+  device. On a CPU, the host's cores become devices with :func:`split_host_cpu` (before JAX starts): XLA runs
+  one device's program on one core, and a program this size (40 sequential products of 512 x 128 x 128 in
+  the DOF) is not split over cores any other way.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+SAMPLE_AXIS = "samples"
+HOST_CPU_DEVICES_MAX = 8  # split_host_cpu's default: one device per usable core, at most this many
+
+
+def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
+    """(T, T) matrix L such that ``L @ w``, w white unit noise along the horizon, has the power spectrum 1/f^beta
+    (beta = ``exponent``) and unit variance at every step.
+
+    The covariance of a stationary process with that spectrum on a circle of T steps is circulant,
+    ``C[s, t] = c(|s - t|)`` with ``c(tau) = sum_f S_f cos(2 pi f tau / T)``, ``S_f = max(f, 1)^-beta`` over the
+    integer frequencies (the zero frequency gets the lowest nonzero one's power, as iCEM does); L is its
+    symmetric square root, scaled to unit diagonal. beta = 0 gives the identity (white noise).
+    """
+    if exponent == 0.0:
+        return np.eye(horizon, dtype=np.float32)
+    freqs = np.fft.fftfreq(horizon) * horizon  # integer frequencies, both signs
+    power = np.maximum(np.abs(freqs), 1.0) ** (-float(exponent))
+    lags = np.arange(horizon)
+    autocov = np.real(np.fft.ifft(power))  # c(tau), tau = 0 .. T-1 (circular)
+    cov = autocov[np.abs(lags[:, None] - lags[None, :]) % horizon]
+    values, vectors = np.linalg.eigh(cov)
+    root = (vectors * np.sqrt(np.maximum(values, 0.0))) @ vectors.T
+    root = root / np.sqrt(np.sum(root**2, axis=1, keepdims=True))  # unit variance at every step
+    return root.astype(np.float32)
+
+
+class SampleShardings(NamedTuple):
+    """Where one MPPI step's arrays live when its samples are split over devices.
+
+    Attributes:
+        samples: the leading (sample) axis split over the devices, the rest whole.
+        replicated: a whole copy on every device (the plan, x0, the params, the key).
+    """
+
+    samples: jax.sharding.NamedSharding
+    replicated: jax.sharding.NamedSharding
+
+
+def sample_shardings(num_devices: int, num_samples: int) -> SampleShardings:
+    """The shardings of a step whose ``num_samples`` samples are split over the first ``num_devices`` local
+    devices (of the default backend). A ValueError if fewer are present or the samples do not split evenly."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = jax.local_devices()
+    if num_devices > len(devices):
+        raise ValueError(f"sample_devices={num_devices} but only {len(devices)} {devices[0].platform} device(s) are "
+                         f"present (on a CPU, split the host's cores into devices before JAX starts: "
+                         f"pixelmpc_jax.control.sampling.split_host_cpu, or the `pixelmpc` command does it)")
+    if num_samples % num_devices:
+        raise ValueError(f"num_samples={num_samples} does not split evenly over sample_devices={num_devices}")
+    mesh = Mesh(np.asarray(devices[:num_devices]), (SAMPLE_AXIS,))
+    return SampleShardings(NamedSharding(mesh, PartitionSpec(SAMPLE_AXIS)), NamedSharding(mesh, PartitionSpec()))
+
+
+def usable_sample_devices(num_samples: int) -> int:
+    """The most local devices, at most all of them, over which ``num_samples`` samples split evenly (1 with one
+    device): what to give ``MPPIConfig.sample_devices`` to use every device for one controller."""
+    count = len(jax.local_devices())
+    return next(k for k in range(count, 0, -1) if num_samples % k == 0)
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def split_host_cpu(count: int | None = None) -> int:
+    """Make the host CPU appear to JAX as ``count`` devices (default: one per usable core, at most
+    :data:`HOST_CPU_DEVICES_MAX`), so that a step split over them runs on every core. Must run before JAX
+    starts its backend (before any array is made); afterwards it changes nothing. An ``XLA_FLAGS`` setting of
+    ``--xla_force_host_platform_device_count`` wins. Returns the count now in effect for the CPU platform."""
+    if count is None:
+        count = min(usable_cores(), HOST_CPU_DEVICES_MAX)
+    if count < 1:
+        raise ValueError(f"count must be a positive number of devices, got {count!r}")
+    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+        try:
+            jax.config.update("jax_num_cpu_devices", int(count))
+        except RuntimeError:  # JAX has started: the devices are what they are
+            pass
+    try:
+        return len(jax.devices("cpu"))
+    except RuntimeError:  # no CPU platform
+        return 0

@@ -1,0 +1,123 @@
+"""MPPIConfig.sample_devices: one step's samples split over (forced) CPU devices give the one-device step, and
+the `pixelmpc` command splits the CPU into devices where it should."""
+
+import functools
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pixelmpc_jax.control import sampling
+from pixelmpc_jax.control.mppi import MPPIConfig
+
+SCRIPT = r"""
+import json
+from pixelmpc_jax.control import sampling
+count = sampling.split_host_cpu(2)  # before JAX starts
+import jax, jax.numpy as jnp, numpy as np
+from pixelmpc_jax.apps.bench import problems
+from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.sim import episode as E
+from pixelmpc_jax.world import track as T
+
+out = {"devices": count, "usable_512": sampling.usable_sample_devices(512),
+       "usable_63": sampling.usable_sample_devices(63)}
+steps = {}
+for k in (1, 2):
+    p = problems.pixelmpc_problem(64, 12, 0.15, sample_devices=k)
+    state, rows = p.state, []
+    for _ in range(3):
+        u, state, info = p.ctrl.step(state, p.x0, p.params)
+        rows.append({"u": np.asarray(u).tolist(), "plan": np.asarray(state.plan).tolist(),
+                     "costs": np.asarray(info.costs).tolist()})
+    steps[k] = rows
+    if k == 2:
+        out["costs_shard_shape"] = list(info.costs.sharding.shard_shape(info.costs.shape))
+        out["compilations"] = p.ctrl.num_compilations()
+out["steps"] = steps
+course = T.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
+world = E.make_world(course, target_speed=8.0)
+spec = RaceSpec(controller="mppi", num_samples=64, options={"mppi.horizon": 12})
+laps = {}
+for k in (1, 2):
+    runner = E.make_runner(spec.policy(sample_devices=k), E.EpisodeConfig(max_time_s=0.5))
+    log = runner.single(world, jax.random.PRNGKey(3))
+    laps[k] = {"states": np.asarray(log.states).tolist(), "ticks": int(log.num_ticks)}
+out["laps"] = laps
+print(json.dumps(out))
+"""
+
+
+@functools.cache
+def two_devices() -> dict:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_split_host_cpu_makes_devices_and_the_step_splits_its_samples_over_them():
+    out = two_devices()
+    assert out["devices"] == 2
+    assert out["usable_512"] == 2 and out["usable_63"] == 1  # 63 samples do not split over two
+    assert out["costs_shard_shape"] == [32]  # each device holds (and computed) half of the 64 samples' costs
+    assert out["compilations"] == 1
+
+
+def test_samples_over_two_devices_give_the_one_device_step():
+    one, two = (two_devices()["steps"][k] for k in ("1", "2"))
+    for a, b in zip(one, two):  # the same samples, so the same costs; the plan up to float rounding
+        np.testing.assert_allclose(b["costs"], a["costs"], rtol=1e-6)
+        np.testing.assert_allclose(b["plan"], a["plan"], atol=1e-5)
+        np.testing.assert_allclose(b["u"], a["u"], atol=1e-5)
+
+
+def test_a_lap_with_its_samples_over_two_devices_flies_the_one_device_lap():
+    one, two = (two_devices()["laps"][k] for k in ("1", "2"))
+    assert one["ticks"] == two["ticks"] == 20
+    np.testing.assert_allclose(np.asarray(two["states"])[:21], np.asarray(one["states"])[:21], atol=1e-3)
+
+
+def test_sample_devices_is_checked_before_anything_runs():
+    with pytest.raises(ValueError, match="sample_devices"):
+        MPPIConfig(num_samples=10, sample_devices=3)
+    with pytest.raises(ValueError, match="positive integer"):
+        MPPIConfig(sample_devices=0)
+    import jax
+
+    from pixelmpc_jax.control.mppi import make_mppi
+
+    present = len(jax.local_devices())
+    config = MPPIConfig(num_samples=8 * (present + 1), horizon=4, noise_sigma=(1.0,), sample_devices=present + 1)
+    with pytest.raises(ValueError, match="split_host_cpu"):
+        make_mppi(config, lambda x, u, p: x + u, lambda x, u, t, p: x[0] ** 2)
+
+
+def test_split_host_cpu_after_jax_started_changes_nothing():
+    import jax
+
+    before = len(jax.devices("cpu"))
+    assert sampling.split_host_cpu(before + 3) == before
+    with pytest.raises(ValueError):
+        sampling.split_host_cpu(0)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    return subprocess.run([sys.executable, "-m", "pixelmpc_jax.cli", *args], env=env, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_the_command_splits_the_cpu_on_request_and_refuses_a_bad_count():
+    out = _cli("--cpu-devices", "2", "version")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.count("CpuDevice") == 2
+    out = _cli("version")  # not a command that splits by default
+    assert out.returncode == 0 and out.stdout.count("CpuDevice") == 1
+    out = _cli("--cpu-devices", "0", "version")
+    assert out.returncode == 2 and "--cpu-devices" in out.stderr
