@@ -121,3 +121,33 @@ def test_the_command_splits_the_cpu_on_request_and_refuses_a_bad_count():
     assert out.returncode == 0 and out.stdout.count("CpuDevice") == 1
     out = _cli("--cpu-devices", "0", "version")
     assert out.returncode == 2 and "--cpu-devices" in out.stderr
+
+
+def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same_step():
+    import dataclasses
+
+    import jax
+
+    from pixelmpc_jax.apps.bench import problems
+    from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
+    from pixelmpc_jax.sim.controllers import make_policy
+
+    assert sampling.compiler_options("auto", 1) == sampling.YNNPACK_MATMULS  # the tests run on a CPU
+    assert sampling.compiler_options("auto", 2) is None and sampling.compiler_options("xla", 1) is None
+    assert sampling.compiler_options("ynnpack", 2) == sampling.YNNPACK_MATMULS
+    with pytest.raises(ValueError, match="cpu_matmul"):
+        MPPIConfig(cpu_matmul="mkl")
+    steps = {}
+    for matmul in ("xla", "auto"):
+        problem = problems.pixelmpc_problem(64, 12, 0.15)
+        config = dataclasses.replace(problem.config, mppi=dataclasses.replace(problem.config.mppi, cpu_matmul=matmul))
+        ctrl = pixelmpc_lib.make_pixelmpc(config)
+        state = ctrl.init(jax.random.PRNGKey(0), np.asarray([0.0, 0.0, 0.0, 9.81], np.float32))
+        steps[matmul] = ctrl.step(state, problem.x0, problem.params)
+        assert ctrl.compiler_options == sampling.compiler_options(matmul, 1)
+    (u_x, s_x, i_x), (u_y, s_y, i_y) = steps["xla"], steps["auto"]
+    np.testing.assert_allclose(u_y, u_x, atol=1e-5)
+    np.testing.assert_allclose(i_y.costs, i_x.costs, rtol=1e-5)
+    np.testing.assert_allclose(s_y.plan, s_x.plan, atol=1e-5)
+    policy = make_policy("pixelmpc", num_samples=64, t_f=0.15, options={"mppi.horizon": 12})
+    assert policy.compiler_options == sampling.YNNPACK_MATMULS  # the episode's jit compiles with them

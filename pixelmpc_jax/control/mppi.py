@@ -46,7 +46,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import timing
-from pixelmpc_jax.control.sampling import coloured_noise_filter, sample_shardings
+from pixelmpc_jax.control.sampling import (
+    CPU_MATMULS,
+    coloured_noise_filter,
+    compiler_options,
+    importance_weights,
+    sample_shardings,
+)
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
@@ -88,6 +94,8 @@ class MPPIConfig:
             samples are the same (drawn whole from the same key) and so is the plan, up to float rounding;
             each device rolls out N / sample_devices of them. N must split evenly. On a CPU the cores become
             devices only if asked before JAX starts (:func:`~pixelmpc_jax.control.sampling.split_host_cpu`).
+        cpu_matmul: whose kernels run the step's products on a CPU: "auto", "xla" or "ynnpack"
+            (:func:`~pixelmpc_jax.control.sampling.compiler_options`); the same products either way.
     """
 
     num_samples: int = 512
@@ -103,10 +111,12 @@ class MPPIConfig:
     noise_exponent: float = 0.0
     rollout: str = "batched"
     sample_devices: int = 1
+    cpu_matmul: str = "auto"
 
     def __post_init__(self):
-        if self.rollout not in ROLLOUTS:
-            raise ValueError(f"MPPIConfig.rollout must be one of {ROLLOUTS}, got {self.rollout!r}")
+        for name, value, choices in (("rollout", self.rollout, ROLLOUTS), ("cpu_matmul", self.cpu_matmul, CPU_MATMULS)):
+            if value not in choices:
+                raise ValueError(f"MPPIConfig.{name} must be one of {choices}, got {value!r}")
         for name in ("num_samples", "horizon", "iterations", "sample_devices"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
@@ -216,6 +226,8 @@ class Controller(NamedTuple):
         shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live
             (:class:`~pixelmpc_jax.control.sampling.SampleShardings`; put params there once with
             ``jax.device_put(params, ctrl.shardings.replicated)`` to save a copy per call); else None.
+        compiler_options: the XLA options the step compiles with (``MPPIConfig.cpu_matmul``); a larger jitted
+            function that composes ``step_pure`` passes them to its own ``jax.jit``.
     """
 
     init: Callable[..., MPPIState]
@@ -224,6 +236,7 @@ class Controller(NamedTuple):
     config: MPPIConfig
     num_compilations: Callable[[], int]
     shardings: Any = None
+    compiler_options: Any = None
 
 
 class Prefix(NamedTuple):
@@ -426,31 +439,6 @@ def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, param
     return jnp.concatenate(trajectory, axis=0)
 
 
-def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array, jax.Array]:
-    """MPPI weights from sample costs, NaN-safe.
-
-    w_k = exp(-(S_k - min S) / lambda) / sum_j exp(-(S_j - min S) / lambda), with w_k = 0 for non-finite S_k.
-
-    Args:
-        costs: (N,) total cost per sample.
-        temperature: lambda.
-
-    Returns:
-        weights: (N,), sums to 1 unless every cost is non-finite (then all zeros).
-        finite: (N,) bool mask of the finite costs.
-    """
-    chex.assert_rank(costs, 1)
-    finite = jnp.isfinite(costs)
-    safe = jnp.where(finite, costs, jnp.inf)
-    baseline = jnp.min(safe)
-    baseline = jnp.where(jnp.isfinite(baseline), baseline, 0.0)
-    logits = jnp.where(finite, -(safe - baseline) / temperature, -jnp.inf)
-    any_finite = jnp.any(finite)
-    logits = jnp.where(any_finite, logits, 0.0)
-    weights = jax.nn.softmax(logits)
-    return jnp.where(any_finite, weights, 0.0), finite
-
-
 def make_mppi(
     config: MPPIConfig,
     dynamics: Callable,
@@ -554,7 +542,8 @@ def make_mppi(
         )
         return u0, MPPIState(plan=shifted, key=key), info
 
-    step_jit = jax.jit(step_pure)
+    options = compiler_options(config.cpu_matmul, config.sample_devices)
+    step_jit = jax.jit(step_pure, compiler_options=options)
     checked_state_shapes: set = set()
 
     def step(state: MPPIState, x0, params):
@@ -573,7 +562,7 @@ def make_mppi(
         return step_jit(state, x0, params)
 
     return Controller(init=init, step=step, step_pure=step_pure, config=config,
-                      num_compilations=step_jit._cache_size, shardings=shardings)
+                      num_compilations=step_jit._cache_size, shardings=shardings, compiler_options=options)
 
 
 def _validate_u_init(u_init, T: int, m: int) -> jax.Array:

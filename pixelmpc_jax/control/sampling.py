@@ -1,13 +1,16 @@
-"""How MPPI draws and places its samples: time-correlated noise, and the samples split over devices.
+"""How MPPI draws, weighs and places its samples: time-correlated noise, the importance weights, the samples
+split over devices and the kernels the step compiles to.
 
 * :func:`coloured_noise_filter`: the (T, T) filter that colours white noise along the horizon (1/f^beta).
+* :func:`importance_weights`: the softmax weights of the sample costs, NaN-safe.
 * :func:`sample_shardings`: the samples of one step split over several devices (``MPPIConfig.sample_devices``).
   Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
   weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
   lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
   device. On a CPU, the host's cores become devices with :func:`split_host_cpu` (before JAX starts): XLA runs
-  one device's program on one core, and a program this size (40 sequential products of 512 x 128 x 128 in
-  the DOF) is not split over cores any other way.
+  one device's program on one core but for its largest kernels, and splitting the samples splits all of the
+  step's work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the noise).
+* :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``MPPIConfig.cpu_matmul``).
 """
 
 from __future__ import annotations
@@ -15,10 +18,14 @@ from __future__ import annotations
 import os
 from typing import NamedTuple
 
+import chex
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 SAMPLE_AXIS = "samples"
+CPU_MATMULS = ("auto", "xla", "ynnpack")  # MPPIConfig.cpu_matmul
+YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
 HOST_CPU_DEVICES_MAX = 8  # split_host_cpu's default: one device per usable core, at most this many
 
 
@@ -42,6 +49,31 @@ def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
     root = (vectors * np.sqrt(np.maximum(values, 0.0))) @ vectors.T
     root = root / np.sqrt(np.sum(root**2, axis=1, keepdims=True))  # unit variance at every step
     return root.astype(np.float32)
+
+
+def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array, jax.Array]:
+    """MPPI weights from sample costs, NaN-safe.
+
+    w_k = exp(-(S_k - min S) / lambda) / sum_j exp(-(S_j - min S) / lambda), with w_k = 0 for non-finite S_k.
+
+    Args:
+        costs: (N,) total cost per sample.
+        temperature: lambda.
+
+    Returns:
+        weights: (N,), sums to 1 unless every cost is non-finite (then all zeros).
+        finite: (N,) bool mask of the finite costs.
+    """
+    chex.assert_rank(costs, 1)
+    finite = jnp.isfinite(costs)
+    safe = jnp.where(finite, costs, jnp.inf)
+    baseline = jnp.min(safe)
+    baseline = jnp.where(jnp.isfinite(baseline), baseline, 0.0)
+    logits = jnp.where(finite, -(safe - baseline) / temperature, -jnp.inf)
+    any_finite = jnp.any(finite)
+    logits = jnp.where(any_finite, logits, 0.0)
+    weights = jax.nn.softmax(logits)
+    return jnp.where(any_finite, weights, 0.0), finite
 
 
 class SampleShardings(NamedTuple):
@@ -77,6 +109,19 @@ def usable_sample_devices(num_samples: int) -> int:
     device): what to give ``MPPIConfig.sample_devices`` to use every device for one controller."""
     count = len(jax.local_devices())
     return next(k for k in range(count, 0, -1) if num_samples % k == 0)
+
+
+def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
+    """The XLA options a step is compiled with (``jax.jit(..., compiler_options=...)``), for
+    ``MPPIConfig.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
+    splits even a 512 x 128 x 128 product over a CPU's cores (XLA's own kernel runs it on one); "xla" keeps
+    XLA's; "auto" (the default) takes YNNPACK for a step on one CPU device and XLA's where the samples are
+    split over devices already (each core then has its own share). Other platforms ignore the option."""
+    if cpu_matmul not in CPU_MATMULS:
+        raise ValueError(f"cpu_matmul must be one of {CPU_MATMULS}, got {cpu_matmul!r}")
+    if cpu_matmul == "xla" or (cpu_matmul == "auto" and (sample_devices > 1 or jax.default_backend() != "cpu")):
+        return None
+    return dict(YNNPACK_MATMULS)
 
 
 def usable_cores() -> int:

@@ -223,7 +223,8 @@ def excited_policy(base: episode_lib.Policy, pulse_rad_s: float = 1.5, hold_s: f
         return u, (base_state, ExcitationState(pulse.astype(jnp.float32), remaining.astype(jnp.int32), key)), \
             prediction
 
-    return episode_lib.Policy(init=init, act=act, name=f"{base.name}+excitation")
+    return episode_lib.Policy(init=init, act=act, name=f"{base.name}+excitation",
+                              compiler_options=base.compiler_options)
 
 
 def _versions() -> dict:

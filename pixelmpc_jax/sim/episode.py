@@ -207,4 +207,4 @@ def make_runner(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Runn
         logs = gather_batch(batch_jit(worlds, keys))
         return jax.tree_util.tree_map(lambda a: a[:size], logs)
 
-    return Runner(single=jax.jit(run), batch=batch)
+    return Runner(single=jax.jit(run, compiler_options=policy.compiler_options), batch=batch)

@@ -29,11 +29,13 @@ class Policy(NamedTuple):
     ``init(key, world) -> state`` once per episode; ``act(state, obs, world) -> (u, state, predicted)`` every
     tick, with ``u`` (4,) the command, ``world`` the :class:`~pixelmpc_jax.sim.env.World` and ``predicted``
     the (T+1, n) nominal prediction (its columns past the 10 robot states, if any, are the target pixel).
+    ``compiler_options``: the XLA options of its controller's step, for the episode's ``jax.jit``.
     """
 
     init: Callable[[jax.Array, World], Any]
     act: Callable[[Any, Observation, World], tuple[jax.Array, Any, jax.Array]]
     name: str
+    compiler_options: Any = None
 
 
 class RacingPolicyState(NamedTuple):
@@ -93,7 +95,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
             u = rate_feedforward(u, mppi_state.plan[0], feedforward_gain, mppi_config.u_min, mppi_config.u_max)
         return u, RacingPolicyState(mppi_state, next_progress, state.racing_constants), info.nominal_trajectory
 
-    return Policy(init=init, act=act, name=name)
+    return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
 
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
