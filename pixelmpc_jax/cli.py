@@ -24,7 +24,6 @@ FLOAT32_MAX = 3.4028234663852886e38
 RACE_T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer t_f acts as 2 s)
 RACE_SPEED_MAX = 50.0  # m/s; the vehicle's top speed is about 19 m/s (thrust 36.98 N against drag 0.1 |v| v)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
-HOST_CPU_DEVICES_MAX = 8  # as control.sampling.HOST_CPU_DEVICES_MAX (not imported: the parser starts no JAX)
 SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce")  # the commands that split the CPU into devices by default
 
 
@@ -354,6 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "JAX_NUM_PROCESSES, JAX_PROCESS_ID); run the same command on every host")
     parser.add_argument("--debug", action="store_true",
                         help="show the full traceback of an error instead of one line")
+    from pixelmpc_jax.control.sampling import HOST_CPU_DEVICES_MAX  # imports JAX, starts no backend
+
     parser.add_argument("--cpu-devices", type=_int_in(1, 1024), default=None, metavar="N",
                         help="split the CPU into N JAX devices (default for race, bench and reproduce: one per "
                              f"core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller splits its "
