@@ -42,21 +42,16 @@ ONE_DEVICE = ", one device"  # the suffix of a row whose step runs on one device
 
 
 def devices_name(name: str, sample_devices: int, auto: int) -> str:
-    """A row's name with ``ONE_DEVICE`` where it runs on fewer devices than the harness's default ``auto``."""
+    """A row's name with ``ONE_DEVICE`` where it runs on fewer devices than the harness's default ``auto`` (every
+    local device over which N splits evenly: :func:`usable_sample_devices`; the cores under ``pixelmpc bench``)."""
     if sample_devices == auto:
         return name
     return f"{name}{ONE_DEVICE}" if sample_devices == 1 else f"{name}, {sample_devices} devices"
 
 
-def default_devices(num_samples: int) -> int:
-    """The harness's sample devices for a step of N samples: every local device over which N splits evenly
-    (``MPPIConfig.sample_devices``; on a CPU the cores are devices under ``pixelmpc bench``)."""
-    return usable_sample_devices(num_samples)
-
-
 def pixelmpc_row(num_samples: int, horizon: int, t_f: float = 1.0, repeats: int = 30, group: str = GROUP,
                  track=None, dof_params=None, rollout: str = "batched", sample_devices: int | None = None) -> dict:
-    auto = default_devices(num_samples)
+    auto = usable_sample_devices(num_samples)
     devices = auto if sample_devices is None else sample_devices
     problem = problems.pixelmpc_problem(num_samples, horizon, t_f, track=track, dof_params=dof_params,
                                         rollout=rollout, sample_devices=devices)
@@ -70,7 +65,7 @@ def pixelmpc_row(num_samples: int, horizon: int, t_f: float = 1.0, repeats: int 
 
 def nominal_row(num_samples: int, horizon: int, repeats: int = 30, group: str = GROUP, track=None,
                 rollout: str = "batched", sample_devices: int | None = None) -> dict:
-    auto = default_devices(num_samples)
+    auto = usable_sample_devices(num_samples)
     devices = auto if sample_devices is None else sample_devices
     problem = problems.nominal_problem(num_samples, horizon, track=track, rollout=rollout, sample_devices=devices)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
@@ -158,7 +153,7 @@ def scaling_rows(repeats: int = 30, max_seconds_per_row: float = 10.0, samples=S
     grid += [(n, per_step_horizon, "per_step") for n in per_step_samples]
     rows = []
     for n, t, rollout in grid:
-        devices = default_devices(n)
+        devices = usable_sample_devices(n)
         problem = problems.pixelmpc_problem(n, t, 1.0, track=track, dof_params=dof_params, rollout=rollout,
                                             sample_devices=devices)
         stats = measure(problems.control_loop_call(problem), repeats=repeats, budget_s=max_seconds_per_row)
