@@ -22,6 +22,8 @@ def device_description() -> dict:
         pass
     import jaxlib
 
+    from pixelmpc_jax.control.sampling import host_memory_kept
+
     return {
         "platform": device.platform,
         "device_kind": getattr(device, "device_kind", str(device)),
@@ -31,6 +33,7 @@ def device_description() -> dict:
         "jax": jax.__version__,
         "jaxlib": jaxlib.__version__,
         "python": platform.python_version(),
+        "host_memory_kept": host_memory_kept(),
     }
 
 
