@@ -72,6 +72,27 @@ def test_omega_matrix_is_half_quaternion_product():
     np.testing.assert_allclose(Q.omega_matrix(q) @ w, product, atol=1e-6)
 
 
+def test_dynamics_written_out_equals_the_matrix_form_of_eqs_4_and_6():
+    """The model's component-by-component expressions are R_b^w [0, 0, f_T] and 0.5 Omega(q) w (Eqs. 5, 6)."""
+    key_q, key_v, key_u = jax.random.split(jax.random.PRNGKey(3), 3)
+    qs = Q.normalize_quat(jax.random.normal(key_q, (64, 4)))
+    vs = 6.0 * jax.random.normal(key_v, (64, 3))
+    us = jnp.asarray([3.0, 3.0, 3.0, 10.0]) * jax.random.normal(key_u, (64, 4))
+    for q, v, u in zip(qs, vs, us):
+        x = jnp.concatenate([jnp.asarray([1.0, -2.0, 3.0]), q, v])
+        x_dot = Q.dynamics(x, u, P)
+        thrust = Q.rotation_matrix(q) @ jnp.asarray([0.0, 0.0, u[3]])
+        v_dot = jnp.asarray([0.0, 0.0, -P.gravity]) + (thrust + Q.drag_force(v, P)) / P.mass
+        np.testing.assert_allclose(x_dot[:3], v, atol=1e-6)
+        np.testing.assert_allclose(x_dot[3:7], 0.5 * Q.omega_matrix(q) @ u[:3], atol=1e-5)
+        np.testing.assert_allclose(x_dot[7:], v_dot, atol=1e-5)
+
+
+def test_normalize_quat_over_a_batch_and_at_zero():
+    q = jnp.asarray([[2.0, 0.0, 0.0, 0.0], [1.0, -1.0, 1.0, -1.0], [0.0, 0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(Q.normalize_quat(q), [[1, 0, 0, 0], [0.5, -0.5, 0.5, -0.5], [1, 0, 0, 0]], atol=1e-7)
+
+
 @settings(max_examples=30, deadline=None)
 @given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 0.1))
 def test_rotation_matrix_is_orthonormal(values):
