@@ -241,6 +241,21 @@ def test_racing_costs_over_the_horizon_equal_each_step_on_its_own(setup, cfg):
     np.testing.assert_allclose(costs.racing_costs(X[3:], jnp.arange(3, steps), params, cfg), expected[3:], rtol=1e-5)
 
 
+def test_desired_attitude_is_the_half_yaw_quaternion_of_the_tangent():
+    """q_d = [cos(psi / 2), 0, 0, sin(psi / 2)], psi = atan2(ty, tx), up to the quaternion's sign, on every side
+    (behind, +-pi, the axes) and for any length; a zero tangent gives the identity."""
+    angles = np.concatenate([np.linspace(-np.pi, np.pi, 721), [np.pi - 1e-6, -np.pi + 1e-6, 1e-7, -1e-7]])
+    lengths = np.resize([1.0, 0.3, 7.0], angles.size)
+    tangent = np.stack([lengths * np.cos(angles), lengths * np.sin(angles), np.zeros_like(angles)])
+    got = np.asarray(costs.desired_attitude(jnp.asarray(tangent, jnp.float32)))
+    psi = np.arctan2(tangent[1], tangent[0])
+    expected = np.stack([np.cos(psi / 2), 0 * psi, 0 * psi, np.sin(psi / 2)])
+    sign = np.sign(np.sum(got * expected, axis=0))
+    np.testing.assert_allclose(got * sign, expected, atol=3e-7)
+    np.testing.assert_allclose(np.sum(got**2, axis=0), 1.0, atol=3e-7)
+    np.testing.assert_array_equal(costs.desired_attitude(jnp.zeros((3, 1))).ravel(), [1.0, 0.0, 0.0, 0.0])
+
+
 def test_racing_constants_computed_once_give_the_same_params(setup):
     track, _ = setup
     cfg = costs.RacingCostConfig()
