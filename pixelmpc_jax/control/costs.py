@@ -396,30 +396,39 @@ def _closest_on_windows(params: RacingParams, steps: jax.Array, p: list, progres
     len2 = jnp.maximum(_sum3([delta[:, i] ** 2 for i in range(3)]), 1e-12)
     arc_start, arc_delta = arc[:, :-1], arc[:, 1:] - arc[:, :-1]
     attr_start, attr_delta = attributes[:, :, :-1], attributes[:, :, 1:] - attributes[:, :, :-1]
-    # One pass over the segments keeping the best so far: a handful of (T, N) arrays live at a time, where a
-    # min over all of them and a masked mean would keep every segment's. Of exactly tied segments this keeps
-    # the first, closest_on_polyline their mean: the same but for float rounding where they meet at a vertex
-    # (both then give that vertex's attributes); other exact ties do not occur in practice.
-    best = None
-    for k in range(len2.shape[1]):
+    num_segments = len2.shape[1]
+    fraction, d2, metric = [], [], []
+    for k in range(num_segments):
         r = [p[i] - start[:, i, k, None] for i in range(3)]
         ab = [delta[:, i, k, None] for i in range(3)]
         t = jnp.clip(_sum3([r[i] * ab[i] for i in range(3)]) / len2[:, k, None], 0.0, 1.0)
         dist2 = _sum3([(r[i] - t * ab[i]) ** 2 for i in range(3)])
-        metric = dist2
+        fraction.append(t)
+        d2.append(dist2)
         if progress_weight > 0.0:
             s = arc_start[:, k, None] + t * arc_delta[:, k, None]
-            metric = dist2 + progress_weight * (s - expected) ** 2
-        attrs = [attr_start[:, c, k, None] + t * attr_delta[:, c, k, None] for c in range(attributes.shape[1])]
-        if best is None:
-            best, d2, chosen = metric, dist2, attrs
+            metric.append(dist2 + progress_weight * (s - expected) ** 2)
         else:
-            better = metric < best
-            best = jnp.where(better, metric, best)
-            d2 = jnp.where(better, dist2, d2)
-            chosen = [jnp.where(better, new, old) for new, old in zip(attrs, chosen)]
-    norm = jnp.maximum(jnp.sqrt(_sum3([chosen[i] ** 2 for i in range(3)])), 1e-6)
-    return jnp.sqrt(d2), [chosen[i] / norm for i in range(3)], chosen[3]
+            metric.append(dist2)
+    best = metric[0]
+    for m in metric[1:]:
+        best = jnp.minimum(best, m)
+    select = [(m <= best).astype(p[0].dtype) for m in metric]
+    count = select[0]
+    for k in range(1, num_segments):
+        count = count + select[k]
+
+    def chosen(values):  # the mean over the selected segments (one, barring exact ties)
+        total = values[0] * select[0]
+        for k in range(1, num_segments):
+            total = total + values[k] * select[k]
+        return total / count
+
+    distance = jnp.sqrt(chosen(d2))
+    attrs = [chosen([attr_start[:, c, k, None] + fraction[k] * attr_delta[:, c, k, None]
+                     for k in range(num_segments)]) for c in range(attributes.shape[1])]
+    norm = jnp.maximum(jnp.sqrt(_sum3([attrs[i] ** 2 for i in range(3)])), 1e-6)
+    return distance, [attrs[i] / norm for i in range(3)], attrs[3]
 
 
 def _crashed_elementwise(p: list, params: RacingParams, config: RacingCostConfig) -> jax.Array:
