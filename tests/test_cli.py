@@ -159,3 +159,20 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     assert not (tmp_path / "new").exists()
     with pytest.raises(ValueError, match="unknown packaged DOF weights"):
         dof.load_packaged_dof("best")
+
+
+@pytest.mark.parametrize("argv, kept", [(["race"], True), (["--release-memory", "bench"], False), (["demo"], False)])
+def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not_to(argv, kept, monkeypatch):
+    """`pixelmpc race|bench|reproduce` has glibc keep freed memory before the command starts (here it is stopped
+    right after); --release-memory and the other commands leave the allocator alone."""
+    from pixelmpc_jax.control import sampling
+
+    class Stop(Exception):
+        pass
+
+    calls = []
+    monkeypatch.setattr(sampling, "keep_host_memory", lambda keep=True: calls.append(keep) or True)
+    monkeypatch.setattr(cli, "_command_parser", lambda *args: (_ for _ in ()).throw(Stop()))
+    with pytest.raises(Stop):
+        cli.main(argv, split_cpu=True)
+    assert calls == ([True] if kept else [])
