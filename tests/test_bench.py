@@ -223,8 +223,19 @@ def test_smoke_run_writes_the_schema(smoke_run):
     assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
     assert set(written["summary"]["targets"]) == {
         "pixelmpc_step_ms <= 12", "pixelmpc_step_p95_ms <= 25", "nominal_step_ms <= 5",
-        "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)", "step_2048_over_512 <= 4.5", "dof_fraction >= 0.70",
-        "loop_tick_ms <= 25"}
+        "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)", "step_2048_over_512 <= 4.5",
+        "step_8192_over_512 <= 16 (linear)", "dof_fraction >= 0.70", "loop_tick_ms <= 25"}
+
+
+def test_scaling_growth_reads_the_default_rollout_at_t_80():
+    def row(n, ms, horizon=80, rollout="batched"):
+        return {"group": "scaling", "num_samples": n, "horizon": horizon, "rollout": rollout, "median_ms": ms}
+
+    rows = [row(512, 10.0), row(2048, 36.0), row(8192, 150.0), row(8192, 900.0, rollout="per_step"),
+            row(512, 1.0, horizon=20), {"group": "peer", "num_samples": 8192, "horizon": 80, "median_ms": 1.0}]
+    assert suite._scaling_growth(rows) == pytest.approx(3.6)
+    assert suite._scaling_growth(rows, large=8192) == pytest.approx(15.0)
+    assert suite._scaling_growth(rows[1:], large=8192) is None  # no 512 row
 
 
 def test_smoke_run_has_the_closed_loop_rows(smoke_run):
