@@ -360,10 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
                              f"core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller splits its "
                              "samples over them and batches of laps spread over them: XLA runs one device's "
                              "program on one core")
-    parser.add_argument("--release-memory", action="store_true",
-                        help="let the C allocator hand freed memory back to the system at once (race, bench and "
-                             "reproduce otherwise keep it for the next step: a step at 8192 samples would fault "
-                             "74 MB of pages in again every call)")
+    parser.add_argument("--release-memory", action="store_true", help="leave glibc's defaults (race, bench and "
+                        "reproduce otherwise keep freed memory for the next step: no page faults at large N)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("version", help="print the package, JAX version and devices")
@@ -529,22 +527,19 @@ def _one_line(err: BaseException, limit: int = 600) -> str:
 def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
     """Run the command ``argv`` (default: the process's arguments). With ``split_cpu`` (the ``pixelmpc``
     command), race, bench and reproduce split the CPU into one device per core unless ``--cpu-devices`` says
-    otherwise, and keep freed memory for the next step (:func:`~pixelmpc_jax.control.sampling.keep_host_memory`)
-    unless ``--release-memory``; called from Python, only ``--cpu-devices`` does (and only before JAX has
-    started)."""
+    otherwise, and keep freed memory (``sampling.keep_host_memory``) unless ``--release-memory``; called from
+    Python, only ``--cpu-devices`` splits (and only before JAX has started)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
     if args.cpu_devices is not None or (split_cpu and args.command in SPLIT_CPU_COMMANDS):
-        from pixelmpc_jax.control.sampling import split_host_cpu
+        from pixelmpc_jax.control import sampling
 
-        split_host_cpu(args.cpu_devices)
-    if split_cpu and args.command in SPLIT_CPU_COMMANDS and not args.release_memory:
-        from pixelmpc_jax.control.sampling import keep_host_memory
-
-        keep_host_memory()
+        sampling.split_host_cpu(args.cpu_devices)
+        if split_cpu and args.command in SPLIT_CPU_COMMANDS and not args.release_memory:
+            sampling.keep_host_memory()
     command_parser = _command_parser(parser, args.command)
     validate = getattr(args, "validate", None)
     problem = validate(args) if validate is not None else None

@@ -22,8 +22,6 @@ def device_description() -> dict:
         pass
     import jaxlib
 
-    from pixelmpc_jax.control.sampling import host_memory_kept
-
     return {
         "platform": device.platform,
         "device_kind": getattr(device, "device_kind", str(device)),
@@ -33,7 +31,6 @@ def device_description() -> dict:
         "jax": jax.__version__,
         "jaxlib": jaxlib.__version__,
         "python": platform.python_version(),
-        "host_memory_kept": host_memory_kept(),
     }
 
 

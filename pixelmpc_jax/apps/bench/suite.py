@@ -31,6 +31,7 @@ import numpy as np
 
 from pixelmpc_jax.apps.bench import closed_loop, controller, particle_filter_step, peers, table1
 from pixelmpc_jax.apps.bench.measure import fmt_ms
+from pixelmpc_jax.control import sampling
 from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -92,6 +93,7 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
     start = time.perf_counter()
     device = device_description()
     device["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    device["host_memory_kept"] = sampling.host_memory_kept()  # freed memory kept for the next step (or not)
     vers = versions()
     mode = "smoke" if smoke else "quick" if quick else "full"
     print(f"device: {device['platform']} ({device['device_kind']}); CPU {device['cpu_model']}, "
