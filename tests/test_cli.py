@@ -168,7 +168,7 @@ def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not
     from pixelmpc_jax.control import sampling
 
     class Stop(Exception):
-        pass
+        """Stops the command where the test has seen what it needs."""
 
     calls = []
     monkeypatch.setattr(sampling, "keep_host_memory", lambda keep=True: calls.append(keep) or True)
