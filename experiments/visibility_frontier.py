@@ -44,7 +44,12 @@ def main(argv=None) -> int:
                              "best (the border cost at each model's best weight)")
     parser.add_argument("--speeds", type=float, nargs="+", default=None, metavar="M_S",
                         help="nominal target speeds in m/s (at least 2; default 5 6 7 8 10 14, quick 6 8 10)")
+    parser.add_argument("--course", default=None, metavar="alphapilot|straight|FILE",
+                        help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
+                             "alphapilot)")
     args = parser.parse_args(argv)
+    if args.course is not None and args.course not in ("alphapilot", "straight") and not Path(args.course).is_file():
+        parser.error(f"--course: no course {args.course!r}: choose alphapilot or straight, or give a course file")
     if args.laps is not None and args.laps <= 0:
         parser.error(f"--laps must be a positive integer, got {args.laps}")
     if args.seed < 0:
@@ -55,10 +60,17 @@ def main(argv=None) -> int:
             parser.error(f"--speeds must be positive finite numbers of m/s, got {' '.join(map(str, bad))}")
         if len(set(args.speeds)) < 2:
             parser.error("--speeds needs at least 2 different speeds to draw a frontier")
+    if args.course is not None:
+        from pixelmpc_jax.apps.race import make_course
+
+        try:
+            make_course(args.course)
+        except ValueError as err:
+            parser.error(f"--course: {err}")
     spec = spec_from_args(args)
     try:
         frontier = frontier_lib.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps,
-                                             seed=args.seed)
+                                             seed=args.seed, course=args.course)
     except KeyboardInterrupt:
         print(f"\ninterrupted: the finished cells are kept in {args.out}; run the same command again to resume",
               file=sys.stderr)

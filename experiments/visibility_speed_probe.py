@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pixelmpc_jax.apps.grid import Cell, run_grid
 from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 
 KEYS = ("time_vis_below_50_s", "time_vis_below_50_unavoidable_s", "time_vis_zero_s", "lap_time_s", "mean_speed")
 LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap time [s]", "mean speed [m/s]")
@@ -26,8 +27,8 @@ LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap ti
 def cells_for(speed: float, models, c_pixels, t_f: float) -> list[Cell]:
     """Nominal MPPI, then PixelMPC for every (pixel model, c_pixel) at ``speed``."""
     return [Cell("mppi", RaceSpec("mppi", speed=speed))] + [
-        Cell(f"pixelmpc_{model}_tf{t_f:g}_c{c:.0e}", RaceSpec("pixelmpc", t_f=t_f, c_pixel=c, pixel_model=model,
-                                                              speed=speed))
+        Cell(f"pixelmpc_{model}_tf{t_f:g}_c{c:.0e}",
+             RaceSpec("pixelmpc", config=PixelMPCConfig(t_f=t_f, c_pixel=c, pixel_model=model), speed=speed))
         for model in models for c in c_pixels]
 
 

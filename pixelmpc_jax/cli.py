@@ -11,20 +11,23 @@ its waypoint, a runtime error); 2 bad input; 130 interrupted (what had finished 
 from __future__ import annotations
 
 import argparse
-import math
+import dataclasses
 import os
 import sys
 from pathlib import Path
 
+from pixelmpc_jax import arguments as arg
+from pixelmpc_jax.arguments import SEED_MAX
+
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
-SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
 FLOAT32_MAX = 3.4028234663852886e38
 RACE_T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer t_f acts as 2 s)
 RACE_SPEED_MAX = 50.0  # m/s; the vehicle's top speed is about 19 m/s (thrust 36.98 N against drag 0.1 |v| v)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
 SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce")  # the commands that split the CPU into devices by default
+SETTING = "setting:"  # the dest of a race flag that sets a controller setting: SETTING + its field (see _setting)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -32,105 +35,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
-
-
-# --------------------------------------------------------------------------------------------------
-# Argument types: each returns the value or raises ArgumentTypeError with the accepted range.
-# --------------------------------------------------------------------------------------------------
-
-
-def _float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
-    """An argparse type: a finite number in [lo, hi] ((lo, hi] with ``lo_open``)."""
-    interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]" + (f" {unit}" if unit else "")
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number in {interval}, got {text!r}") from None
-        if not (math.isfinite(value) and (value > lo if lo_open else value >= lo) and value <= hi):
-            raise argparse.ArgumentTypeError(f"must be a finite number in {interval}, got {text}")
-        return value
-
-    return parse
-
-
-def _int_in(lo: int, hi: int, *, odd: bool = False):
-    """An argparse type: an integer in [lo, hi] (odd with ``odd``)."""
-    what = f"{'an odd integer' if odd else 'an integer'} in [{lo}, {hi}]"
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        if not lo <= value <= hi or (odd and value % 2 == 0):
-            raise argparse.ArgumentTypeError(f"must be {what}, got {text}")
-        return value
-
-    return parse
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from err
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
-_seed = _int_in(0, SEED_MAX)
-
-
-def _unwritable_reason(out: Path) -> str | None:
-    """Why ``out`` could not be used as an output folder, or None; looks only (creates nothing)."""
-    probe = out
-    while not probe.exists() and probe.parent != probe:
-        probe = probe.parent
-    if not probe.is_dir():
-        return f"{probe} is not a directory"
-    if not os.access(probe, os.W_OK | os.X_OK):
-        return f"{probe} is not writable"
-    return None
-
-
-def _writable_dir(path: str) -> Path:
-    """An argparse type: an output folder that exists and is writable or could be created there. It is
-    made (by :func:`main`) only after every argument has been checked."""
-    out = Path(path)
-    reason = _unwritable_reason(out)
-    if reason is not None:
-        raise argparse.ArgumentTypeError(f"output directory {path!r} cannot be written: {reason}")
-    return out
-
-
-def _make_output_dir(out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    probe = out / ".write_test"
-    probe.write_text("")
-    probe.unlink()
-
-
-def _dataset_dir(path: str) -> Path:
-    """An argparse type: a DOF dataset folder (one holding the manifest ``collect`` writes)."""
-    root = Path(path)
-    hint = f"collect one with `pixelmpc collect --out {path}`"
-    if not root.is_dir():
-        raise argparse.ArgumentTypeError(f"no DOF dataset at {path!r}: the directory does not exist ({hint})")
-    if not (root / "manifest.json").is_file():
-        raise argparse.ArgumentTypeError(f"no DOF dataset at {path!r}: manifest.json is missing ({hint})")
-    return root
-
-
-def _weights_file(path: str) -> Path:
-    """An argparse type: an existing file (its contents are checked before anything runs)."""
-    file = Path(path)
-    if not file.is_file():
-        reason = "it is a directory" if file.is_dir() else "no such file"
-        raise argparse.ArgumentTypeError(f"no DOF weights file at {path!r}: {reason}")
-    return file
 
 
 # --------------------------------------------------------------------------------------------------
@@ -148,116 +52,128 @@ def _cmd_version(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    import jax.numpy as jnp
-    import numpy as np
+    from pixelmpc_jax.apps.waypoint import run_demo
 
-    from pixelmpc_jax.apps.waypoint import fly_to_waypoint, waypoint_config
-    from pixelmpc_jax.dynamics import quadrotor
-    from pixelmpc_jax.strict_json import write_json_atomic
-
-    start = quadrotor.hover_state((0.0, 0.0, 2.0))
-    waypoint = jnp.asarray([args.distance, 0.0, 2.0, 0.0])
-    config = waypoint_config(num_samples=args.samples)
-    print(f"MPPI hover-to-waypoint: {args.distance:.1f} m, N={config.num_samples}, T={config.horizon}, "
-          f"{args.seconds:.1f} s at {1 / config.dt:.0f} Hz ...")
-    flight = fly_to_waypoint(start, waypoint, num_ticks=max(1, int(round(args.seconds / config.dt))),
-                             seed=args.seed, config=config)
-    states = np.asarray(flight.states)
-    error = np.linalg.norm(states[:, :3] - np.asarray(waypoint[:3]), axis=1)
-    times = np.arange(len(states)) * config.dt
-    reached = np.nonzero(error < 0.2)[0]
-    summary = {
-        "final_position": states[-1, :3].round(3).tolist(),
-        "final_error_m": float(error[-1]),
-        "time_to_within_0.2m_s": float(times[reached[0]]) if reached.size else None,
-        "max_error_last_second_m": float(error[times >= times[-1] - 1.0].max()),
-    }
-    for key, value in summary.items():
-        print(f"  {key}: {value}")
-    if args.out:
-        out = args.out
-        write_json_atomic(out / "demo.json", summary)
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
-        for i, name in enumerate("xyz"):
-            ax[0].plot(times, states[:, i], label=name)
-        ax[0].set(xlabel="time [s]", ylabel="position [m]", title="position")
-        ax[0].legend()
-        ax[1].plot(times, error)
-        ax[1].set(xlabel="time [s]", ylabel="distance to waypoint [m]", yscale="log", title="error")
-        fig.tight_layout()
-        fig.savefig(out / "demo.png", dpi=120)
-        print(f"  wrote {out / 'demo.json'} and {out / 'demo.png'}")
-    return 0 if error[-1] < 0.5 else EXIT_FAILED
+    summary = run_demo(args.distance, args.seconds, args.samples, args.seed, args.out)
+    return 0 if summary["final_error_m"] < 0.5 else EXIT_FAILED
 
 
-def _race_spec(args, dof_params=None):
-    """The race the arguments ask for (a ValueError names a setting the library refuses); ``dof_params``, the
-    weights :func:`_race_dof` loads, enter it as their fingerprint."""
-    from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+def _cmd_course(args) -> int:
+    from pixelmpc_jax.world import course
 
-    return RaceSpec(controller=args.controller, speed=args.speed, laps=args.laps, seed=args.seed,
-                    perturb=args.perturb, course=args.course, detector=args.detector, estimator=args.estimator,
-                    pixel_model=args.pixel_model, t_f=args.t_f, c_pixel=args.c_pixel, temperature=args.temperature,
-                    max_time_s=args.max_time, options=_race_options(args),
-                    dof_weights=None if dof_params is None else dof_weights_hash(dof_params))
+    data = course.generate_course(args.seed, num_gates=args.gates)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    course.write_course(data, args.out)
+    track = course.load_course(args.out)
+    print(f"wrote {args.out}: {track.num_gates} gates, {float(track.path_s[-1]):.0f} m of path (seed {args.seed})")
+    return 0
+
+
+def _setting(p: argparse.ArgumentParser, flag: str, field: str, help: str, **kwargs) -> None:
+    """A race flag that sets one controller setting: ``field`` names it in the
+    :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` the race flies ("t_f"; "mppi.temperature" for its
+    MPPIConfig; "racing.heading_weight" for its RacingCostConfig). Left out, the setting keeps its default."""
+    shown = {name: _preset_setting(name, field) for name in ("best", "paper")}
+    shown = ", ".join(f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
+                      for name, value in shown.items())
+    if "choices" not in kwargs:
+        kwargs["metavar"] = flag.lstrip("-").upper().replace("-", "_")
+    p.add_argument(flag, dest=SETTING + field, default=None, help=f"{help} (default: the preset's; {shown})",
+                   **kwargs)
+
+
+def _preset_setting(preset: str, field: str):
+    """A controller setting of a preset (building a preset creates no JAX array: no backend starts)."""
+    from pixelmpc_jax.apps.presets import preset as preset_spec
+
+    value = preset_spec(preset).config
+    for name in field.split("."):
+        value = getattr(value, name)
+    return value
+
+
+def _with_setting(config, path: list[str], value):
+    """``config`` (a frozen dataclass) with the field at ``path`` (nested names) set to ``value``."""
+    if len(path) == 1:
+        return dataclasses.replace(config, **{path[0]: value})
+    return dataclasses.replace(config, **{path[0]: _with_setting(getattr(config, path[0]), path[1:], value)})
+
+
+def _controller_config(args, config):
+    """The controller configuration the race flags ask for: ``config`` (the preset's), with each setting flag
+    given."""
+    for dest, value in sorted(vars(args).items()):
+        if dest.startswith(SETTING) and value is not None:
+            config = _with_setting(config, dest[len(SETTING):].split("."), value)
+    return config
+
+
+def _race_spec(args):
+    """The race the arguments ask for: the preset, each flag given overriding one field (a ValueError names a
+    setting the library refuses), and the DOF weights of a weights file (None for packaged weights, which the
+    spec names), which enter the spec as their fingerprint."""
+    from pixelmpc_jax.apps.presets import preset
+    from pixelmpc_jax.apps.spec import dof_weights_hash
+
+    base = preset(args.preset)
+    fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
+              "course": args.course, "detector": args.detector, "estimator": args.estimator,
+              "max_time_s": args.max_time, "dof_weights": args.dof_weights}
+    spec = base.replace(config=_controller_config(args, base.config),
+                        **{name: value for name, value in fields.items() if value is not None})
+    dof_params = None
+    if spec.dof_weights is not None and spec.dof_weights not in _packaged_variants():
+        dof_params = _race_dof(spec.dof_weights)
+        spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
+    return spec, dof_params
+
+
+def _packaged_variants() -> dict:
+    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
+
+    return PACKAGED_VARIANTS
 
 
 def _check_race(args) -> None:
-    """Build the race and its controller before anything runs: a ValueError names a setting the library refuses,
+    """Build the race and its controllers before anything runs: a ValueError names a setting the library refuses,
     and a missing or damaged weights file is refused."""
-    _race_spec(args, _race_dof(args)).policy()
+    from pixelmpc_jax.apps.race import make_course
+
+    spec = _race_spec(args)[0]
+    make_course(spec.course)  # a course file's bad field is named here
+    for controller in (args.controller,) if args.controller else ("pixelmpc", "mppi"):
+        spec.replace(controller=controller).policy()
 
 
-def _race_options(args) -> dict:
-    """The controller options the race flags set away from their defaults (see RaceSpec.options)."""
-    options = {}
-    if args.controller == "pixelmpc":
-        if args.pixel_cost != "l1":
-            options["pixel_cost"] = args.pixel_cost
-        if args.border_margin is not None:
-            options["border_margin"] = args.border_margin
-    if args.noise_exponent:
-        options["mppi.noise_exponent"] = args.noise_exponent
-    if args.heading_weight is not None:
-        options["racing.heading_weight"] = args.heading_weight
-    return options
-
-
-def _race_dof(args):
-    """The DOF weights the race's PixelMPC uses: a packaged variant by name, or a weights file; None for the
-    default (the packaged paper weights, loaded by the race itself) or a race without the DOF."""
-    if args.controller != "pixelmpc" or args.pixel_model != "dof" or args.dof_weights == "paper":
-        return None
+def _race_dof(weights: str):
+    """The DOF weights in the weights file ``--dof-weights`` names."""
     from pixelmpc_jax.dynamics import dof
 
-    if args.dof_weights in dof.PACKAGED_VARIANTS:
-        return dof.load_packaged_dof(args.dof_weights)
-    return dof.load_checkpoint(Path(args.dof_weights))[0]
+    return dof.load_checkpoint(Path(weights))[0]
 
 
 def _cmd_race(args) -> int:
-    from pixelmpc_jax.apps import race
-    from pixelmpc_jax.sim import metrics
+    from pixelmpc_jax import host
+    from pixelmpc_jax.apps import compare
 
-    course = "the AlphaPilot course" if args.course == "alphapilot" else "the straight lane"
-    print(f"{args.controller} racing {course} at {args.speed:g} m/s: {args.laps} lap(s), "
-          f"seeds {args.seed}..{args.seed + args.laps - 1}, output {args.out}")
-    dof_params = _race_dof(args)
-    results = race.run_laps(_race_spec(args, dof_params), out=args.out, batch_size=args.batch, video=args.video,
-                            dof_params=dof_params)
-    laps = results["laps"]
-    if laps:
-        print(metrics.format_table(laps, results["aggregate"]))
-        written = [p for p in (args.out / "metrics.json", args.out / "trajectories.png") if p.exists()]
-        print(f"wrote {' and '.join(str(p) for p in written)}")
-    if results.get("interrupted"):
-        print(f"interrupted after {len(laps)} of {args.laps} lap(s)", file=sys.stderr)
+    if not args.no_compile_cache:
+        host.use_compilation_cache()
+    spec, dof_params = _race_spec(args)
+    controllers = (args.controller,) if args.controller else ("pixelmpc", "mppi")
+    course = {"alphapilot": "the AlphaPilot course", "straight": "the straight lane"}.get(spec.course, spec.course)
+    print(f"preset {args.preset}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course} at "
+          f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
+          f"output {args.out}")
+    record = compare.run_compare(spec, controllers, out=args.out, preset=args.preset, batch_size=args.batch,
+                                 video=args.video, dof_params=dof_params)
+    if any(results["laps"] for results in record["controllers"].values()):
+        print(compare.side_by_side(record))
+        written = [p for p in ("metrics.json", "trajectories.png", "visibility.png") if (args.out / p).exists()]
+        print(f"wrote {', '.join(str(args.out / p) for p in written)}")
+    if record["interrupted"]:
+        print(f"interrupted; the finished laps are in {args.out / 'metrics.json'}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    laps = [lap for results in record["controllers"].values() for lap in results["laps"]]
     if not any(lap.get("success") for lap in laps):
         print(f"no lap succeeded ({len(laps)} flown)", file=sys.stderr)
         return EXIT_FAILED
@@ -285,12 +201,12 @@ def _cmd_collect(args) -> int:
 
 
 def _cmd_train(args) -> int:
-    from pixelmpc_jax.learn.train import run_train
+    from pixelmpc_jax.learn.train import TrainConfig, run_train
 
-    record = run_train(args.data, out_dir=args.out, steps=args.steps, batch_size=args.batch_size,
-                       learning_rate=args.learning_rate, seed=args.seed, resume=args.resume, ship=args.ship,
-                       loss=args.loss, input=args.input, rotation_augment=args.rotation_augment,
-                       rotation_augment_fraction=args.rotation_augment_fraction)
+    config = TrainConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
+                         seed=args.seed, loss=args.loss, input=args.input, rotation_augment=args.rotation_augment,
+                         rotation_augment_fraction=args.rotation_augment_fraction)
+    record = run_train(args.data, out_dir=args.out, config=config, resume=args.resume, ship=args.ship)
     return EXIT_INTERRUPTED if record.get("interrupted") else 0
 
 
@@ -326,8 +242,8 @@ def _cmd_reproduce(args) -> int:
 
 def _seed_range(args) -> str | None:
     """Lap i flies seed + i: the last seed must still be a seed."""
-    laps = 10 if getattr(args, "paper", False) else args.laps  # collect --paper flies the paper's 10 laps
-    last = args.seed + laps - 1
+    laps = 10 if getattr(args, "paper", False) else args.laps or 1  # collect --paper flies the paper's 10 laps
+    last = (args.seed or 0) + laps - 1
     if last > SEED_MAX:
         return (f"argument --seed: --seed + --laps - 1 must be at most {SEED_MAX} (lap i uses seed + i), "
                 f"got {last}")
@@ -347,155 +263,214 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 done; 1 the run completed but failed (no lap succeeded, the demo missed its "
                "waypoint); 2 bad input (one line names it); 130 interrupted (what finished is saved).",
     )
+    _add_process_flags(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    p = sub.add_parser("version", help="print the package, JAX version and devices")
+    p.set_defaults(func=_cmd_version)
+    for add in (_add_demo, _add_render, _add_collect, _add_train, _add_evaluate, _add_bench, _add_reproduce,
+                _add_race, _add_course):
+        add(sub)
+    return parser
+
+
+def _add_process_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags that set up the process before any command: hosts, devices, memory, tracebacks."""
     parser.add_argument("--distributed", action="store_true",
                         help="join a multi-host run (jax.distributed.initialize: the cluster is detected under "
                              "SLURM, Open MPI or on TPU; elsewhere set JAX_COORDINATOR_ADDRESS, "
                              "JAX_NUM_PROCESSES, JAX_PROCESS_ID); run the same command on every host")
     parser.add_argument("--debug", action="store_true",
                         help="show the full traceback of an error instead of one line")
-    from pixelmpc_jax.control.sampling import HOST_CPU_DEVICES_MAX  # imports JAX, starts no backend
+    from pixelmpc_jax.host import HOST_CPU_DEVICES_MAX  # imports JAX, starts no backend
 
-    parser.add_argument("--cpu-devices", type=_int_in(1, 1024), default=None, metavar="N",
+    parser.add_argument("--cpu-devices", type=arg.int_in(1, 1024), default=None, metavar="N",
                         help="split the CPU into N JAX devices (default for race, bench and reproduce: one per "
                              f"core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller splits its "
                              "samples over them and batches of laps spread over them: XLA runs one device's "
                              "program on one core")
     parser.add_argument("--release-memory", action="store_true", help="leave glibc's defaults (race, bench and "
                         "reproduce otherwise keep freed memory for the next step: no page faults at large N)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("version", help="print the package, JAX version and devices")
-    p.set_defaults(func=_cmd_version)
 
+def _add_demo(sub) -> None:
+    """``pixelmpc demo``: MPPI flying the model to a waypoint."""
     p = sub.add_parser("demo", help="MPPI flies the quadrotor model from hover to a waypoint and holds it")
-    p.add_argument("--distance", type=_float_in(-50.0, 50.0, unit="m"), default=5.0,
+    p.add_argument("--distance", type=arg.float_in(-50.0, 50.0, unit="m"), default=5.0,
                    help="waypoint distance ahead, m, in [-50, 50] (default 5)")
-    p.add_argument("--seconds", type=_float_in(0.025, 600.0, unit="s"), default=4.0,
+    p.add_argument("--seconds", type=arg.float_in(0.025, 600.0, unit="s"), default=4.0,
                    help="flight time, s, in [0.025, 600] (default 4)")
-    p.add_argument("--samples", type=_int_in(1, 2**20), default=512, help="MPPI samples, in [1, 2^20] (default 512)")
-    p.add_argument("--seed", type=_seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
-    p.add_argument("--out", type=_writable_dir, default=None, help="write demo.json and demo.png here")
+    p.add_argument("--samples", type=arg.int_in(1, 2**20), default=512, help="MPPI samples, in [1, 2^20] (default 512)")
+    p.add_argument("--seed", type=arg.seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
+    p.add_argument("--out", type=arg.writable_dir, default=None, help="write demo.json and demo.png here")
     p.set_defaults(func=_cmd_demo)
 
+
+def _add_render(sub) -> None:
+    """``pixelmpc render``: rendered frames and their flow."""
     p = sub.add_parser("render", help="render course frames with their exact and Farneback optical flow")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/render"), help="output directory")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/render"), help="output directory")
     p.set_defaults(func=_cmd_render)
 
+
+def _add_collect(sub) -> None:
+    """``pixelmpc collect``: the DOF dataset."""
     p = sub.add_parser("collect", help="fly nominal MPPI laps and store frames' Farneback flow (DOF data)")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_data"), help="dataset directory")
-    p.add_argument("--laps", type=_positive_int, default=4, help="laps, speeds spread over 6-14 m/s (default 4)")
-    p.add_argument("--seed", type=_seed, default=0, help=f"seed of lap 0, in [0, {SEED_MAX}]; lap i uses seed + i")
-    p.add_argument("--max-lap-time", type=_float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=10.0,
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/dof_data"), help="dataset directory")
+    p.add_argument("--laps", type=arg.positive_int, default=4, help="laps, speeds spread over 6-14 m/s (default 4)")
+    p.add_argument("--seed", type=arg.seed, default=0, help=f"seed of lap 0, in [0, {SEED_MAX}]; lap i uses seed + i")
+    p.add_argument("--max-lap-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=10.0,
                    help=f"seconds flown per lap, in (0, {MAX_TIME_S:g}] (default 10)")
-    p.add_argument("--supersample", type=_int_in(1, 9, odd=True), default=1,
+    p.add_argument("--supersample", type=arg.int_in(1, 9, odd=True), default=1,
                    help="render supersampling, odd, in [1, 9] (default 1)")
     p.add_argument("--paper", action="store_true", help="the paper's size: 10 laps of up to 30 s")
     p.add_argument("--excitation", action="store_true",
                    help="train laps add held body-rate pulses and dither to the nominal MPPI's command")
-    p.add_argument("--excitation-pulse", type=_float_in(0.0, 6.0, lo_open=True, unit="rad/s"), default=1.5,
+    p.add_argument("--excitation-pulse", type=arg.float_in(0.0, 6.0, lo_open=True, unit="rad/s"), default=1.5,
                    help="pulse amplitude, uniform in +- this per axis, rad/s, in (0, 6], the rate limit (default 1.5)")
-    p.add_argument("--excitation-dither", type=_float_in(0.0, 6.0, lo_open=True, unit="rad/s"), default=0.3,
+    p.add_argument("--excitation-dither", type=arg.float_in(0.0, 6.0, lo_open=True, unit="rad/s"), default=0.3,
                    help="std of the per-tick rate dither, rad/s, in (0, 6] (default 0.3)")
     p.set_defaults(func=_cmd_collect, validate=_seed_range)
 
+
+def _add_train(sub) -> None:
+    """``pixelmpc train``: DOF training."""
+    from pixelmpc_jax.learn.dataset import INPUTS
+    from pixelmpc_jax.learn.train import LOSSES
+
     p = sub.add_parser("train", help="train the DOF network on a collected dataset (resumable)")
-    p.add_argument("--data", type=_dataset_dir, required=True, help="dataset directory from `pixelmpc collect`")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_train"))
-    p.add_argument("--steps", type=_positive_int, default=20000)
-    p.add_argument("--batch-size", type=_positive_int, default=4096, help="pixels per step (default 4096)")
-    p.add_argument("--learning-rate", type=_float_in(0.0, 1.0, lo_open=True), default=1e-3,
+    p.add_argument("--data", type=arg.dataset_dir, required=True, help="dataset directory from `pixelmpc collect`")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/dof_train"))
+    p.add_argument("--steps", type=arg.positive_int, default=20000)
+    p.add_argument("--batch-size", type=arg.positive_int, default=4096, help="pixels per step (default 4096)")
+    p.add_argument("--learning-rate", type=arg.float_in(0.0, 1.0, lo_open=True), default=1e-3,
                    help="Adam's learning rate, in (0, 1] (default 1e-3)")
-    p.add_argument("--seed", type=_seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
+    p.add_argument("--seed", type=arg.seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
-    p.add_argument("--loss", choices=["polar", "endpoint"], default="polar",
+    p.add_argument("--loss", choices=LOSSES, default=LOSSES[0],
                    help="polar: the paper's MSE on (l, theta) (default); endpoint: squared flow-vector error")
-    p.add_argument("--input", choices=["command", "flown"], default="command",
+    p.add_argument("--input", choices=INPUTS, default=INPUTS[0],
                    help="the network's control input: command, the paper's (the rates commanded at the frame's "
                         "tick, default), or flown (the rates flown over the frame: what the MPC's model means)")
-    p.add_argument("--rotation-augment", type=_float_in(0.0, 6.0, unit="rad/s"), default=0.0, metavar="SIGMA",
+    p.add_argument("--rotation-augment", type=arg.float_in(0.0, 6.0, unit="rad/s"), default=0.0, metavar="SIGMA",
                    help="turn training rows by an extra body rate of std SIGMA rad/s, label and rate changed "
                         "exactly (needs --input flown; default 0: off, the paper's)")
-    p.add_argument("--rotation-augment-fraction", type=_float_in(0.0, 1.0), default=1.0, metavar="P",
+    p.add_argument("--rotation-augment-fraction", type=arg.float_in(0.0, 1.0), default=1.0, metavar="P",
                    help="share of the rows turned, in [0, 1] (default 1)")
     p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
     p.set_defaults(func=_cmd_train, validate=_turned_rows_need_flown_input)
 
+
+def _add_evaluate(sub) -> None:
+    """``pixelmpc evaluate``: the DOF's accuracy."""
     p = sub.add_parser("evaluate", help="DOF accuracy: AEE, baselines, multi-step error, figures")
-    p.add_argument("--weights", type=_weights_file, default=None,
+    p.add_argument("--weights", type=arg.weights_file, default=None,
                    help="weights file (default: the shipped weights)")
-    p.add_argument("--data", type=_dataset_dir, default=None,
+    p.add_argument("--data", type=arg.dataset_dir, default=None,
                    help="dataset directory (default: collect a small seeded held-out set)")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/dof_eval"))
-    p.add_argument("--horizon", type=_positive_int, default=80, help="multi-step horizon (default 80)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/dof_eval"))
+    p.add_argument("--horizon", type=arg.positive_int, default=80, help="multi-step horizon (default 80)")
     p.set_defaults(func=_cmd_evaluate, precheck=_check_weights)
 
+
+def _add_bench(sub) -> None:
+    """``pixelmpc bench``: the runtime harness."""
     p = sub.add_parser("bench", help="runtime harness: Table I, controller scaling, peers, matmul roofline")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/bench"))
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/bench"))
     p.add_argument("--quick", action="store_true", help="paper-size controller rows and the pytorch-mppi peer only")
     p.set_defaults(func=_cmd_bench)
 
+
+def _add_reproduce(sub) -> None:
+    """``pixelmpc reproduce``: the paper's experiments."""
     from pixelmpc_jax.apps.reproduce import CHOICES
 
     p = sub.add_parser("reproduce", help="run the paper's experiments and benchmark into one report (resumable)")
     # default "all", not ["all"]: argparse checks a list default against the choices as one value, and fails
     p.add_argument("parts", nargs="*", default="all", choices=CHOICES, metavar="PART",
                    help=f"what to reproduce (default all): {', '.join(CHOICES)}")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/reproduce"), help="output directory")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/reproduce"), help="output directory")
     p.add_argument("--quick", action="store_true",
                    help="a small version in minutes (2 laps per cell, the bench's quick rows, the tables only)")
     p.set_defaults(func=_cmd_reproduce)
 
-    from pixelmpc_jax.apps.race import COURSES
-    from pixelmpc_jax.control.mppi import TEMPERATURE_MIN
-    from pixelmpc_jax.sim.controllers import CONTROLLERS
 
-    p = sub.add_parser("race", help="fly laps of the AlphaPilot course in the closed loop")
-    p.add_argument("--controller", choices=CONTROLLERS, default="pixelmpc",
-                   help="pixelmpc (default) or mppi, the paper's nominal baseline")
-    p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
-                   help="PixelMPC's pixel model: the shipped DOF network (default) or PAMPC-style projection")
-    p.add_argument("--dof-weights", default="paper", metavar="paper|flown|turned|FILE",
-                   help="the DOF's weights: the packaged paper weights (command input; default), the packaged "
-                        "flown-rate weights, those trained with turned rows, or a weights file from `pixelmpc train`")
-    p.add_argument("--detector", choices=("geometry", "image"), default="geometry",
-                   help="target detection: projection of the true gate (default) or OpenCV on rendered frames")
-    p.add_argument("--course", choices=COURSES, default="alphapilot",
-                   help="alphapilot (default) or straight (five gates 20 m apart, the paper's straight lane)")
-    p.add_argument("--estimator", choices=("truth", "pf"), default="truth",
-                   help="state the controller acts on: ground truth (default) or the particle filter")
+def _add_course(sub) -> None:
+    """``pixelmpc course``: a seeded course file."""
+    p = sub.add_parser("course", help="generate a seeded race course (a file for `race --course` and the frontier)")
+    p.add_argument("--seed", type=arg.seed, default=0, help=f"the course's seed, in [0, {SEED_MAX}] (default 0)")
+    p.add_argument("--gates", type=arg.int_in(2, 30), default=8, help="number of gates, in [2, 30] (default 8)")
+    p.add_argument("--out", type=arg.output_file, required=True, help="the course file to write (JSON)")
+    p.set_defaults(func=_cmd_course)
+
+
+def _add_race(sub) -> None:
+    """``pixelmpc race``: laps in the closed loop. The race's own flags set a RaceSpec field; each controller
+    flag sets one controller setting (:func:`_setting`)."""
+    from pixelmpc_jax.apps.presets import DEFAULT_PRESET, PRESETS
+    from pixelmpc_jax.apps.spec import COURSES
+    from pixelmpc_jax.control.mppi import TEMPERATURE_MIN
+    from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS
+    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
+    from pixelmpc_jax.sim.controllers import CONTROLLERS
+    from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
+
+    p = sub.add_parser("race", help="PixelMPC beside nominal MPPI on the AlphaPilot course, in the closed loop")
+    p.add_argument("--preset", choices=PRESETS, default=DEFAULT_PRESET,
+                   help="the race to start from: best (default), the best configuration measured on the speed "
+                        "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target. Every "
+                        "other flag overrides one field of it")
+    p.add_argument("--controller", choices=CONTROLLERS, default=None,
+                   help="fly one controller alone: pixelmpc or mppi, the paper's nominal baseline (default: both, "
+                        "at the same target and seeds)")
+    p.add_argument("--dof-weights", default=None, metavar="|".join(PACKAGED_VARIANTS) + "|FILE",
+                   help="the DOF's weights: a packaged variant (paper: command input; flown: the flown-rate "
+                        "weights; turned: trained with turned rows) or a weights file from `pixelmpc train` "
+                        "(default: the preset's)")
+    p.add_argument("--detector", choices=DETECTORS, default=None,
+                   help="target detection: geometry, the projection of the true gate, or image, OpenCV on "
+                        "rendered frames (default: the preset's, geometry)")
+    p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
+                   help="alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a course file "
+                        "in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
+                        "(default: the preset's, alphapilot)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default=None,
+                   help="state the controller acts on: truth or pf, the particle filter (default: the preset's, "
+                        "truth)")
     p.add_argument("--video", action="store_true",
-                   help="write OUT/onboard.mp4 of the first lap: predicted (green) and actual (red) target pixel")
-    p.add_argument("--t-f", type=_float_in(0.0, RACE_T_F_MAX_S, unit="s"), default=1.0,
-                   help=f"PixelMPC pixel-cost horizon t_f, s, in [0, {RACE_T_F_MAX_S:g}] (the MPC horizon; default 1)")
-    p.add_argument("--c-pixel", type=_float_in(0.0, 1e30), default=9e6,
-                   help="PixelMPC pixel-cost weight, in [0, 1e30] (default 9e6)")
-    p.add_argument("--pixel-cost", choices=("l1", "border"), default="l1",
-                   help="PixelMPC pixel cost: l1, the paper's distance from the image centre (default), or border, "
-                        "a barrier on the image border that charges only a gate leaving the view")
-    p.add_argument("--border-margin", type=_float_in(0.0, 0.5, lo_open=True), default=None,
-                   help="where the border cost starts, as a fraction of the image inside the border, in (0, 0.5] "
-                        "(default 0.15)")
-    p.add_argument("--noise-exponent", type=_float_in(0.0, 4.0), default=0.0,
-                   help="MPPI sampling noise coloured as 1/f^beta along the horizon, beta in [0, 4] (default 0, "
-                        "white, the paper's)")
-    p.add_argument("--heading-weight", type=_float_in(0.0, 1.0), default=None,
-                   help="share of the racing cost's attitude term that pins the heading to the path, in [0, 1] "
-                        "(default 1, the paper's)")
-    p.add_argument("--speed", type=_float_in(0.0, RACE_SPEED_MAX, lo_open=True, unit="m/s"), default=14.0,
-                   help=f"target speed, m/s, in (0, {RACE_SPEED_MAX:g}] (default 14)")
-    p.add_argument("--laps", type=_positive_int, default=1, help="number of laps (default 1)")
-    p.add_argument("--seed", type=_seed, default=0, help=f"seed of the first lap, in [0, {SEED_MAX}]; lap i uses "
-                                                         "seed + i")
-    p.add_argument("--out", type=_writable_dir, default=Path("runs/race"), help="output directory")
-    p.add_argument("--batch", type=_positive_int, default=1,
+                   help="write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) pixel")
+    p.add_argument("--no-compile-cache", action="store_true",
+                   help="compile afresh (by default compiled steps are kept in the user's cache folder, "
+                        "~/.cache/pixelmpc-jax, so a second run starts faster)")
+    _setting(p, "--pixel-model", "pixel_model", "PixelMPC's pixel model: the DOF network or the PAMPC-style "
+             "projection of the known gate", choices=PIXEL_MODELS)
+    _setting(p, "--t-f", "t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {RACE_T_F_MAX_S:g}] (the MPC horizon)",
+             type=arg.float_in(0.0, RACE_T_F_MAX_S, unit="s"))
+    _setting(p, "--c-pixel", "c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]", type=arg.float_in(0.0, 1e30))
+    _setting(p, "--pixel-cost", "pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image centre, "
+             "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
+    _setting(p, "--border-margin", "border_margin", "where the border cost starts, as a fraction of the image inside "
+             "the border, in (0, 0.5]", type=arg.float_in(0.0, 0.5, lo_open=True))
+    _setting(p, "--noise-exponent", "mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
+             "horizon, beta in [0, 4] (0: white, the paper's)", type=arg.float_in(0.0, 4.0))
+    _setting(p, "--heading-weight", "racing.heading_weight", "share of the racing cost's attitude term that pins "
+             "the heading to the path, in [0, 1] (1: the paper's)", type=arg.float_in(0.0, 1.0))
+    _setting(p, "--temperature", "mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
+             type=arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX))
+    _setting(p, "--samples", "mppi.num_samples", "MPPI samples per step, in [1, 2^20]", type=arg.int_in(1, 2**20))
+    p.add_argument("--speed", type=arg.float_in(0.0, RACE_SPEED_MAX, lo_open=True, unit="m/s"), default=None,
+                   help=f"target speed, m/s, in (0, {RACE_SPEED_MAX:g}] (default: the preset's; best 8.5, the "
+                        "paper's pace; paper 14, the paper's label)")
+    p.add_argument("--laps", type=arg.positive_int, default=None, help="laps per controller (default 1)")
+    p.add_argument("--seed", type=arg.seed, default=None, help=f"seed of the first lap, in [0, {SEED_MAX}]; lap i "
+                                                            "uses seed + i (default 0)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/race"), help="output directory")
+    p.add_argument("--batch", type=arg.positive_int, default=1,
                    help="laps per batched (vmapped) call; raise it on a GPU (default 1)")
-    p.add_argument("--perturb", action="store_true", help="perturb the gates per lap within the AlphaPilot bounds")
-    p.add_argument("--max-time", type=_float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=60.0,
+    p.add_argument("--perturb", action="store_true", default=None,
+                   help="perturb the gates per lap within the AlphaPilot bounds")
+    p.add_argument("--max-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=None,
                    help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default 60)")
-    p.add_argument("--temperature", type=_float_in(TEMPERATURE_MIN, FLOAT32_MAX), default=None,
-                   help=f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}] (default: tuned)")
     p.set_defaults(func=_cmd_race, validate=_seed_range, precheck=_check_race)
-    return parser
 
 
 def _command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
@@ -508,11 +483,11 @@ def _command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.A
 def _make_output_dirs(args, command_parser: argparse.ArgumentParser) -> None:
     """Create every output folder the command was given (or defaults to), now that all else is checked."""
     for action in command_parser._actions:
-        if action.type is not _writable_dir or getattr(args, action.dest, None) is None:
+        if action.type is not arg.writable_dir or getattr(args, action.dest, None) is None:
             continue
         out = Path(getattr(args, action.dest))
         try:
-            _make_output_dir(out)
+            arg.make_output_dir(out)
         except OSError as err:
             command_parser.error(f"argument {'/'.join(action.option_strings)}: output directory {str(out)!r} "
                                  f"cannot be written: {err}")
@@ -527,7 +502,7 @@ def _one_line(err: BaseException, limit: int = 600) -> str:
 def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
     """Run the command ``argv`` (default: the process's arguments). With ``split_cpu`` (the ``pixelmpc``
     command), race, bench and reproduce split the CPU into one device per core unless ``--cpu-devices`` says
-    otherwise, and keep freed memory (``sampling.keep_host_memory``) unless ``--release-memory``; called from
+    otherwise, and keep freed memory (``host.keep_host_memory``) unless ``--release-memory``; called from
     Python, only ``--cpu-devices`` splits (and only before JAX has started)."""
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -535,11 +510,11 @@ def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
         parser.print_help()
         return 0
     if args.cpu_devices is not None or (split_cpu and args.command in SPLIT_CPU_COMMANDS):
-        from pixelmpc_jax.control import sampling
+        from pixelmpc_jax import host
 
-        sampling.split_host_cpu(args.cpu_devices)
+        host.split_host_cpu(args.cpu_devices)
         if split_cpu and args.command in SPLIT_CPU_COMMANDS and not args.release_memory:
-            sampling.keep_host_memory()
+            host.keep_host_memory()
     command_parser = _command_parser(parser, args.command)
     validate = getattr(args, "validate", None)
     problem = validate(args) if validate is not None else None

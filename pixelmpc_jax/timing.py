@@ -2,8 +2,7 @@
 the simulated vehicle's rate (960 Hz, FlightGoggles-like), with the plant substeps per tick.
 
 Imports nothing; every layer may import it. The frame interval of the flow data and the DOF (``perception.flow``,
-``learn``) and the default ``PFConfig.dt`` are ``CONTROL_DT``; ``sim.episode.CONTROL_DT`` and ``SUBSTEPS``,
-``sim.plant.PLANT_DT`` and ``SUBSTEPS_PER_TICK`` are aliases of these.
+``learn``), the closed loop's tick and the default ``PFConfig.dt`` are ``CONTROL_DT``.
 """
 
 CONTROL_HZ = 40

@@ -1,11 +1,14 @@
 """The pixelmpc command: help, version, the demo, and clear errors for bad arguments."""
 
+import dataclasses
 import json
 
 import pytest
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.control.costs import RacingCostConfig
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 
 
 def _reject(constant):
@@ -78,7 +81,8 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
         return real(log, *args, **kwargs)
 
     monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
-    spec = RaceSpec("mppi", speed=10.0, laps=3, seed=4, max_time_s=0.2, num_samples=32)
+    spec = RaceSpec("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
+                    max_time_s=0.2)
     results = race.run_laps(spec, out=tmp_path, batch_size=1, progress=False)
     assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4 and results["interrupted"]
     saved = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=_reject)  # strict JSON
@@ -88,28 +92,49 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
 
 
 def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
-    """Every race flag lands in the RaceSpec (the levers as controller options); execution flags beside it."""
-    from pixelmpc_jax.apps import race
+    """Every race flag lands in the RaceSpec (each controller flag in its field of the configuration); execution
+    flags beside it."""
+    from pixelmpc_jax.apps import compare
 
     seen = {}
 
-    def fake_run_laps(spec, **kwargs):
-        seen.update(kwargs, spec=spec)
-        return {"laps": [], "aggregate": {}, "interrupted": False}
+    def fake_run_compare(spec, controllers, **kwargs):
+        seen.update(kwargs, spec=spec, controllers=controllers)
+        return {"controllers": {}, "interrupted": False}
 
-    monkeypatch.setattr(race, "run_laps", fake_run_laps)
+    monkeypatch.setattr(compare, "run_compare", fake_run_compare)
     cli.main(["race", "--out", str(tmp_path), "--pixel-cost", "border", "--border-margin", "0.2",
               "--noise-exponent", "1", "--heading-weight", "0.5", "--speed", "9", "--laps", "3", "--seed", "5",
               "--course", "straight", "--estimator", "pf", "--detector", "image", "--pixel-model", "projection",
               "--t-f", "0.5", "--c-pixel", "3e6", "--max-time", "20", "--temperature", "100", "--perturb",
-              "--batch", "2", "--video"])
-    assert seen["spec"] == RaceSpec(
-        "pixelmpc", speed=9.0, laps=3, seed=5, perturb=True, course="straight", detector="image", estimator="pf",
-        pixel_model="projection", t_f=0.5, c_pixel=3e6, temperature=100.0, max_time_s=20.0,
-        options={"pixel_cost": "border", "border_margin": 0.2, "mppi.noise_exponent": 1.0,
-                 "racing.heading_weight": 0.5})
+              "--samples", "256", "--batch", "2", "--video"])
+    mppi = dataclasses.replace(paper_mppi_config(num_samples=256, temperature=100.0), noise_exponent=1.0)
+    config = PixelMPCConfig(mppi=mppi, racing=RacingCostConfig(heading_weight=0.5), pixel_model="projection",
+                            t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2)
+    assert seen["spec"] == RaceSpec("pixelmpc", config, speed=9.0, laps=3, seed=5, perturb=True, course="straight",
+                                    detector="image", estimator="pf", max_time_s=20.0)
     assert seen["batch_size"] == 2 and seen["video"] is True and seen["out"] == tmp_path
-    assert seen["dof_params"] is None
+    assert seen["dof_params"] is None and seen["preset"] == "best" and seen["controllers"] == ("pixelmpc", "mppi")
+
+
+def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_path):
+    from pixelmpc_jax.apps import compare, presets
+
+    seen = {}
+    monkeypatch.setattr(compare, "run_compare", lambda spec, controllers, **kwargs: seen.update(
+        spec=spec, controllers=controllers, **kwargs) or {"controllers": {}, "interrupted": False})
+    for argv, expected in ((["--preset", "paper"], presets.preset("paper")),
+                           ([], presets.preset("best")),
+                           (["--c-pixel", "1e7", "--laps", "2"],
+                            presets.preset("best").replace(laps=2, config=dataclasses.replace(
+                                presets.preset("best").config, c_pixel=1e7))),
+                           (["--dof-weights", "turned"], presets.preset("best").replace(dof_weights="turned")),
+                           (["--controller", "mppi"], presets.preset("best"))):
+        cli.main(["race", "--out", str(tmp_path), *argv])
+        assert seen["spec"] == expected and seen["spec"].key() == expected.key()
+    assert seen["controllers"] == ("mppi",)
+    assert presets.preset("paper").config.pixel_cost == "l1" and presets.preset("paper").dof_weights is None
+    assert presets.preset("best").config.pixel_cost == "border" and presets.preset("best").speed == 8.5
 
 
 def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
@@ -129,7 +154,8 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
         return runner._replace(batch=batch)
 
     monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
-    spec = RaceSpec("mppi", speed=10.0, laps=3, seed=4, max_time_s=0.1, num_samples=32)
+    spec = RaceSpec("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
+                    max_time_s=0.1)
     results = race.run_laps(spec, batch_size=2, progress=False)
     assert [lap["seed"] for lap in results["laps"]] == [4, 5, 6] and len(results["trajectories"]) == 3
     assert len(shapes) == 2 and shapes[0] == shapes[1] and shapes[0][0][0] == 2
@@ -139,21 +165,27 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
 
 
 def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
-    """--dof-weights picks a packaged variant or a file; a missing file is refused before anything runs."""
+    """--dof-weights picks a packaged variant (named in the spec) or a file (its weights passed, its fingerprint
+    in the spec); a missing file is refused before anything runs."""
     import jax
 
     from pixelmpc_jax.apps import race
     from pixelmpc_jax.dynamics import dof
 
     seen = {}
-    monkeypatch.setattr(race, "run_laps",
-                        lambda spec, **kwargs: seen.update(kwargs, spec=spec) or {"laps": [], "aggregate": {}})
-    cli.main(["race", "--out", str(tmp_path), "--dof-weights", "flown"])
+    monkeypatch.setattr(race, "run_laps", lambda spec, **kwargs: seen.update(kwargs, spec=spec) or {
+        "laps": [], "aggregate": {}, "interrupted": False, "trajectories": [], "visibility": []})
+    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", "flown"])
+    assert seen["dof_params"] is None and seen["spec"].dof_weights == "flown"  # the race loads packaged weights
     flown = dof.load_packaged_dof("flown")
+    assert seen["spec"].dof_fingerprint() == dof_weights_hash(flown)
+    file = tmp_path / "weights.msgpack"
+    dof.save_checkpoint(file, flown, {"what": "test"})
+    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", str(file)])
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda a, b: bool((a == b).all()), seen["dof_params"], flown))
     assert seen["spec"].dof_weights == dof_weights_hash(flown)  # the spec names the weights it flies
-    cli.main(["race", "--out", str(tmp_path), "--dof-weights", "paper"])
-    assert seen["dof_params"] is None and seen["spec"].dof_weights is None  # the race loads the packaged weights
+    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", "paper"])
+    assert seen["dof_params"] is None and seen["spec"].dof_weights is None
     code = cli.main(["race", "--out", str(tmp_path / "new"), "--dof-weights", str(tmp_path / "missing.msgpack")])
     assert code == 2 and "missing.msgpack" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
@@ -165,14 +197,37 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
 def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not_to(argv, kept, monkeypatch):
     """`pixelmpc race|bench|reproduce` has glibc keep freed memory before the command starts (here it is stopped
     right after); --release-memory and the other commands leave the allocator alone."""
-    from pixelmpc_jax.control import sampling
+    from pixelmpc_jax import host
 
     class Stop(Exception):
         """Stops the command where the test has seen what it needs."""
 
     calls = []
-    monkeypatch.setattr(sampling, "keep_host_memory", lambda keep=True: calls.append(keep) or True)
+    monkeypatch.setattr(host, "keep_host_memory", lambda keep=True: calls.append(keep) or True)
     monkeypatch.setattr(cli, "_command_parser", lambda *args: (_ for _ in ()).throw(Stop()))
     with pytest.raises(Stop):
         cli.main(argv, split_cpu=True)
     assert calls == ([True] if kept else [])
+
+
+def test_a_generated_course_file_is_a_race_course_keyed_by_its_contents(tmp_path, capsys):
+    from pixelmpc_jax.apps import race
+
+    first, second = tmp_path / "a" / "course.json", tmp_path / "b.json"
+    assert cli.main(["course", "--seed", "3", "--out", str(first)]) == 0
+    assert cli.main(["course", "--seed", "4", "--gates", "5", "--out", str(second)]) == 0
+    assert race.make_course(str(second)).num_gates == 5
+    spec = RaceSpec("mppi", course=str(first))
+    assert spec.key() != spec.replace(course=str(second)).key() != RaceSpec("mppi").key()
+    copy = tmp_path / "copy.json"
+    copy.write_bytes(first.read_bytes())
+    assert spec.replace(course=str(copy)).key() == spec.key()  # the contents, not the path
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"race": {"gate_order": ["G1"]}, "gates": {}}')
+    capsys.readouterr()
+    assert cli.main(["race", "--course", str(bad), "--out", str(tmp_path / "never")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "gate_order" in err and not (tmp_path / "never").exists()
+    with pytest.raises(SystemExit) as exit_info:  # argparse refuses a missing file as it parses
+        cli.main(["race", "--course", str(tmp_path / "missing.json"), "--out", str(tmp_path)])
+    assert exit_info.value.code == 2

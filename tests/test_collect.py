@@ -17,7 +17,7 @@ from pixelmpc_jax.learn import dataset as D
 from pixelmpc_jax.learn import train as T
 from pixelmpc_jax.learn.dataset import FlowData
 from pixelmpc_jax.perception import flow as flow_lib
-from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.sim import policies
 
 H, W = 153, 204
 # Two 1 s laps (40 ticks each) with a small MPPI: lap 0 train at 6 m/s, lap 1 test at 14 m/s.
@@ -243,7 +243,7 @@ def test_old_datasets_without_flown_rates_load_train_and_resume(tiny_dir, tmp_pa
 
 
 def _constant_policy(u):
-    return episode_lib.Policy(init=lambda key, world: jnp.zeros(()),
+    return policies.Policy(init=lambda key, world: jnp.zeros(()),
                               act=lambda state, obs, world: (jnp.asarray(u), state, jnp.zeros((2, 10))),
                               name="constant")
 

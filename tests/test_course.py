@@ -205,3 +205,130 @@ def test_straight_course():
     np.testing.assert_array_equal(jax.jit(T.gate_passed)(t.gates, p0, p1), [True, False, False, False, False])
     with pytest.raises(ValueError, match="num_gates"):
         C.straight_course(num_gates=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# The seeded course generator.
+# --------------------------------------------------------------------------------------------------
+
+SEEDS = range(20)
+
+
+@pytest.fixture(scope="module")
+def generated():
+    return {seed: C.generate_course(seed) for seed in SEEDS}
+
+
+def _layout(data):
+    """start (3,), start quaternion xyzw (4,), corners (G, 4, 3) of a course dict, in race order."""
+    pose = data["race"]["init_pose"]
+    corners = np.array([data["gates"][name]["corners"] for name in data["race"]["gate_order"]])
+    return np.array(pose["position"]), np.array(pose["quaternion_xyzw"]), corners
+
+
+def _yaw_of(v):
+    return np.arctan2(v[..., 1], v[..., 0])
+
+
+def _wrap_deg(angle):
+    return np.rad2deg(np.angle(np.exp(1j * angle)))
+
+
+def test_generated_course_is_deterministic_in_its_seed(generated):
+    assert C.generate_course(3) == generated[3]
+    assert generated[3] != generated[4]
+    _, _, a = _layout(generated[3])
+    _, _, b = _layout(generated[4])
+    assert np.abs(a - b).max() > 1.0
+    assert len(C.generate_course(3, num_gates=5)["gates"]) == 5
+    assert "seed 3" in generated[3]["about"] and f"version {C.GENERATOR_VERSION}" in generated[3]["about"]
+    with pytest.raises(ValueError, match="num_gates"):
+        C.generate_course(0, num_gates=0)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_generated_course_keeps_its_bounds(generated, seed):
+    data = generated[seed]
+    start, q_xyzw, corners = _layout(data)
+    assert data["race"]["gate_order"] == [f"Gate{k + 1}" for k in range(8)]
+    tl, tr, br, bl = corners.transpose(1, 0, 2)  # (G, 3) each
+    np.testing.assert_allclose(np.linalg.norm(tl - tr, axis=-1), 1.8, atol=2e-4)  # AlphaPilot size
+    np.testing.assert_allclose(np.linalg.norm(tl - bl, axis=-1), 1.85, atol=2e-4)
+    np.testing.assert_allclose((tl - bl)[:, :2], 0.0, atol=2e-4)  # upright
+    np.testing.assert_allclose(tl - bl, tr - br, atol=2e-4)  # a rectangle
+    centres = corners.mean(axis=1)
+    assert ((centres[:, 2] >= 3.0) & (centres[:, 2] <= 7.0)).all()
+    leg_lengths = np.linalg.norm(np.diff(centres, axis=0), axis=-1)
+    assert ((leg_lengths >= 10.0 - 1e-3) & (leg_lengths <= 22.0 + 1e-3)).all()
+    gaps = np.linalg.norm(centres[:, None, :2] - centres[None, :, :2], axis=-1)[np.triu_indices(8, 1)]
+    assert gaps.min() >= 6.0 - 1e-3
+    route = np.concatenate([start[None], centres])[:, :2]
+    legs = np.diff(route, axis=0)
+    legs /= np.linalg.norm(legs, axis=-1, keepdims=True)  # (G, 2) unit leg into each gate
+    turns = _wrap_deg(np.diff(_yaw_of(legs)))
+    assert np.abs(turns).max() <= 70.0 + 1e-3
+    # Facing the direction of travel: the normal (lateral x up, TL -> TR being -lateral) is within half
+    # the turn of both legs.
+    lateral, up = tl - tr, tl - bl
+    normal = np.cross(lateral, up)[:, :2]
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    leaving = np.concatenate([legs[1:], legs[-1:]])
+    assert (np.sum(normal * legs, -1) >= math.cos(math.radians(35.0)) - 1e-4).all()
+    assert (np.sum(normal * leaving, -1) >= math.cos(math.radians(35.0)) - 1e-4).all()
+    # The start: level with the first gate, 15-20 m before it, facing it.
+    assert start[2] == pytest.approx(centres[0, 2], abs=1e-3)
+    assert 15.0 - 1e-3 <= np.linalg.norm(centres[0] - start) <= 20.0 + 1e-3
+    heading = np.asarray(quadrotor.rotation_matrix(jnp.asarray(q_xyzw[[3, 0, 1, 2]], jnp.float32))[:, 0])
+    np.testing.assert_allclose(heading[:2], legs[0], atol=1e-5)
+    assert np.abs(start[:2]).max() <= 35.0  # in the footprint (the frames and path: the next test)
+
+
+def test_generated_courses_stay_in_the_footprint(generated):
+    """The gate frames and the desired path (start -> gates -> run-out) of every seed stay inside the 70 m
+    square centred on the origin."""
+
+    @jax.jit
+    def frames_and_path(start, corners):
+        normal = jnp.cross(corners[:, 0] - corners[:, 1], corners[:, 0] - corners[:, 3])  # lateral x up
+        gates = T.make_gate(corners.mean(axis=1), T.gate_rotation(normal), 1.8, 1.85)
+        points, _, _, _ = T.build_path(start, gates, 600)
+        return gates.outer_corners(), points  # (G, 4, 3), (600, 3)
+
+    for seed in SEEDS:
+        start, _, corners = _layout(generated[seed])
+        frames, points = frames_and_path(jnp.asarray(start, jnp.float32), jnp.asarray(corners, jnp.float32))
+        assert np.abs(np.asarray(frames)[..., :2]).max() <= 35.0, seed
+        assert np.abs(np.asarray(points)[:, :2]).max() <= 35.0, seed
+
+
+def test_generated_course_copies_the_alphapilot_camera_and_vehicle(generated, course_data):
+    for data in generated.values():
+        assert data["camera"] == course_data["camera"] and data["vehicle"] == course_data["vehicle"]
+        assert set(data) == set(course_data) and set(data["race"]) == set(course_data["race"])
+    assert generated[0]["vehicle"] is not generated[1]["vehicle"]  # copies, not one shared block
+
+
+def test_generated_course_round_trip(tmp_path, generated):
+    data = generated[7]
+    path = tmp_path / "generated.json"
+    C.write_course(data, path)
+    assert json.loads(path.read_text()) == data
+    track = C.load_course(path)
+    start, _, corners = _layout(data)
+    assert track.names == tuple(data["race"]["gate_order"])
+    np.testing.assert_allclose(track.start[:3], start, atol=1e-5)
+    np.testing.assert_allclose(track.gates.centre, corners.mean(axis=1), atol=1e-4)
+    np.testing.assert_allclose(track.gates.corners(), corners, atol=1e-3)  # the same corner order
+    np.testing.assert_allclose(track.gates.width, 1.8, atol=1e-3)
+    np.testing.assert_allclose(track.gates.height, 1.85, atol=1e-3)
+    # The path is built and goes through the gates in order, along their normals.
+    assert track.path_points.shape[0] >= 100 and np.isfinite(np.asarray(track.path_points)).all()
+    assert (np.diff(np.asarray(track.path_gate_s)) > 5.0).all()
+    query = jax.jit(T.path_query)
+    for k in range(track.num_gates):
+        q = query(track, track.gates.centre[k])
+        assert float(q.distance) < 0.05
+        assert float(q.progress_s) == pytest.approx(float(track.path_gate_s[k]), abs=0.5)
+        assert float(jnp.dot(q.tangent, track.gates.normal[k])) > 0.99
+    extent = np.asarray(track.hall_max - track.hall_min)[:2]
+    assert (extent <= 70.0 + 2 * T.HALL_MARGIN).all()

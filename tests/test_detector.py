@@ -1,5 +1,6 @@
 """Gate detectors: projection of the true gate, colour segmentation of rendered frames, and their agreement."""
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,8 +9,8 @@ import pytest
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as D
 from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as R
-from pixelmpc_jax.world import track as T
 
 PX = np.array([204.0, 153.0])
 # (gate index, distance, lateral, height, yaw offset, roll): fully visible gates on the AlphaPilot course.
@@ -31,7 +32,7 @@ def camera():
 
 @pytest.fixture(scope="module")
 def course():
-    return T.load_course()
+    return course_lib.load_course()
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,7 @@ def rendered(course, camera):
 
 
 def test_geometry_straight_ahead(camera):
-    course = T.straight_course(num_gates=1, height=3.0, first_gate_x=20.0)
+    course = course_lib.straight_course(num_gates=1, height=3.0, first_gate_x=20.0)
     gate = course.gate(0)
     x = quadrotor.hover_state((14.0, 0.0, 3.0))
     det = D.detect_from_geometry(gate, x, camera, gate_id=0)
@@ -134,6 +135,19 @@ def test_image_detector_takes_a_frame_and_misses_absent_gates(rendered, camera):
     assert bool(seen.found)
     blank = np.full((153, 204, 3), 128, np.uint8)
     assert not bool(D.detect_from_image(blank, 0, camera).found)
+
+
+def test_a_triangular_opening_gives_no_corners_not_an_error(camera):
+    """A frame whose opening is a triangle (a convex hull of 3 vertices, which ``cv2.approxPolyN`` refuses):
+    found, no corner, the centre of the frame's box."""
+    gate_id = 3
+    hsv = np.zeros((153, 204, 3), np.uint8)
+    hsv[40:110, 60:140] = (round(R.gate_hue(gate_id) * 180), 255, 200)  # the frame's paint
+    rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)
+    cv2.fillPoly(rgb, [np.array([[90, 60], [110, 60], [90, 80]], np.int32)], (0, 0, 0))  # the opening
+    seen = D.detect_from_image(rgb, gate_id, camera)
+    assert bool(seen.found) and not np.any(seen.corners_visible)
+    np.testing.assert_allclose(seen.centre * PX, [100.0, 75.0], atol=1e-4)
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,7 @@ from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.sim import policies
-from pixelmpc_jax.world import track as track_lib
+from pixelmpc_jax.world import course as course_lib
 
 CONFIG = env_lib.EnvConfig(max_time_s=10.0)
 HOVER = quadrotor.hover_control(quadrotor.QuadParams())  # [0, 0, 0, m g]
@@ -20,7 +20,7 @@ HOVER = quadrotor.hover_control(quadrotor.QuadParams())  # [0, 0, 0, m g]
 @pytest.fixture(scope="module")
 def world():
     # gates at x = 12, 27, 42 m, facing +x, centres 3 m up; the hall spans y in [-9.2, 9.2], z in [0, 15]
-    course = track_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+    course = course_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
     return env_lib.make_world(course, target_speed=8.0)
 
 
@@ -168,13 +168,3 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     progress = np.asarray(policy_state.step_progress)
     assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, policy_state.racing_constants, constants))
-
-
-def test_the_old_names_stay_importable_from_the_episode_module():
-    from pixelmpc_jax.sim import episode, sharding
-
-    assert episode.World is env_lib.World and episode.Observation is env_lib.Observation
-    assert episode.Policy is policies.Policy and episode.shard_batch is sharding.shard_batch
-    for name in episode.__all__:
-        assert getattr(episode, name) is not None
-    assert issubclass(episode.EpisodeConfig, env_lib.EnvConfig)

@@ -10,11 +10,14 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax.control import costs
+from pixelmpc_jax.control.pixelmpc import paper_mppi_config
+from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as E
 from pixelmpc_jax.sim import metrics as M
-from pixelmpc_jax.world import track as T
+from pixelmpc_jax.sim import policies
+from pixelmpc_jax.world import course as course_lib
 
-SMALL = E.paper_mppi_config(num_samples=128, horizon=40, temperature=200.0)
+SMALL = paper_mppi_config(num_samples=128, horizon=40, temperature=200.0)
 GOLDEN = Path(__file__).parent / "data" / "seeded_laps.json"
 GOLDEN_TICKS = 40  # the ticks compared tightly (short horizon: float differences between CPUs stay small)
 
@@ -28,15 +31,15 @@ def _seeded_lap(name: str) -> dict:
     from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
     from pixelmpc_jax.perception.particle_filter import PFConfig
 
-    course = T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+    course = course_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
     if name == "mppi_pf":
-        policy = E.nominal_mppi_policy(SMALL)
+        policy = policies.nominal_mppi_policy(SMALL)
         config = E.EpisodeConfig(max_time_s=4.0, estimator="pf", pf=PFConfig(num_particles=256))
-        world = E.make_world(course, target_speed=8.0, detector_noise_px=2.0, detector_dropout=0.2)
+        world = env_lib.make_world(course, target_speed=8.0, detector_noise_px=2.0, detector_dropout=0.2)
     else:
-        policy = E.pixelmpc_policy(pixelmpc_lib.PixelMPCConfig(mppi=SMALL, pixel_model="projection"))
+        policy = policies.pixelmpc_policy(pixelmpc_lib.PixelMPCConfig(mppi=SMALL, pixel_model="projection"))
         config = E.EpisodeConfig(max_time_s=4.0)
-        world = E.make_world(course, target_speed=8.0)
+        world = env_lib.make_world(course, target_speed=8.0)
     log = jax.device_get(E.make_runner(policy, config).single(world, jax.random.PRNGKey(7)))
     n, k = int(log.num_ticks), GOLDEN_TICKS
     return {
@@ -89,16 +92,16 @@ def test_seeded_lap_gives_the_recorded_numbers(name):
 
 @pytest.fixture(scope="module")
 def straight():
-    return T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
+    return course_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
 
 
 @pytest.fixture(scope="module")
 def small_runner():
-    return E.make_runner(E.nominal_mppi_policy(SMALL), E.EpisodeConfig(max_time_s=8.0))
+    return E.make_runner(policies.nominal_mppi_policy(SMALL), E.EpisodeConfig(max_time_s=8.0))
 
 
 def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
-    world = E.make_world(straight, target_speed=10.0)
+    world = env_lib.make_world(straight, target_speed=10.0)
     log = small_runner.single(world, jax.random.PRNGKey(0))
     lap = M.lap_metrics(log)
     assert lap["success"], lap
@@ -110,13 +113,13 @@ def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
 
 def test_batch_equals_single_runs(straight, small_runner):
     config = E.EpisodeConfig(max_time_s=1.5)
-    runner = E.make_runner(E.nominal_mppi_policy(E.paper_mppi_config(num_samples=64, horizon=20,
+    runner = E.make_runner(policies.nominal_mppi_policy(paper_mppi_config(num_samples=64, horizon=20,
                                                                       temperature=200.0)), config)
     seeds = list(range(8))
     speeds = [8.0 + s for s in seeds]
-    worlds = [E.make_world(straight, target_speed=v) for v in speeds]
+    worlds = [env_lib.make_world(straight, target_speed=v) for v in speeds]
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
-    batch = M.unbatch(runner.batch(E.stack_worlds(worlds), keys))
+    batch = M.unbatch(runner.batch(env_lib.stack_worlds(worlds), keys))
     for seed, world, batched in zip(seeds, worlds, batch):
         single = runner.single(world, jax.random.PRNGKey(seed))
         assert int(single.num_ticks) == int(batched.num_ticks)
@@ -135,43 +138,16 @@ def test_ground_crash_ends_the_episode(straight):
     def act(state, obs, world):
         return jnp.zeros(4), state, jnp.zeros((1, 10))
 
-    runner = E.make_runner(E.Policy(init, act, "off"), E.EpisodeConfig(max_time_s=3.0))
-    log = runner.single(E.make_world(straight), jax.random.PRNGKey(0))
+    runner = E.make_runner(policies.Policy(init, act, "off"), E.EpisodeConfig(max_time_s=3.0))
+    log = runner.single(env_lib.make_world(straight), jax.random.PRNGKey(0))
     lap = M.lap_metrics(log)
     assert lap["crash"] == "ground" and not lap["success"]
     # free fall from 3 m (minus the 0.1 m radius) takes ~0.77 s
     assert 0.7 <= lap["flight_time_s"] <= 0.9
 
 
-def test_racing_cost_terms():
-    track = T.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
-    cfg = costs.RacingCostConfig()
-    params = costs.racing_params(track, jnp.asarray([0.0, 12.0]), 10.0, cfg)  # two horizon steps
-
-    def cost(x, t=0):
-        return float(costs.racing_cost(x, t, params, cfg))
-
-    on_path = track.start.at[7].set(10.0)  # at the start, on the path, level, facing +x, at speed
-    assert cost(on_path) == pytest.approx(0.0, abs=1e-2)
-    offset = on_path.at[1].add(1.0)  # 1 m off the path: h = 0.5
-    assert cost(offset) == pytest.approx(400 * 0.25, rel=1e-3)
-    slow = track.start  # at rest: c3 * 10^2
-    assert cost(slow) == pytest.approx(800.0, rel=1e-4)
-    gate = track.gate(0)
-    in_frame = on_path.at[:3].set(gate.centre + gate.up * (0.5 * gate.height + 0.15))
-    assert cost(in_frame, 1) > 400 * 1000.0**2 * 0.99
-    in_opening = on_path.at[:3].set(gate.centre)
-    assert cost(in_opening, 1) < 1e3
-    # step 1's window starts 4 m before s = 12 m: the start (s = 0) lies 8 m behind it
-    assert cost(on_path, 1) == pytest.approx(400.0, rel=1e-3)
-    ground = on_path.at[2].set(0.05)
-    assert cost(ground) > 4e8 * 0.99
-    flipped = on_path.at[3:7].set(-on_path[3:7])  # -q is the same attitude
-    assert cost(flipped) == pytest.approx(0.0, abs=1e-2)
-
-
 def test_speed_cap_follows_the_path_curvature():
-    track = T.load_course()
+    track = course_lib.load_course()
     cfg = costs.RacingCostConfig(max_lateral_acc=20.0, curvature_lookaround_m=0.0)
     cap = np.asarray(costs.speed_cap(track, cfg))
     points = np.asarray(track.path_points)
@@ -183,7 +159,7 @@ def test_speed_cap_follows_the_path_curvature():
     tight = np.argmin(radius)
     assert radius[tight] < 5.0  # the AlphaPilot path has a tight turn
     assert cap[tight + 4] == pytest.approx(np.sqrt(20.0 * radius[tight]), rel=0.1)
-    straight = T.straight_course(num_gates=3)
+    straight = course_lib.straight_course(num_gates=3)
     assert float(jnp.min(costs.speed_cap(straight, cfg))) > 100.0
     off = costs.RacingCostConfig(max_lateral_acc=None)
     assert bool(jnp.all(jnp.isinf(costs.speed_cap(track, off))))
@@ -211,7 +187,7 @@ def test_unavoidable_low_visibility_is_only_where_a_pointed_camera_fails(straigh
     from pixelmpc_jax.dynamics import quadrotor
     from pixelmpc_jax.world import camera as C
 
-    camera = E.make_world(straight).camera
+    camera = env_lib.make_world(straight).camera
     gate = straight.gate(0)
     distances = np.linspace(10.0, 0.05, 200)
     positions = np.asarray(gate.centre)[None] - distances[:, None] * np.asarray(gate.normal)[None]
@@ -262,8 +238,8 @@ def test_particle_filter_in_the_loop_tracks_the_true_state(straight):
 
     config = E.EpisodeConfig(max_time_s=1.5, estimator="pf",
                              pf=PFConfig(num_particles=512, position_noise_per_second=True))
-    policy = E.nominal_mppi_policy(E.paper_mppi_config(num_samples=64, horizon=20))
-    log = E.make_runner(policy, config).single(E.make_world(straight, target_speed=6.0), jax.random.PRNGKey(0))
+    policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=64, horizon=20))
+    log = E.make_runner(policy, config).single(env_lib.make_world(straight, target_speed=6.0), jax.random.PRNGKey(0))
     n = int(log.num_ticks)
     assert n == 60
     error = np.linalg.norm(np.asarray(log.estimates[:n, :3]) - np.asarray(log.states[:n, :3]), axis=1)

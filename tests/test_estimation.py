@@ -17,7 +17,8 @@ def _lap(success, lap_time, cov_max, error, crash=None):
 def test_cells_cover_the_paper_grid():
     names = [c.name for c in E.race_cells()]
     assert len(names) == 4 and len(set(names)) == 4
-    assert all(c.spec.estimator == "pf" and c.spec.t_f == 1.0 and c.spec.c_pixel == 9e6 for c in E.race_cells())
+    assert all(c.spec.estimator == "pf" and c.spec.config.t_f == 1.0 and c.spec.config.c_pixel == 9e6
+               for c in E.race_cells())
     assert {(c.spec.controller, c.spec.speed) for c in E.race_cells()} == set(E.PAPER_TABLE_IV)
     assert all(c.spec.course == "straight" and c.spec.speed == 20.0 for c in E.straight_cells())
 

@@ -155,15 +155,15 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     cli = load_cli()
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed):
+    def stop(speeds, cells, out, laps, seed, course=None):
         seen.update(speeds=speeds, cells=cells, laps=laps)
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cli.frontier_lib, "run_frontier", stop)
     assert cli.main(["--out", str(tmp_path), "--quick"]) == 130
     assert seen["speeds"] == F.QUICK_SPEEDS and seen["laps"] == 4
-    assert [c.spec.options for c in seen["cells"]] == [(("pixel_cost", "border"),)] * 2
-    assert {c.spec.pixel_model for c in seen["cells"]} == {"projection", "dof"}
+    assert [c.spec.config.pixel_cost for c in seen["cells"]] == ["border"] * 2
+    assert {c.spec.config.pixel_model for c in seen["cells"]} == {"projection", "dof"}
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
 
 

@@ -1,6 +1,7 @@
 """Experiment grids and the race specification: which finished cells a rerun keeps (settings, seed, laps, DOF
 weights), the cache key of a RaceSpec."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,11 +11,12 @@ import pytest
 
 from pixelmpc_jax.apps import grid, race
 from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
-         grid.Cell("projection", RaceSpec("pixelmpc", pixel_model="projection"))]
+         grid.Cell("projection", RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="projection")))]
 
 
 @pytest.fixture
@@ -24,7 +26,7 @@ def flown(monkeypatch):
 
     def run_laps(spec, dof_params=None, **kwargs):
         spec.check_weights(dof_params)  # the grid names the weights it passes
-        calls.append((spec.controller, spec.pixel_model, spec.seed, dof_params))
+        calls.append((spec.controller, spec.config.pixel_model, spec.seed, dof_params))
         return {"laps": [{"success": True, "seed": spec.seed + i} for i in range(spec.laps)], "aggregate": {},
                 "seed": spec.seed, "interrupted": False, "trajectories": [np.zeros((2, 10))] * spec.laps,
                 "covariances": []}
@@ -89,8 +91,7 @@ def test_the_committed_results_stay_valid_for_a_default_run(folder):
     results = grid.load_results(RESULTS / folder)
     assert results, f"no committed results in {folder}"
     for name, entry in results.items():
-        settings = {k: v for k, v in entry["config"].items() if k != "name"}
-        cell = grid.Cell(name, RaceSpec(**settings))
+        cell = grid.Cell(name, grid.recorded_race(entry).replace(laps=1, seed=0, dof_weights=None))
         assert grid.is_current(entry, cell.race(len(entry["laps"]), seed=0, dof_weights=None))
         assert not grid.is_current(entry, cell.race(len(entry["laps"]), seed=1, dof_weights=None))
 
@@ -124,24 +125,58 @@ def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
 # --------------------------------------------------------------------------------------------------
 
 
+BORDER = PixelMPCConfig(pixel_cost="border", border_margin=0.2)
+
+
 def test_identical_races_have_one_key_and_any_difference_another():
-    spec = RaceSpec("pixelmpc", speed=8.0, laps=4, seed=2, options={"pixel_cost": "border", "border_margin": 0.2})
-    same = RaceSpec("pixelmpc", speed=8, laps=4, seed=2, options={"border_margin": 0.2, "pixel_cost": "border"})
+    spec = RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2)
+    # the same race spelled otherwise: an int for a float, the MPPI config built another way, its samples' split
+    mppi = dataclasses.replace(paper_mppi_config(), sample_devices=2)
+    same = RaceSpec("pixelmpc", PixelMPCConfig(mppi=mppi, border_margin=0.2, pixel_cost="border", t_f=1), speed=8,
+                    laps=4, seed=2)
     assert same == spec and same.key() == spec.key()
+    assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))).key() == spec.key()  # read back from JSON
     # the packaged weights named by their fingerprint are the packaged weights
     assert spec.replace(dof_weights=packaged_dof_hash()).key() == spec.key()
     other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
     changes = {"controller": "mppi", "seed": 3, "laps": 5, "dof_weights": dof_weights_hash(other), "speed": 8.5,
-               "course": "straight", "perturb": True, "detector": "image", "estimator": "pf",
-               "pixel_model": "projection", "t_f": 2.0, "c_pixel": 3e6, "temperature": 100.0, "num_samples": 256,
-               "max_time_s": 30.0, "options": {"pixel_cost": "border"}}
+               "course": "straight", "perturb": True, "detector": "image", "estimator": "pf", "max_time_s": 30.0}
+    settings = {"pixel_model": "projection", "t_f": 2.0, "c_pixel": 3e6, "pixel_cost": "l1", "border_margin": 0.1,
+                "mppi": dataclasses.replace(BORDER.mppi, temperature=100.0),
+                "racing": dataclasses.replace(BORDER.racing, heading_weight=0.5)}
     keys = {name: spec.replace(**{name: value}).key() for name, value in changes.items()}
+    keys.update({name: spec.replace(config=dataclasses.replace(BORDER, **{name: value})).key()
+                 for name, value in settings.items()})
     assert spec.key() not in keys.values() and len(set(keys.values())) == len(keys)
+
+
+def test_a_nominal_race_has_no_pixel_settings():
+    """Nominal MPPI flies only the config's MPPI and racing settings: its PixelMPC fields make no other race."""
+    nominal = RaceSpec("mppi", BORDER)
+    assert nominal == RaceSpec("mppi") and nominal.key() == RaceSpec("mppi").key()
+    hotter = dataclasses.replace(BORDER.mppi, temperature=100.0)
+    assert RaceSpec("mppi", PixelMPCConfig(mppi=hotter)).key() != nominal.key()  # its MPPI settings do
+
+
+def test_an_unknown_setting_is_refused_with_its_name():
+    record = RaceSpec("pixelmpc").record()
+    for path, message in ((("config", "mppi", "temprature"), "unknown setting config.mppi.temprature"),
+                          (("config", "t_ff"), "unknown setting config.t_ff: PixelMPCConfig has the fields"),
+                          (("speeed",), "unknown setting speeed: RaceSpec has the fields")):
+        bad = json.loads(json.dumps(record))
+        node = bad
+        for name in path[:-1]:
+            node = node[name]
+        node[path[-1]] = 1.0
+        with pytest.raises(ValueError, match=message):
+            RaceSpec.from_record(bad)
+    with pytest.raises(ValueError, match="pixel_cost must be one of"):  # a known setting, checked by its config
+        RaceSpec.from_record({"controller": "pixelmpc", "config": {"pixel_cost": "l2"}})
 
 
 def test_the_dof_weights_count_only_for_a_race_that_flies_the_dof():
     other = dof_weights_hash(jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof()))
-    for spec in (RaceSpec("mppi"), RaceSpec("pixelmpc", pixel_model="projection")):
+    for spec in (RaceSpec("mppi"), RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="projection"))):
         named = spec.replace(dof_weights=other)
         assert named.key() == spec.key() and named.dof_weights is None
     dof_race = RaceSpec("pixelmpc")
@@ -178,8 +213,19 @@ def test_a_spec_refuses_bad_settings_and_a_cell_its_run_fields():
 def test_a_record_reads_back_as_the_race_it_was_flown_as(tmp_path, flown):
     """The recorded settings, seed, laps and weights make the same race, so the same key."""
     other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
-    cells = [grid.Cell("dof", RaceSpec("pixelmpc", speed=9.0, options={"pixel_cost": "border"}))]
+    cells = [grid.Cell("dof", RaceSpec("pixelmpc", PixelMPCConfig(pixel_cost="border"), speed=9.0))]
     grid.run_grid(cells, tmp_path, laps=2, seed=4, progress=False, batch_size=1, dof_params=other)
     entry = grid.load_results(tmp_path)["dof"]
     assert grid.recorded_race(entry) == cells[0].race(2, 4, dof_weights_hash(other))
     assert grid.recorded_race({**entry, "config": {**entry["config"], "wings": 4}}) is None  # unknown setting
+
+
+def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
+    """results.json written before the spec held the controller's configuration: settings flat, options dotted."""
+    flat = {"name": "c", "controller": "pixelmpc", "speed": 8.0, "t_f": 1.0, "c_pixel": 3e7, "pixel_model": "dof",
+            "temperature": None, "num_samples": 512, "max_time_s": 60.0,
+            "options": {"pixel_cost": "border", "mppi.noise_exponent": 1.0}}
+    config = PixelMPCConfig(c_pixel=3e7, pixel_cost="border",
+                            mppi=dataclasses.replace(paper_mppi_config(), noise_exponent=1.0))
+    flown = grid.recorded_race({"config": flat, "laps": [{}] * 2, "seed": 3})
+    assert flown.key() == RaceSpec("pixelmpc", config, speed=8.0, laps=2, seed=3).key()

@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from pixelmpc_jax.control import sampling
+from pixelmpc_jax import host
 
 GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
@@ -16,8 +16,8 @@ GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 # touch.
 REUSE = textwrap.dedent("""
     import ctypes, resource, sys
-    from pixelmpc_jax.control import sampling
-    print(sampling.keep_host_memory(sys.argv[1] == "keep"), sampling.host_memory_kept())
+    from pixelmpc_jax import host
+    print(host.keep_host_memory(sys.argv[1] == "keep"), host.host_memory_kept())
     libc = ctypes.CDLL(None)
     libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, (ctypes.c_size_t,)
     libc.free.argtypes = (ctypes.c_void_p,)
@@ -48,4 +48,4 @@ def test_kept_memory_is_reused_without_page_faults_and_released_memory_is_not():
 
 @pytest.mark.skipif(GLIBC, reason="elsewhere keep_host_memory reports that it did nothing")
 def test_keep_host_memory_reports_no_effect_without_glibc():
-    assert sampling.keep_host_memory() is False and not sampling.host_memory_kept()
+    assert host.keep_host_memory() is False and not host.host_memory_kept()

@@ -10,7 +10,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "pixelmpc_jax"
 # Top to bottom: a module may import its own layer and those before it (and the shared top-level modules).
 LAYERS = ("dynamics", "world", "perception", "control", "sim", "learn", "apps")
-SHARED = {"timing", "strict_json", "platform_info"}  # imported by any layer
+SHARED = {"timing", "strict_json", "platform_info", "host"}  # imported by any layer
 
 
 def imported_modules(path: Path, package: str = "pixelmpc_jax") -> set[str]:
@@ -86,3 +86,83 @@ def test_no_module_of_the_package_is_over_600_lines():
     sizes = {str(path.relative_to(PACKAGE)): len(path.read_text().splitlines()) for path in PACKAGE.rglob("*.py")}
     assert len(sizes) > 40
     assert {name: n for name, n in sizes.items() if n > MAX_MODULE_LINES} == {}
+
+
+MAX_FUNCTION_LINES = 80  # a longer function usually holds two or three jobs (STYLE.md, habit 16)
+
+
+def long_functions(path: Path) -> list[str]:
+    """The functions of ``path`` longer than :data:`MAX_FUNCTION_LINES`, from their ``def`` to their last line."""
+    return [f"{path.name}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES]
+
+
+def test_no_function_of_the_package_is_over_80_lines(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES + "def g():\n    pass\n")
+    assert long_functions(probe) == ["probe.py:1 f (81 lines)"]  # the scan sees one
+    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in long_functions(path)]
+    assert found == []
+
+
+def module_graph(package: Path = PACKAGE) -> dict[str, set[str]]:
+    """``{module: the package's modules it imports}`` (top level or inside a function), over module files."""
+    modules = {".".join(("pixelmpc_jax", *path.relative_to(package).with_suffix("").parts)): path
+               for path in package.rglob("*.py")}
+    modules = {name.removesuffix(".__init__"): path for name, path in modules.items()}
+    return {name: {m for m in imported_modules(path) if m in modules and m != name}
+            for name, path in modules.items()}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import cycles of ``graph``, each as the modules along it (depth-first search)."""
+    found, state = [], {}
+
+    def visit(node: str, trail: list[str]) -> None:
+        state[node] = "open"
+        for target in sorted(graph.get(node, ())):
+            if state.get(target) == "open":
+                found.append(trail[trail.index(target):] + [target])
+            elif target not in state:
+                visit(target, trail + [target])
+        state[node] = "done"
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    return found
+
+
+def test_no_import_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == [["a", "b", "c", "a"]]  # the search sees one
+    graph = module_graph()
+    assert "pixelmpc_jax.world.track" in graph["pixelmpc_jax.world.course"]
+    assert cycles(graph) == []
+
+
+def reexports(path: Path) -> list[str]:
+    """What makes ``path`` hand on another module's names: a module ``__getattr__``, or an ``__all__`` or
+    ``import X as X`` naming an imported name."""
+    tree = ast.parse(path.read_text())
+    imported = {alias.asname or alias.name.split(".")[0] for node in tree.body
+                if isinstance(node, (ast.Import, ast.ImportFrom)) for alias in node.names}
+    found = []
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef) and node.name == "__getattr__":
+            found.append(f"{path.name}: a module __getattr__")
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+            names = {elt.value for elt in getattr(node.value, "elts", []) if isinstance(elt, ast.Constant)}
+            found += [f"{path.name}: __all__ hands on {name}" for name in sorted(names & imported)]
+        if isinstance(node, ast.ImportFrom):
+            found += [f"{path.name}: import {a.name} as {a.asname}" for a in node.names if a.asname == a.name]
+    return found
+
+
+def test_no_module_hands_on_another_modules_names(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from os import path\n__all__ = ['path']\ndef __getattr__(name):\n    pass\n")
+    assert reexports(probe) == ["probe.py: __all__ hands on path", "probe.py: a module __getattr__"]
+    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in reexports(path)]
+    assert found == []

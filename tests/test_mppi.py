@@ -296,16 +296,19 @@ def test_batch_cost_gives_the_same_rollout_costs_as_the_one_sample_cost():
                                goal_cost(x1, controls[0, 0], 0, goal), rtol=1e-6)
 
 
-def test_batched_rollout_gives_the_per_step_costs():
-    """The "batched" rollout (dynamics scanned, costs after, once over all steps) and the "per_step" one (costs
-    inside the scan) charge every sample the same total, for one-sample, batch and trajectory costs and with a
-    prefix whose cost differs from the main one."""
+def test_batch_and_trajectory_costs_give_the_one_sample_costs():
+    """A running cost written for one sample (vmapped), for each step's batch (BatchCost) or for every step at once
+    (TrajectoryCost) charges every sample the sum a plain loop over the steps gives, with and without a prefix
+    whose model and cost differ from the main ones."""
     from pixelmpc_jax.control.mppi import BatchCost, Prefix, TrajectoryCost, rollout_costs
 
     goal = jnp.asarray([1.0, -0.5])
 
+    def step_goal_cost(x, u, t, goal):  # depends on the step index
+        return goal_cost(x, u, t, goal) * (1.0 + t)
+
     def batch_goal_cost(X, U, t, goal):
-        return jax.vmap(goal_cost, in_axes=(0, 0, None, None))(X, U, t, goal) * (1.0 + t)
+        return jax.vmap(step_goal_cost, in_axes=(0, 0, None, None))(X, U, t, goal)
 
     def trajectory_goal_cost(X, U, steps, goal):  # (T, N, n) -> (T, N)
         return jax.vmap(batch_goal_cost, in_axes=(0, 0, 0, None))(X, U, steps, goal)
@@ -313,41 +316,56 @@ def test_batched_rollout_gives_the_per_step_costs():
     prefix = Prefix(4, lambda x, u, p: double_integrator(x, 2.0 * u, p), lambda x, u, t, g: 3.0 * goal_cost(x, u, t, g))
     controls = jax.random.normal(jax.random.PRNGKey(3), (16, 12, 2))
     x0 = jnp.asarray([0.0, 0.0, 0.3, 0.0])
-    for cost in (goal_cost, BatchCost(batch_goal_cost), TrajectoryCost(trajectory_goal_cost)):
-        for pre in (None, prefix):
-            per_step = rollout_costs(double_integrator, cost, None, x0, controls, goal, pre, rollout="per_step")
-            batched = rollout_costs(double_integrator, cost, None, x0, controls, goal, pre, rollout="batched")
-            np.testing.assert_allclose(batched, per_step, rtol=1e-6)
-    expected = rollout_costs(double_integrator, BatchCost(batch_goal_cost), None, x0, controls, goal)
-    got = rollout_costs(double_integrator, TrajectoryCost(trajectory_goal_cost), None, x0, controls, goal)
-    np.testing.assert_allclose(got, expected, rtol=1e-6)
+
+    def loop(sequence, pre):  # one sample, step by step
+        x, total = x0, 0.0
+        for t in range(sequence.shape[0]):
+            in_prefix = pre is not None and t < pre.steps
+            x = (pre.dynamics if in_prefix else double_integrator)(x, sequence[t], goal)
+            total = total + (pre.running_cost if in_prefix else step_goal_cost)(x, sequence[t], t, goal)
+        return total
+
+    for pre in (None, prefix):
+        expected = jax.vmap(lambda c, pre=pre: loop(c, pre))(controls)
+        for cost in (step_goal_cost, BatchCost(batch_goal_cost), TrajectoryCost(trajectory_goal_cost)):
+            got = rollout_costs(double_integrator, cost, None, x0, controls, goal, pre)
+            np.testing.assert_allclose(got, expected, rtol=1e-6)
     # the step costs really depend on the step index: a trajectory cost that ignored it would differ
     flat = rollout_costs(double_integrator, goal_cost, None, x0, controls, goal)
-    assert not np.allclose(expected, flat)
-    with pytest.raises(ValueError, match="rollout must be one of"):
-        rollout_costs(double_integrator, goal_cost, None, x0, controls, goal, rollout="fused")
+    assert not np.allclose(got, flat)
 
 
-def test_the_two_rollouts_give_the_same_step():
-    """The batched controller takes the per-step one's steps from the same key and state: equal plans within
-    float rounding (the noise, the weights and the update do not depend on the rollout)."""
-    base = dict(num_samples=64, horizon=10, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-3.0, -3.0), u_max=(3.0, 3.0))
-    goal = jnp.asarray([1.0, 1.0])
-    reference = make_mppi(MPPIConfig(**base, rollout="per_step"), double_integrator, goal_cost)
-    ctrl = make_mppi(MPPIConfig(**base), double_integrator, goal_cost)
-    assert ctrl.config.rollout == "batched"  # the default
-    s_ref = reference.init(jax.random.PRNGKey(4), jnp.zeros(2))
-    s = ctrl.init(jax.random.PRNGKey(4), jnp.zeros(2))
-    x = jnp.asarray([0.2, -0.1, 0.0, 0.3])
-    for _ in range(3):
-        u_ref, s_ref, info_ref = reference.step(s_ref, x, goal)
-        u, s, info = ctrl.step(s, x, goal)
-        np.testing.assert_allclose(info.costs, info_ref.costs, rtol=1e-6)
-        np.testing.assert_allclose(s.plan, s_ref.plan, atol=1e-6)
-        np.testing.assert_allclose(u, u_ref, atol=1e-6)
-        x = double_integrator(x, u, None)
-    with pytest.raises(ValueError, match="rollout"):
-        MPPIConfig(**base, rollout="fused")
+def test_sample_weights_and_update_are_the_mppi_equations():
+    """The pieces of one iteration against the formulas: controls = clip(U + sigma * white) with sample 0 the plan,
+    eps = controls - U; S_k = cost_k + gamma sum_t U_t^T Sigma^-1 eps_{k,t}; w = softmax(-(S - min S) / lambda) over
+    the finite S; U <- clip(U + sum_k w_k eps_k), or U kept when every S_k is non-finite."""
+    from pixelmpc_jax.control import mppi
+
+    config = MPPIConfig(num_samples=6, horizon=3, dt=DT, noise_sigma=(0.5, 2.0), temperature=0.7,
+                        control_cost_weight=0.3, u_min=(-1.0, -1.0), u_max=(1.0, 1.5))
+    sampling = mppi._sampling(config)
+    plan = jnp.asarray([[0.2, -0.4], [0.9, 1.2], [-0.5, 0.0]])
+    key = jax.random.PRNGKey(2)
+    controls, eps = mppi._sample(key, plan, sampling)
+    white = np.asarray(jax.random.normal(key, (6, 3, 2)), np.float64)
+    lo, hi = np.asarray([-1.0, -1.0]), np.asarray([1.0, 1.5])
+    expected_controls = np.clip(np.asarray(plan) + white * [0.5, 2.0], lo, hi)
+    expected_controls[0] = plan
+    np.testing.assert_allclose(controls, expected_controls, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(eps, expected_controls - np.asarray(plan), atol=1e-6)
+
+    raw = jnp.asarray([3.0, 1.0, jnp.nan, 2.0, 5.0, 4.0])
+    costs, weights, finite = mppi._weights(raw, plan, eps, sampling)
+    S = np.asarray(raw) + 0.3 * np.einsum("tm,ntm->n", np.asarray(plan), np.asarray(eps) / np.square([0.5, 2.0]))
+    w = np.where(np.isfinite(S), np.exp(-(S - np.nanmin(S)) / 0.7), 0.0)
+    np.testing.assert_allclose(costs, S, rtol=1e-5)
+    np.testing.assert_allclose(weights, w / np.nansum(w), rtol=1e-5, atol=1e-7)
+    assert finite.tolist() == [True, True, False, True, True, True]
+
+    updated = mppi._update(plan, weights, eps, jnp.asarray(False), sampling)
+    expected_plan = np.clip(np.asarray(plan) + np.einsum("n,ntm->tm", w / np.nansum(w), np.asarray(eps)), lo, hi)
+    np.testing.assert_allclose(updated, expected_plan, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(mppi._update(plan, weights, eps, jnp.asarray(True), sampling), plan)
 
 
 def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works():
@@ -358,10 +376,6 @@ def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works
     ctrl = make_mppi(config, double_integrator, per_sample)
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     with pytest.raises(ValueError, match=r"shape \(T, N\) = \(4, 16\); it returned shape \(16, 4\)"):
-        ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
-    ctrl = make_mppi(MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0), rollout="per_step"),
-                     double_integrator, per_sample)
-    with pytest.raises(ValueError, match=r"shape \(T, N\) = \(1, 16\)"):  # step by step: T = 1
         ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
     squared = TrajectoryCost(lambda X, U, steps, goal: jnp.sum(X**2, axis=-1) + steps[:, None])
     x = jnp.asarray([1.0, 2.0, 0.0, 0.5])

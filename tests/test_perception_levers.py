@@ -8,15 +8,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.sim import controllers
 from pixelmpc_jax.sim import metrics as M
 from pixelmpc_jax.world import camera as C
-from pixelmpc_jax.world import track as T
+from pixelmpc_jax.world import course as course_lib
 
 SMALL = PM.paper_mppi_config(num_samples=32, horizon=12)
 
@@ -51,7 +51,7 @@ def test_target_behind_the_camera_costs_at_least_the_worst_pixel_in_front(form):
 
 def test_projection_model_gives_the_behind_camera_pixel_when_the_gate_is_behind():
     """Flying away from the target gate, the projection model's predicted pixel is the behind-camera pixel."""
-    track = T.load_course()
+    track = course_lib.load_course()
     config = PM.PixelMPCConfig(mppi=SMALL, pixel_model="projection", t_f=0.1, pixel_cost="border")
     ctrl = PM.make_pixelmpc(config)
     gate = track.gate(0)
@@ -80,7 +80,7 @@ def test_bad_pixel_cost_options_are_rejected():
 def test_heading_weight_frees_the_heading_but_keeps_the_tilt():
     """With heading_weight 0 a level vehicle yawed off the path pays no attitude cost, a tilted one still does;
     with the paper's weight (1) the yaw offset is charged."""
-    track = T.load_course()
+    track = course_lib.load_course()
     racing_cfg = costs.RacingCostConfig(heading_weight=0.0)
     params = costs.racing_params(track, jnp.zeros((1,)), 0.0, racing_cfg)
     p0 = track.path_points[0]
@@ -89,7 +89,7 @@ def test_heading_weight_frees_the_heading_but_keeps_the_tilt():
     def cost(config, roll, yaw):
         q = Q.quat_from_euler(roll, 0.0, yaw)
         x = jnp.concatenate([p0, q, jnp.zeros(3)])
-        return float(costs.racing_cost(x, 0, params, config))
+        return float(costs.racing_costs(x[None, None], jnp.asarray([0]), params, config)[0, 0])
 
     free, paper = racing_cfg, costs.RacingCostConfig()
     assert cost(free, 0.0, path_yaw + 0.8) == pytest.approx(cost(free, 0.0, path_yaw), abs=1e-3)
@@ -131,25 +131,20 @@ def test_coloured_noise_samples_have_sigma_and_are_smoother():
     assert stds[0.0] == pytest.approx(0.5, rel=0.03) and stds[2.0] == pytest.approx(0.5, rel=0.05)
 
 
-def test_options_reach_the_controller_config_and_unknown_ones_are_rejected():
-    pixel, mppi, racing = controllers.split_options({"pixel_cost": "border", "mppi.noise_exponent": 1.0,
-                                                     "racing.heading_weight": 0.5})
-    assert pixel == {"pixel_cost": "border"} and mppi == {"noise_exponent": 1.0} and racing == {"heading_weight": 0.5}
-    with pytest.raises(ValueError, match="unknown controller option 'pixel_kost'"):
-        controllers.split_options({"pixel_kost": "border"})
-    with pytest.raises(ValueError, match="configure PixelMPC"):
-        controllers.make_policy("mppi", options={"pixel_cost": "border"})
-    # a race's options are part of what it is: same options in another order, same race
-    a = RaceSpec("pixelmpc", options={"pixel_cost": "border", "border_margin": 0.2})
-    b = RaceSpec("pixelmpc", options={"border_margin": 0.2, "pixel_cost": "border"})
-    assert a == b and a.key() == b.key() and a.record()["options"] == {"border_margin": 0.2, "pixel_cost": "border"}
-    assert a.key() != RaceSpec("pixelmpc", options={"pixel_cost": "border"}).key()
+def test_the_named_controllers_fly_their_configuration():
+    """make_policy builds the controller from the configuration whole: nominal MPPI from its MPPI and racing
+    settings, PixelMPC from all of it."""
+    config = PixelMPCConfig(pixel_cost="border", mppi=paper_mppi_config(num_samples=64, horizon=12))
+    assert controllers.make_policy("mppi", config).name == "mppi"
+    assert controllers.make_policy("pixelmpc", config).name == "pixelmpc-dof"
+    with pytest.raises(ValueError, match="unknown controller 'lqr'"):
+        controllers.make_policy("lqr", config)
 
 
 def test_loss_causes_split_the_low_visibility_ticks_by_where_the_gate_projects():
     """Looking at a gate from 10 m with the camera pitched down, yawed left, yawed right, pitched up, and turned
     away: the causes are above, right (the gate lies to the right of a camera yawed left), left, below, behind."""
-    track = T.straight_course()
+    track = course_lib.straight_course()
     camera = C.default_camera()
     gate = track.gate(0)
     position = np.asarray(gate.centre - 10.0 * gate.normal)
@@ -168,7 +163,7 @@ def test_loss_causes_split_the_low_visibility_ticks_by_where_the_gate_projects()
 
 
 def test_lap_metrics_causes_add_up_to_the_low_visibility_time():
-    track = T.straight_course()
+    track = course_lib.straight_course()
     camera = C.default_camera()
     gate = track.gate(0)
     n = 40

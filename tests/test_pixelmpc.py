@@ -13,14 +13,14 @@ from pixelmpc_jax.control.mppi import make_mppi
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.world import camera as C
-from pixelmpc_jax.world import track as T
+from pixelmpc_jax.world import course as course_lib
 
 SMALL = PM.paper_mppi_config(num_samples=64, horizon=24)
 
 
 @pytest.fixture(scope="module")
 def setup():
-    track = T.load_course()
+    track = course_lib.load_course()
     dof_params = dof.init_dof_params(jax.random.PRNGKey(7))
     return track, dof_params
 
@@ -37,22 +37,35 @@ def state(track, uv=(0.55, 0.45)):
     return jnp.concatenate([x, jnp.asarray(uv)])
 
 
-def test_prefix_equals_full_horizon_computation(setup):
+def one_state_racing(X, t, racing_params, config):
+    """Eq. (19) of one state at horizon step t: the racing cost of a batch of one."""
+    return costs.racing_costs(X[None, None, :10], jnp.reshape(t, (1,)), racing_params, config)[0, 0]
+
+
+@pytest.mark.parametrize("model", ["dof", "projection"])
+def test_prefix_equals_full_horizon_computation(setup, model):
+    """The step (pixel model over the first n_f steps only, the costs over all (T, N) states at once) equals a
+    generic MPPI with one-sample costs whose pixel model runs over the whole horizon and whose pixel cost is masked
+    after n_f steps, while the target is detected and ahead."""
     track, dof_params = setup
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6)  # n_f = 10 of 24 steps
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model=model)  # n_f = 10 of 24 steps
     assert config.pixel_steps == 10
     fast = PM.make_pixelmpc(config)
     dt = SMALL.dt
 
-    # The reference: the DOF runs over the WHOLE horizon; the pixel cost is masked after n_f steps.
     def full_dynamics(X, u, p):
         x_next = Q.step(X[:10], u, dt, Q.QuadParams())
-        uv = X[10:] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:], u)
+        if model == "dof":
+            uv = X[10:] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:], u)
+        else:
+            uv, _, in_front = C.project(p.target_centre, x_next, p.camera)
+            uv = jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
         return jnp.concatenate([x_next, uv])
 
     def full_cost(X, u, t, p):
-        racing = costs.racing_cost(X[:10], t, p.racing, config.racing)
-        pixel = jnp.where(t < config.pixel_steps, PM.pixel_cost(X[10:], config), 0.0)
+        racing = one_state_racing(X, t, p.racing, config.racing)
+        ahead = jnp.dot(X[:3] - p.target_centre, p.target_normal) < 0.0
+        pixel = jnp.where((t < config.pixel_steps) & ahead, PM.pixel_cost(X[10:], config), 0.0)
         return racing + p.target_active * pixel
 
     full = make_mppi(SMALL, full_dynamics, full_cost)
@@ -113,7 +126,7 @@ def test_no_recompilation_for_new_pixel_gates_or_weights(setup):
     track, dof_params = setup
     ctrl, config, s, params = small_controller(track, dof_params)
     _, s, _ = ctrl.step(s, state(track), params)  # compiles once
-    perturbed = T.perturb_course(track, jax.random.PRNGKey(5))
+    perturbed = course_lib.perturb_course(track, jax.random.PRNGKey(5))
     other_weights = dof.init_dof_params(jax.random.PRNGKey(99))
     for i in range(6):
         p = make_params(perturbed if i % 2 else track, other_weights if i % 3 else dof_params, config,
@@ -131,29 +144,6 @@ def test_bad_config_is_rejected():
         PM.PixelMPCConfig(c_pixel=-5.0)
 
 
-def test_batched_racing_cost_equals_each_sample_on_its_own(setup):
-    """The racing cost runs with the samples on the last axis; a batch must give every sample the cost it
-    gets alone (a reduction over the wrong axis would mix samples), crashes and tilts included."""
-    track, _ = setup
-    cfg = costs.RacingCostConfig()
-    params = costs.racing_params(track, jnp.linspace(0.0, 20.0, 8), 14.0, cfg)
-    key_p, key_q, key_v = jax.random.split(jax.random.PRNGKey(11), 3)
-    n = 64
-    path = track.path_points[jnp.linspace(0, 60, n).astype(jnp.int32)]
-    pos = path + 1.5 * jax.random.normal(key_p, (n, 3))
-    pos = pos.at[0].set(track.gates.centre[0] + jnp.asarray([0.0, 0.0, 0.5 * float(track.gates.height[0]) + 0.1]))
-    pos = pos.at[1, 2].set(-1.0)  # below the floor
-    q = Q.normalize_quat(jnp.asarray([1.0, 0.0, 0.0, 0.0]) + 0.6 * jax.random.normal(key_q, (n, 4)))
-    v = 8.0 * jax.random.normal(key_v, (n, 3))
-    X = jnp.concatenate([pos, q, v], axis=1)
-    for t in (0, 5):
-        batch = costs.racing_cost_batch(X, t, params, cfg)
-        alone = jnp.stack([costs.racing_cost(X[i], t, params, cfg) for i in range(n)])
-        np.testing.assert_allclose(batch, alone, rtol=1e-5)
-        assert bool(costs.crashed(X[:2, :3].T, params, cfg).all())
-        assert float(batch[0]) >= cfg.c1 * cfg.crash_value**2  # the gate frame's top bar
-
-
 def test_pixel_cost_clip_and_dead_zone():
     paper = PM.PixelMPCConfig(pixel_error_clip=None, c_pixel=1.0, pixel_cost_scale=1.0)
     uv = jnp.asarray([0.9, -2.5])  # 0.4 right of the centre, 3 image heights above it
@@ -169,39 +159,28 @@ def test_pixel_cost_clip_and_dead_zone():
         PM.PixelMPCConfig(pixel_error_clip=0.0)
 
 
-def _reference_and_batched(config_of):
-    """Controllers built with the former step-by-step costs ("per_step") and with the default ("batched")."""
-    return (config_of(dataclasses.replace(SMALL, rollout="per_step")), config_of(SMALL))
-
-
-@pytest.mark.parametrize("model", ["nominal", "dof", "projection"])
-def test_batched_step_gives_the_reference_plan(setup, model):
-    """For a fixed key and state, the default step (dynamics scanned, costs over the whole horizon at once) gives
-    the reference step's sample costs, plan and control within float rounding, over a few ticks of a closed
-    loop, with the shipped DOF weights and the AlphaPilot course."""
+def test_nominal_step_equals_a_one_sample_racing_cost(setup):
+    """Nominal MPPI (the racing cost over all (T, N) predicted states at once) takes the steps of a generic MPPI
+    whose running cost is the racing cost of one state: the same sample costs, plan and control within float
+    rounding over a few ticks of a closed loop on the AlphaPilot course, compiled once."""
     track, _ = setup
-    dof_params = dof.load_packaged_dof()
+    cfg = costs.RacingCostConfig()
+    nominal = PM.make_nominal_mppi(SMALL, cfg)
+    reference = make_mppi(SMALL, lambda x, u, p: Q.step(x, u, SMALL.dt, Q.QuadParams()),
+                          lambda x, u, t, p: one_state_racing(x, t, p, cfg))
+    params = costs.racing_params(track, jnp.linspace(0.0, 20.0, SMALL.horizon), 14.0, cfg)
+    x = state(track)[:10]
     u_init = Q.hover_control(Q.QuadParams())
-    if model == "nominal":
-        ctrls = [PM.make_nominal_mppi(c) for c in _reference_and_batched(lambda m: m)]
-        params = costs.racing_params(track, jnp.linspace(0.0, 20.0, SMALL.horizon), 14.0, costs.RacingCostConfig())
-        x = state(track)[:10]
-    else:
-        configs = _reference_and_batched(lambda m: PM.PixelMPCConfig(mppi=m, t_f=0.25, pixel_model=model))
-        ctrls = [PM.make_pixelmpc(c) for c in configs]
-        params = make_params(track, dof_params, configs[1])
-        x = state(track)
-    assert [c.config.rollout for c in ctrls] == ["per_step", "batched"]
-    states = [c.init(jax.random.PRNGKey(5), u_init) for c in ctrls]
+    s_ref, s = reference.init(jax.random.PRNGKey(5), u_init), nominal.init(jax.random.PRNGKey(5), u_init)
     for _ in range(3):
-        (u_ref, s_ref, i_ref), (u, s, info) = (c.step(st, x, params) for c, st in zip(ctrls, states, strict=True))
+        u_ref, s_ref, i_ref = reference.step(s_ref, x, params)
+        u, s, info = nominal.step(s, x, params)
         np.testing.assert_allclose(info.costs, i_ref.costs, rtol=2e-5)
         np.testing.assert_allclose(s.plan, s_ref.plan, rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(u, u_ref, rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(info.nominal_trajectory, i_ref.nominal_trajectory, rtol=1e-4, atol=1e-4)
-        states = [s_ref, s]
-        x = x.at[:10].set(Q.step(x[:10], u, SMALL.dt, Q.QuadParams()))
-    assert ctrls[1].num_compilations() == 1
+        x = Q.step(x, u, SMALL.dt, Q.QuadParams())
+    assert nominal.num_compilations() == 1
 
 
 @pytest.mark.slow  # ~18 s of op-by-op execution; test_mppi checks jit == no-jit for the generic step
@@ -214,46 +193,6 @@ def test_batched_pixelmpc_step_is_the_same_with_and_without_jit(setup):
     np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-4)
     np.testing.assert_allclose(s_eager.plan, s_jit.plan, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(u_eager, u_jit, rtol=1e-4, atol=1e-4)
-
-
-@pytest.mark.parametrize("cfg", [costs.RacingCostConfig(),
-                                 costs.RacingCostConfig(heading_weight=0.3, progress_weight=0.0, max_tilt_deg=None)])
-def test_racing_costs_over_the_horizon_equal_each_step_on_its_own(setup, cfg):
-    """racing_costs (all steps and samples at once, short axes unrolled) gives racing_cost_batch's numbers at each
-    step: crashes into a gate frame, the floor and a tilt included, with and without the heading and progress terms."""
-    track, _ = setup
-    steps = 6
-    params = costs.racing_params(track, jnp.linspace(0.0, 20.0, steps), 14.0, cfg)
-    key_p, key_q, key_v = jax.random.split(jax.random.PRNGKey(12), 3)
-    n = 48
-    path = track.path_points[jnp.linspace(0, 80, steps * n).astype(jnp.int32)]
-    pos = path + 1.5 * jax.random.normal(key_p, (steps * n, 3))
-    pos = pos.at[0].set(track.gates.centre[0] + jnp.asarray([0.0, 0.0, 0.5 * float(track.gates.height[0]) + 0.1]))
-    pos = pos.at[1, 2].set(-1.0)  # below the floor
-    q = Q.normalize_quat(jnp.asarray([1.0, 0.0, 0.0, 0.0]) + 0.6 * jax.random.normal(key_q, (steps * n, 4)))
-    v = 8.0 * jax.random.normal(key_v, (steps * n, 3))
-    X = jnp.concatenate([pos, q, v, jnp.zeros((steps * n, 2))], axis=1).reshape(steps, n, 12)
-    got = costs.racing_costs(X, jnp.arange(steps), params, cfg)
-    expected = jnp.stack([costs.racing_cost_batch(X[t], t, params, cfg) for t in range(steps)])
-    np.testing.assert_allclose(got, expected, rtol=1e-5)
-    assert float(got[0, 0]) >= cfg.c1 * cfg.crash_value**2 and float(got[0, 1]) >= cfg.c1 * cfg.crash_value**2
-    # a window of later steps: steps index the params, not the rows
-    np.testing.assert_allclose(costs.racing_costs(X[3:], jnp.arange(3, steps), params, cfg), expected[3:], rtol=1e-5)
-
-
-def test_desired_attitude_is_the_half_yaw_quaternion_of_the_tangent():
-    """q_d = [cos(psi / 2), 0, 0, sin(psi / 2)], psi = atan2(ty, tx), up to the quaternion's sign, on every side
-    (behind, +-pi, the axes) and for any length; a zero tangent gives the identity."""
-    angles = np.concatenate([np.linspace(-np.pi, np.pi, 721), [np.pi - 1e-6, -np.pi + 1e-6, 1e-7, -1e-7]])
-    lengths = np.resize([1.0, 0.3, 7.0], angles.size)
-    tangent = np.stack([lengths * np.cos(angles), lengths * np.sin(angles), np.zeros_like(angles)])
-    got = np.asarray(costs.desired_attitude(jnp.asarray(tangent, jnp.float32)))
-    psi = np.arctan2(tangent[1], tangent[0])
-    expected = np.stack([np.cos(psi / 2), 0 * psi, 0 * psi, np.sin(psi / 2)])
-    sign = np.sign(np.sum(got * expected, axis=0))
-    np.testing.assert_allclose(got * sign, expected, atol=3e-7)
-    np.testing.assert_allclose(np.sum(got**2, axis=0), 1.0, atol=3e-7)
-    np.testing.assert_array_equal(costs.desired_attitude(jnp.zeros((3, 1))).ravel(), [1.0, 0.0, 0.0, 0.0])
 
 
 def test_racing_constants_computed_once_give_the_same_params(setup):

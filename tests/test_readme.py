@@ -1,19 +1,93 @@
-"""The README's Python examples run as written."""
+"""The README: short, every Python example runs as pasted on its own, every link resolves.
+
+Each ```python block of the README runs alone in a fresh interpreter (its own imports, nothing from the block
+before it), so a reader can paste any one of them. The long notes live in ``docs/``; every relative link or
+image of the README and of ``docs/*.md`` must name a file that exists.
+"""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
-import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+README_MAX_LINES = 200
+EXAMPLE_TIMEOUT_S = 300
+FENCE = re.compile(r"^```[^\n]*\n.*?^```", re.S | re.M)
+PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)[^)]*\)")  # [text](target) and ![alt](target)
 
 
-def test_readme_examples_run():
-    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) >= 2
-    namespace: dict = {}
-    exec(compile("\n".join(blocks), "README.md", "exec"), namespace)
-    assert namespace["u0"].shape == (4,)
-    assert np.all(np.isfinite(np.asarray(namespace["info"].nominal_trajectory)))
+def _python_blocks() -> list[tuple[int, str]]:
+    """(line number in README.md, code) of every ```python block."""
+    text = README.read_text()
+    return [(text.count("\n", 0, match.start()) + 1, match.group(1)) for match in PYTHON_BLOCK.finditer(text)]
+
+
+def _markdown_files() -> list[Path]:
+    return [README, *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def _relative_links(path: Path) -> list[str]:
+    """The link and image targets of a Markdown file outside its code blocks, less web addresses and anchors."""
+    text = FENCE.sub("", path.read_text())
+    targets = [target.split("#")[0] for target in LINK.findall(text)]
+    return [t for t in targets if t and not re.match(r"[a-z][a-z0-9+.-]*:", t)]
+
+
+def test_readme_is_at_most_200_lines():
+    lines = len(README.read_text().splitlines())
+    assert lines <= README_MAX_LINES, f"README.md has {lines} lines; the long notes belong in docs/"
+
+
+def test_readme_has_python_examples():
+    assert len(_python_blocks()) >= 2
+
+
+@pytest.mark.parametrize("line, code", _python_blocks(), ids=[f"README.md:{line}" for line, _ in _python_blocks()])
+def test_python_example_runs_alone(tmp_path, line, code):
+    if re.search(r"^u0, ", code, re.M):  # an example that steps a controller must give a finite control
+        code += "\nimport numpy\nassert numpy.isfinite(numpy.asarray(u0)).all() and numpy.shape(u0) == (4,), u0\n"
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=EXAMPLE_TIMEOUT_S)
+    assert done.returncode == 0, (f"the ```python block at README.md:{line} failed when run alone "
+                                  f"(exit {done.returncode}):\n{done.stderr[-4000:]}")
+
+
+def test_the_docs_the_readme_links_to_exist():
+    linked = [t for t in _relative_links(README) if t.startswith("docs/")]
+    assert linked, "the README links to no docs/ file"
+    assert not [t for t in linked if not (ROOT / t).is_file()]
+    orphans = {p.name for p in (ROOT / "docs").glob("*.md")} - {Path(t).name for t in linked}
+    assert not orphans, f"docs/ files the README does not link to: {sorted(orphans)}"
+
+
+@pytest.mark.parametrize("path", _markdown_files(), ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_relative_links_and_images_resolve(path):
+    missing = [t for t in _relative_links(path) if not (path.parent / t).exists()]
+    assert not missing, f"{path.relative_to(ROOT)} links to files that do not exist: {missing}"
+
+
+def test_the_scan_finds_links_and_images_and_skips_code(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("See [a](docs/a.md#part) and ![b](../b.png), not [web](https://x.org) or [top](#top).\n"
+                    "```python\nx = [1](2)\n```\n")
+    assert _relative_links(page) == ["docs/a.md", "../b.png"]
+
+
+SESSION_DATE = re.compile(r"\bsessions?\b", re.I)
+
+
+def test_no_figure_is_dated_by_a_work_session():
+    """A figure carries its device and date, never "session 2" or "this session"."""
+    pages = [*_markdown_files(), *sorted(ROOT.glob("benchmarks/results/*/README.md")),
+             *sorted(ROOT.glob("experiments/results/*/README.md"))]
+    found = [f"{p.relative_to(ROOT)}:{n}: {line.strip()}" for p in pages
+             for n, line in enumerate(p.read_text().splitlines(), 1) if SESSION_DATE.search(line)]
+    assert not found, "\n".join(found)
 
 
 # Output names that docstrings use as placeholders for a folder the user picks.

@@ -396,22 +396,19 @@ def test_output_folders_are_made_after_checking_every_argument(tmp_path, capsys,
 
 
 def _fake_race(monkeypatch, success: bool, interrupted: bool):
-    from pixelmpc_jax.apps import race
-    from pixelmpc_jax.sim import metrics
-    from pixelmpc_jax.strict_json import write_json_atomic
+    from pixelmpc_jax.apps import compare, race
 
     def run_laps(spec, **kwargs):
-        results = {"laps": [{"success": success}], "aggregate": {}, "interrupted": interrupted}
-        write_json_atomic(kwargs["out"] / "metrics.json", results)
-        return results
+        return {"laps": [{"success": success}], "aggregate": {}, "interrupted": interrupted, "trajectories": [],
+                "visibility": []}
 
     monkeypatch.setattr(race, "run_laps", run_laps)
-    monkeypatch.setattr(metrics, "format_table", lambda laps, aggregate: "table")
+    monkeypatch.setattr(compare, "side_by_side", lambda record: "table")
 
 
 @pytest.mark.parametrize("success, interrupted, code, message",
                          [(True, False, 0, None), (False, False, 1, "no lap succeeded (1 flown)"),
-                          (True, True, 130, "interrupted after 1 of 1 lap(s)")])
+                          (True, True, 130, "interrupted; the finished laps are in")])
 def test_race_exit_code_says_how_it_ended(success, interrupted, code, message, tmp_path, capsys, monkeypatch):
     _fake_race(monkeypatch, success, interrupted)
     got, err = _run_cli(["race", "--controller", "mppi", "--out", str(tmp_path)], capsys)

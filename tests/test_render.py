@@ -7,8 +7,8 @@ import pytest
 
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as C
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as R
-from pixelmpc_jax.world import track as T
 
 GATE_X = 20.0
 DISTANCE = 6.0
@@ -21,7 +21,7 @@ def camera():
 
 @pytest.fixture(scope="module")
 def single_gate():
-    return T.straight_course(num_gates=1, height=3.0, first_gate_x=GATE_X)
+    return course_lib.straight_course(num_gates=1, height=3.0, first_gate_x=GATE_X)
 
 
 @pytest.fixture(scope="module")

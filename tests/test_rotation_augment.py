@@ -7,8 +7,8 @@ import numpy as np
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.learn import rotation_augment as ra
 from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as render_lib
-from pixelmpc_jax.world import track as track_lib
 
 DT = 0.025
 
@@ -34,7 +34,7 @@ def test_parallel_rates_add_and_yaw_moves_the_centre_right_by_fx_per_radian():
 def test_turned_exact_flow_equals_exact_flow_of_the_turned_pose():
     """Augmenting the exact flow of a real (translating and turning) frame pair gives the exact flow of the
     same pair with the second pose turned by delta dt more, at every pixel both see; and w' is its rate."""
-    track = track_lib.load_course()
+    track = course_lib.load_course()
     camera = camera_lib.default_camera()
     x0 = track.start
     w = jnp.asarray([0.4, -0.3, 0.8])

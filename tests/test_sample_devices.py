@@ -10,18 +10,22 @@ import sys
 import numpy as np
 import pytest
 
+from pixelmpc_jax import host
 from pixelmpc_jax.control import sampling
 from pixelmpc_jax.control.mppi import MPPIConfig
 
 SCRIPT = r"""
 import json
+from pixelmpc_jax import host
 from pixelmpc_jax.control import sampling
-count = sampling.split_host_cpu(2)  # before JAX starts
+count = host.split_host_cpu(2)  # before JAX starts
 import jax, jax.numpy as jnp, numpy as np
 from pixelmpc_jax.apps.bench import problems
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.sim import episode as E
-from pixelmpc_jax.world import track as T
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.world import course as C
+from pixelmpc_jax.sim import env as env_lib
 
 out = {"devices": count, "usable_512": sampling.usable_sample_devices(512),
        "usable_63": sampling.usable_sample_devices(63)}
@@ -38,9 +42,9 @@ for k in (1, 2):
         out["costs_shard_shape"] = list(info.costs.sharding.shard_shape(info.costs.shape))
         out["compilations"] = p.ctrl.num_compilations()
 out["steps"] = steps
-course = T.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
-world = E.make_world(course, target_speed=8.0)
-spec = RaceSpec(controller="mppi", num_samples=64, options={"mppi.horizon": 12})
+course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
+world = env_lib.make_world(course, target_speed=8.0)
+spec = RaceSpec(controller="mppi", config=PixelMPCConfig(mppi=paper_mppi_config(num_samples=64, horizon=12)))
 laps = {}
 for k in (1, 2):
     runner = E.make_runner(spec.policy(sample_devices=k), E.EpisodeConfig(max_time_s=0.5))
@@ -101,9 +105,9 @@ def test_split_host_cpu_after_jax_started_changes_nothing():
     import jax
 
     before = len(jax.devices("cpu"))
-    assert sampling.split_host_cpu(before + 3) == before
+    assert host.split_host_cpu(before + 3) == before
     with pytest.raises(ValueError):
-        sampling.split_host_cpu(0)
+        host.split_host_cpu(0)
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -149,5 +153,6 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
     np.testing.assert_allclose(u_y, u_x, atol=1e-5)
     np.testing.assert_allclose(i_y.costs, i_x.costs, rtol=1e-5)
     np.testing.assert_allclose(s_y.plan, s_x.plan, atol=1e-5)
-    policy = make_policy("pixelmpc", num_samples=64, t_f=0.15, options={"mppi.horizon": 12})
+    small = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=12)
+    policy = make_policy("pixelmpc", pixelmpc_lib.PixelMPCConfig(mppi=small, t_f=0.15))
     assert policy.compiler_options == sampling.YNNPACK_MATMULS  # the episode's jit compiles with them

@@ -12,12 +12,15 @@ import pytest
 SCRIPT = r"""
 import json, sys
 import jax, jax.numpy as jnp, numpy as np
+from pixelmpc_jax.control.pixelmpc import paper_mppi_config
+from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as E
-from pixelmpc_jax.world import track as T
-course = T.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
-policy = E.nominal_mppi_policy(E.paper_mppi_config(num_samples=32, horizon=10))
+from pixelmpc_jax.sim import policies
+from pixelmpc_jax.world import course as C
+course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
+policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=32, horizon=10))
 runner = E.make_runner(policy, E.EpisodeConfig(max_time_s=0.5))
-worlds = E.stack_worlds([E.make_world(course, target_speed=6.0 + i) for i in range(6)])
+worlds = env_lib.stack_worlds([env_lib.make_world(course, target_speed=6.0 + i) for i in range(6)])
 logs = runner.batch(worlds, jax.vmap(jax.random.PRNGKey)(jnp.arange(6)))
 print(json.dumps({"devices": jax.device_count(), "states": np.asarray(logs.states).tolist(),
                   "ticks": np.asarray(logs.num_ticks).tolist()}))

@@ -220,11 +220,3 @@ def test_window_clamps_at_the_ends(course):
 def test_path_query_jit_matches_no_jit(course):
     p = course.gates.centre[4] + jnp.asarray([0.4, -0.3, 0.2])
     chex.assert_trees_all_close(T.path_query(course, p), jax.jit(T.path_query)(course, p), atol=1e-6)
-
-
-def test_the_course_builders_are_reachable_from_track():
-    """Importers that call ``track.load_course`` and the like get world/course.py's functions."""
-    for name in ("COURSE_FILE", "load_course", "straight_course", "perturb_course"):
-        assert getattr(T, name) is getattr(C, name)
-    with pytest.raises(AttributeError, match="no attribute 'load_courses'"):
-        T.load_courses  # noqa: B018

@@ -275,8 +275,8 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
 
     write_dataset(tmp_path / "data", frames=(6, 4))
     out = tmp_path / "out"
-    record = train_mod.run_train(tmp_path / "data", out, steps=3, batch_size=64, progress=False, loss="endpoint",
-                                 input="flown")
+    config = TrainConfig(steps=3, batch_size=64, progress=False, loss="endpoint", input="flown")
+    record = train_mod.run_train(tmp_path / "data", out, config)
     assert record["steps_done"] == 3 and not record["interrupted"]
     assert record["variant"]["input"] == "flown" and record["variant"]["loss"] == "endpoint"
     assert np.isfinite(record["results"]["test_aee_px"])
@@ -287,6 +287,25 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
     for call in record["calls"]:  # the calls it records name functions that exist
         module, name = call.split("(")[0].rsplit(".", 1)
         assert callable(getattr(importlib.import_module(module), name)), call
+    # the recorded run_train call carries the whole config: every setting but those set from the data and out_dir
+    call = record["calls"][-1]
+    repeated = eval(call[call.index("TrainConfig("):-1], {"TrainConfig": TrainConfig})
+    derived = ("width", "height", "dt", "checkpoint_path", "progress")
+    assert {k: v for k, v in dataclasses.asdict(repeated).items() if k not in derived} == \
+        {k: v for k, v in record["train_config"].items() if k not in derived}
+    assert repeated.steps == 3 and repeated.loss == "endpoint" and repeated.input == "flown"
+
+
+def test_run_train_takes_the_image_size_and_dt_from_the_data(tmp_path):
+    from test_dataset import write_dataset
+
+    write_dataset(tmp_path / "data", frames=(3,))  # train lap only
+    config = TrainConfig(steps=3, batch_size=64, progress=False, loss="endpoint", width=7, height=5, dt=1.0)
+    record = train_mod.run_train(tmp_path / "data", tmp_path / "out", config)
+    manifest = json.loads((tmp_path / "data" / "manifest.json").read_text())
+    assert [record["train_config"]["width"], record["train_config"]["height"]] == manifest["image_size_wh"]
+    assert record["train_config"]["dt"] == manifest["frame_dt_s"]
+    assert record["train_config"]["checkpoint_path"] is None and record["results"]["test_aee_px"] is None
 
 
 

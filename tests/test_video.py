@@ -5,7 +5,7 @@ import numpy as np
 
 from pixelmpc_jax.apps.video import PREDICTED, annotated_frames, write_onboard_video
 from pixelmpc_jax.sim.episode import EpisodeLog
-from pixelmpc_jax.world import track as T
+from pixelmpc_jax.world import course as C
 
 
 def make_log(track, ticks=4, horizon=5):
@@ -22,7 +22,7 @@ def make_log(track, ticks=4, horizon=5):
 
 
 def test_predicted_path_is_drawn_where_predicted(tmp_path):
-    track = T.straight_course(num_gates=2)
+    track = C.straight_course(num_gates=2)
     frames = annotated_frames(track, make_log(track), every=1, scale=2)
     assert len(frames) == 4 and frames[0].shape == (306, 408, 3)
     row = frames[0][153]  # the middle row, where the predicted line runs from u = 0.2 to 0.8
@@ -33,7 +33,7 @@ def test_predicted_path_is_drawn_where_predicted(tmp_path):
 
 
 def test_writes_mp4_and_gif(tmp_path):
-    track = T.straight_course(num_gates=2)
+    track = C.straight_course(num_gates=2)
     log = make_log(track)
     mp4 = write_onboard_video(track, log, tmp_path / "onboard.mp4", every=1)
     gif = write_onboard_video(track, log, tmp_path / "onboard.gif", every=1)

@@ -25,9 +25,10 @@ import numpy as np
 
 from pixelmpc_jax.apps import grid
 from pixelmpc_jax.apps.spec import RaceSpec
-from pixelmpc_jax.sim.episode import CONTROL_DT
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 from pixelmpc_jax.strict_json import json_safe, write_json_atomic
+from pixelmpc_jax.timing import CONTROL_DT
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
 AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
@@ -45,18 +46,25 @@ class FrontierSpec:
 
 
 def pixel_cell(model: str, cost: str = "l1", c_pixel: float = 9e6, speed: float = 8.0, t_f: float = 1.0,
-               **options) -> grid.Cell:
-    """A PixelMPC grid cell named after its pixel model, pixel cost and weight (``options``: further settings)."""
-    if cost != "l1":
-        options["pixel_cost"] = cost
-    extra = "".join(f"_{k.replace('.', '-')}{v:g}" if isinstance(v, float) else f"_{k}{v}"
-                    for k, v in sorted(options.items()) if k != "pixel_cost")
+               config: PixelMPCConfig | None = None) -> grid.Cell:
+    """A PixelMPC grid cell named after its pixel model, pixel cost, weight and speed; ``config`` holds any further
+    settings (its other fields different from the defaults are named in the cell's name too)."""
+    config = dataclasses.replace(config or PixelMPCConfig(), pixel_model=model, pixel_cost=cost, c_pixel=c_pixel,
+                                 t_f=t_f)
+    spec = RaceSpec("pixelmpc", config=config, speed=speed)
+    extra = "".join(f"_{k.replace('.', '-')}{v:g}" if isinstance(v, float) else f"_{k.replace('.', '-')}{v}"
+                    for k, v in sorted(cell_settings(spec).items()) if k != "pixel_cost")
     weight = f"{c_pixel:.0e}".replace("e+0", "e").replace("e+", "e")  # 9e6
-    return grid.Cell(f"pixelmpc_{model}_{cost}_c{weight}_tf{t_f:g}_v{speed:g}{extra}",
-                     RaceSpec("pixelmpc", t_f=t_f, c_pixel=c_pixel, pixel_model=model, speed=speed, options=options))
+    return grid.Cell(f"pixelmpc_{model}_{cost}_c{weight}_tf{t_f:g}_v{speed:g}{extra}", spec)
 
 
-BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the best weights of the 4-lap sweep at 8 m/s (README)
+def cell_settings(spec: RaceSpec) -> dict:
+    """The controller settings of a cell other than its defaults, less those a frontier row reports in columns of
+    their own (pixel model, weight, t_f)."""
+    return {k: v for k, v in spec.changed_settings().items() if k not in ("pixel_model", "c_pixel", "t_f")}
+
+
+BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the best weights of the 4-lap sweep at 8 m/s (docs/results.md)
 
 
 def best_cells() -> tuple:
@@ -151,8 +159,9 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
             missing.append(cell.name)
             continue
         spec = cell.spec
-        row = {"name": cell.name, "pixel_model": spec.pixel_model, "speed": spec.speed, "t_f": spec.t_f,
-               "c_pixel": spec.c_pixel, "options": dict(spec.options), "estimator": spec.estimator,
+        row = {"name": cell.name, "pixel_model": spec.config.pixel_model, "speed": spec.speed,
+               "t_f": spec.config.t_f, "c_pixel": spec.config.c_pixel, "options": cell_settings(spec),
+               "estimator": spec.estimator,
                **summarise(results[cell.name])}
         frontier = interpolate(nominal, row["lap_time_s"])
         row["bracketed"] = frontier is not None
@@ -173,15 +182,19 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
 
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
-                 dof_params=None, max_time_s: float = 60.0) -> dict:
+                 dof_params=None, max_time_s: float = 60.0, course: str | None = None) -> dict:
     """Fly nominal MPPI at each of ``nominal_speeds`` (episodes of at most ``max_time_s``) and every PixelMPC
     cell with :func:`grid.run_grid` (resumable per cell), then write ``frontier.json``, ``REPORT.md`` and
-    ``frontier.png`` into ``out``; returns the frontier.
+    ``frontier.png`` into ``out``; returns the frontier. ``course`` (a name or a course file) flies every cell
+    on that course instead of the cells' own.
 
     Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
     KeyboardInterrupt is raised again."""
     out = Path(out)
     all_cells = [nominal_cell(speed, max_time_s) for speed in nominal_speeds] + list(cells)
+    if course is not None:
+        all_cells = [dataclasses.replace(cell, spec=cell.spec.replace(course=course)) for cell in all_cells]
+        cells = all_cells[len(nominal_speeds):]
     names = [cell.name for cell in all_cells]
     if len(set(names)) != len(names):
         raise ValueError(f"cell names repeat: {sorted(n for n in set(names) if names.count(n) > 1)}")

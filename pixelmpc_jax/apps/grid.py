@@ -30,7 +30,7 @@ class Cell:
     laps, seed and DOF weights are the grid run's (:func:`run_grid`), so the cell's own stay at their defaults."""
 
     name: str
-    spec: RaceSpec = RaceSpec()
+    spec: RaceSpec = dataclasses.field(default_factory=RaceSpec)
 
     def __post_init__(self):
         default = RaceSpec()
@@ -80,12 +80,36 @@ def recorded_race(done: dict) -> RaceSpec | None:
     A setting a record lacks counts as its default (older files record fewer settings), and results written
     before the seed and the weights were recorded count as seed 0 and the packaged weights: the defaults they
     were flown with."""
-    settings = {k: v for k, v in done.get("config", {}).items() if k != "name"}
+    settings = _nested_settings({k: v for k, v in done.get("config", {}).items() if k != "name"})
     try:
-        return RaceSpec(**settings, laps=len(done.get("laps", [])), seed=done.get("seed", 0),
-                        dof_weights=done.get("dof_weights_sha256"))
-    except (TypeError, ValueError):  # an unknown setting, no laps
+        return RaceSpec.from_record({**settings, "laps": len(done.get("laps", [])), "seed": done.get("seed", 0),
+                                     "dof_weights": done.get("dof_weights_sha256")})
+    except ValueError:  # an unknown setting (a record of another version), no laps
         return None
+
+
+_FLAT_SETTINGS = {"t_f": "t_f", "c_pixel": "c_pixel", "pixel_model": "pixel_model", "temperature": "mppi.temperature",
+                  "num_samples": "mppi.num_samples"}  # results.json files written before RaceSpec held the config
+
+
+def _nested_settings(settings: dict) -> dict:
+    """A cell's recorded settings as :meth:`RaceSpec.record` writes them. Files written before the spec held the
+    controller's configuration record its settings flat (``t_f``, ``temperature``, ``options`` as dotted names);
+    they are read into the configuration's nested fields (a ``None`` temperature was the default)."""
+    if "config" in settings:
+        return settings
+    config: dict = {}
+    flat = {_FLAT_SETTINGS[k]: settings.pop(k) for k in list(settings) if k in _FLAT_SETTINGS}
+    flat.update(settings.pop("options", None) or {})
+    for dotted, value in flat.items():
+        if value is None:
+            continue
+        *parents, name = dotted.split(".")
+        node = config
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[name] = value
+    return {**settings, "config": config}
 
 
 def is_current(done: dict | None, spec: RaceSpec) -> bool:
@@ -142,6 +166,8 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         res = race.run_laps(spec, batch_size=batch_size, progress=progress, dof_params=dof_params)
         trajectories = res.pop("trajectories")
         covariances = res.pop("covariances")
+        res.pop("visibility", None)
+        res.pop("race", None), res.pop("key", None)  # the cell records its race below (cell_record)
         if res.get("interrupted") or len(res["laps"]) < laps:  # interrupted inside the cell: keep what is done
             raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
                                     f"{path}; run again to resume")

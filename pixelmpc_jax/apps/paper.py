@@ -12,6 +12,7 @@ import numpy as np
 
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -43,13 +44,26 @@ C_PIXEL_VALUES = (3e6, 6e6, 9e6)
 def visibility_cells(pixel_model: str = "dof", speed: float = 14.0, t_f_values=T_F_VALUES,
                      c_pixel_values=C_PIXEL_VALUES) -> list[Cell]:
     """Nominal MPPI, then PixelMPC over the t_f x c_pixel grid."""
-    cells = [Cell("mppi", RaceSpec(controller="mppi", t_f=0.0, c_pixel=0.0, speed=speed))]
+    cells = [Cell("mppi", RaceSpec(controller="mppi", speed=speed))]
     for t_f in t_f_values:
         for c_pixel in c_pixel_values:
+            config = PixelMPCConfig(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
             cells.append(Cell(f"pixelmpc_{pixel_model}_tf{t_f:g}_c{c_pixel:.0e}",
-                              RaceSpec(controller="pixelmpc", t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model,
-                                       speed=speed)))
+                              RaceSpec(controller="pixelmpc", config=config, speed=speed)))
     return cells
+
+
+def pixel_settings(spec: RaceSpec) -> dict:
+    """The cell's t_f, c_pixel and pixel model as the tables print them (0, 0 and None for nominal MPPI)."""
+    if spec.controller != "pixelmpc":
+        return {"t_f": 0.0, "c_pixel": 0.0, "pixel_model": None}
+    return {"t_f": spec.config.t_f, "c_pixel": spec.config.c_pixel, "pixel_model": spec.config.pixel_model}
+
+
+def _table_key(spec: RaceSpec) -> tuple[float, float]:
+    """(t_f, c_pixel): the key of the paper's tables (0, 0 for nominal MPPI)."""
+    settings = pixel_settings(spec)
+    return settings["t_f"], settings["c_pixel"]
 
 
 def _paper(table: dict, t_f: float, c_pixel: float) -> str:
@@ -66,16 +80,16 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
             continue
         agg, spec = res["aggregate"], cell.spec
         rows.append({
-            "cell": cell.name, "t_f": spec.t_f, "c_pixel": spec.c_pixel, "pixel_model": spec.pixel_model,
+            "cell": cell.name, **pixel_settings(spec),
             "success_rate": agg["success_rate"], "num_laps": agg["num_laps"],
             "time_vis_below_50_s": agg["time_vis_below_50_s"], "time_vis_zero_s": agg["time_vis_zero_s"],
             "lap_time_s": agg["lap_time_s"], "mean_linear_acc": agg["mean_linear_acc"],
             "mean_angular_acc": agg["mean_angular_acc"], "total_variation_roll": agg["total_variation_roll"],
             "total_variation_pitch": agg["total_variation_pitch"], "total_variation_yaw": agg["total_variation_yaw"],
             "wall_time_s": res.get("wall_time_s"),
-            "paper": {"time_vis_below_50_s": PAPER_VIS_BELOW_50.get((spec.t_f, spec.c_pixel)),
-                      "time_vis_zero_s": PAPER_VIS_ZERO.get((spec.t_f, spec.c_pixel)),
-                      "lap_time_s": PAPER_LAP_TIME.get((spec.t_f, spec.c_pixel))},
+            "paper": {"time_vis_below_50_s": PAPER_VIS_BELOW_50.get(_table_key(spec)),
+                      "time_vis_zero_s": PAPER_VIS_ZERO.get(_table_key(spec)),
+                      "lap_time_s": PAPER_LAP_TIME.get(_table_key(spec))},
         })
     return rows
 

@@ -7,114 +7,138 @@ atomically, so an interrupted run keeps the laps it finished.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import numpy as np
 
 from pixelmpc_jax.apps.spec import COURSES, RaceSpec
 from pixelmpc_jax.control.sampling import usable_sample_devices
+from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.strict_json import write_json_atomic
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
 
 def make_course(course: str = "alphapilot") -> track_lib.Track:
-    """The named course: "alphapilot" (the paper's race) or "straight" (five gates 20 m apart in a row, the
-    paper's straight-lane test)."""
+    """The named course: "alphapilot" (the paper's race), "straight" (five gates 20 m apart in a row, the
+    paper's straight-lane test), or the path of a course file (:func:`~pixelmpc_jax.world.course.load_course`)."""
     if course == "alphapilot":
-        return track_lib.load_course()
+        return course_lib.load_course()
     if course == "straight":
-        return track_lib.straight_course()
-    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)}")
+        return course_lib.straight_course()
+    if Path(course).is_file():
+        return course_lib.load_course(course)
+    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)} or a course file")
 
 
-def lap_worlds(base: episode_lib.World, seeds: list[int], perturb: bool) -> episode_lib.World:
+def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool) -> env_lib.World:
     """One World per lap, stacked; with ``perturb`` each lap's course is perturbed with its own seed."""
     worlds = []
     for seed in seeds:
         track = base.track
         if perturb:
-            track = track_lib.perturb_course(track, jax.random.PRNGKey(10_000 + seed))
+            track = course_lib.perturb_course(track, jax.random.PRNGKey(10_000 + seed))
         worlds.append(base.replace(track=track))
-    return episode_lib.stack_worlds(worlds)
+    return env_lib.stack_worlds(worlds)
+
+
+class _Flight(NamedTuple):
+    """What flies a race's laps: the compiled runner, the base world and how a step's samples are split."""
+
+    runner: episode_lib.Runner
+    base: env_lib.World
+    policy_name: str
+    sample_devices: int
+
+
+def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
+    """The runner and world of ``spec``; with a batch of one and several local devices, one lap flies at a time
+    with its controller's samples split over the devices."""
+    sample_devices = 1
+    if batch_size == 1 and jax.process_count() == 1:
+        sample_devices = usable_sample_devices(spec.config.mppi.num_samples)
+    policy = spec.policy(sample_devices=sample_devices)
+    episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
+                                               estimator=spec.estimator)
+    if dof_params is None:
+        dof_params = spec.packaged_dof()
+    base = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
+    return _Flight(episode_lib.make_runner(policy, episode_config), base, policy.name, sample_devices)
+
+
+def _fly_batch(flight: _Flight, seeds: list[int], batch_size: int, perturb: bool) -> list[tuple]:
+    """Fly the laps of ``seeds`` in one call; ``[(log, the lap's track)]``, host arrays.
+
+    The seeds are padded to a whole batch (the last repeated, the copies dropped), so every batch has one
+    shape and the vmapped episode compiles once."""
+    padded = seeds + seeds[-1:] * (batch_size - len(seeds))
+    worlds = lap_worlds(flight.base, padded, perturb)
+    keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
+    if flight.sample_devices > 1:  # one lap, its samples over the devices
+        logs = metrics_lib.unbatch(flight.runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
+    else:
+        logs = metrics_lib.unbatch(flight.runner.batch(worlds, keys))[:len(seeds)]
+    return [(log, jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], worlds.track)) for lane, log in enumerate(logs)]
+
+
+def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -> dict:
+    """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`), with the filter's figures when the race
+    flies on its estimate, and the lap's seed."""
+    lap = metrics_lib.lap_metrics(log, track=track, camera=camera)
+    if spec.estimator == "pf":
+        n = int(log.num_ticks)
+        lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
+        errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
+        lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
+    lap["seed"] = seed
+    return lap
 
 
 def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progress: bool = True,
              video: bool = False, dof_params=None) -> dict:
-    """Fly the race ``spec`` and return ``{"laps": [...], "aggregate": {...}}`` with its settings.
+    """Fly the race ``spec`` and return ``{"race": spec.record(), "laps": [...], "aggregate": {...}, ...}``.
 
     Lap i uses PRNG key ``spec.seed + i`` for the plant noise and the controller, so a lap is reproducible on
     its own and a batch gives the same per-lap result as single runs. ``dof_params`` are the DOF weights the
     spec names (None: the packaged weights; a ValueError if their fingerprint is not the spec's). The result
-    also holds, per lap, the flown states (``trajectories``) and, with the particle filter, the trace of its
-    position covariance at each tick (``covariances``). Laps fly ``batch_size`` at a time; a last, smaller batch
-    is padded to that size (its copies dropped), so the batched episode compiles once. With a batch of one and
-    several local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the controller's
-    samples split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to float
-    rounding); ``sample_devices`` in the result says how many. With ``out``,
-    ``metrics.json`` is rewritten after every batch, ``trajectories.png`` drawn at the end and, with ``video``,
-    the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C stopped the run: the laps
-    finished before it are kept (and in ``out/metrics.json``).
+    also holds, per lap, the flown states (``trajectories``), the target's visibility at each tick
+    (``visibility``) and, with the particle filter, the trace of its position covariance at each tick
+    (``covariances``). Laps fly ``batch_size`` at a time. With a batch of one
+    and several local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the
+    controller's samples split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to
+    float rounding); ``sample_devices`` in the result says how many. With ``out``, ``metrics.json`` is rewritten
+    after every batch, ``trajectories.png`` drawn at the end and, with ``video``, the first lap's
+    ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C stopped the run: the laps finished before it
+    are kept (and in ``out/metrics.json``).
     """
     if batch_size <= 0:
         raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
     spec.check_weights(dof_params)
-    sample_devices = usable_sample_devices(spec.num_samples) if batch_size == 1 and jax.process_count() == 1 else 1
-    policy = spec.policy(sample_devices=sample_devices)
-    episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
-                                               estimator=spec.estimator)
-    runner = episode_lib.make_runner(policy, episode_config)
-    if spec.uses_dof and dof_params is None:
-        from pixelmpc_jax.dynamics import dof
-
-        dof_params = dof.load_packaged_dof()
-    base = episode_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
-    results: dict = {"controller": policy.name, "speed": spec.speed, "seed": spec.seed, "perturb": spec.perturb,
-                     "detector": spec.detector, "estimator": spec.estimator, "course": spec.course, "laps": [],
-                     "aggregate": {}, "interrupted": False, "sample_devices": sample_devices}
-    if spec.controller == "pixelmpc":
-        results.update(t_f=spec.t_f, c_pixel=spec.c_pixel, pixel_model=spec.pixel_model)
-    if spec.options:
-        results["options"] = dict(spec.options)
+    flight = _prepare_flight(spec, batch_size, dof_params)
+    batch_size = min(batch_size, spec.laps)
+    results: dict = {"race": spec.record(), "key": spec.key(), "controller": flight.policy_name, "laps": [],
+                     "aggregate": {}, "interrupted": False, "sample_devices": flight.sample_devices}
     trajectories: list[np.ndarray] = []
     covariances: list[np.ndarray] = []
-    laps, seed = spec.laps, spec.seed
-    seeds = list(range(seed, seed + laps))
-    batch_size = min(batch_size, laps)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=laps, desc=f"{spec.controller} @ {spec.speed:g} m/s", unit="lap")
+    visibilities: list[np.ndarray] = []
+    seeds = list(range(spec.seed, spec.seed + spec.laps))
+    bar = _progress_bar(spec) if progress else None
     try:
-        for first in range(0, laps, batch_size):
+        for first in range(0, spec.laps, batch_size):
             chunk = seeds[first:first + batch_size]
-            # the last chunk is padded to a whole batch (its last lap repeated, the copies dropped) so that
-            # every batch has one shape and the vmapped episode compiles once
-            padded = chunk + chunk[-1:] * (batch_size - len(chunk))
-            worlds = lap_worlds(base, padded, spec.perturb)
-            keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
-            if sample_devices > 1:  # one lap, its samples over the devices
-                logs = metrics_lib.unbatch(runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
-            else:
-                logs = metrics_lib.unbatch(runner.batch(worlds, keys))[:len(chunk)]
-            for lane, (lap_seed, log) in enumerate(zip(chunk, logs)):
-                if video and out is not None and lap_seed == seed:
+            for lap_seed, (log, lap_track) in zip(chunk, _fly_batch(flight, chunk, batch_size, spec.perturb)):
+                if video and out is not None and lap_seed == spec.seed:
                     from pixelmpc_jax.apps.video import write_onboard_video
 
-                    write_onboard_video(base.track, log, Path(out) / "onboard.mp4", base.camera)
-                lap_track = jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], worlds.track)
-                lap = metrics_lib.lap_metrics(log, track=lap_track, camera=base.camera)
-                if spec.estimator == "pf":
-                    n = int(log.num_ticks)
-                    lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
-                    errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
-                    lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
-                    covariances.append(np.asarray(log.position_cov_trace)[:n])
-                lap["seed"] = lap_seed
-                results["laps"].append(lap)
+                    write_onboard_video(flight.base.track, log, Path(out) / "onboard.mp4", flight.base.camera)
+                results["laps"].append(lap_record(spec, log, lap_track, flight.base.camera, lap_seed))
                 trajectories.append(np.asarray(log.states)[: int(log.num_ticks) + 1])
+                visibilities.append(np.asarray(log.visibility)[: int(log.num_ticks) + 1])
+                if spec.estimator == "pf":
+                    covariances.append(np.asarray(log.position_cov_trace)[: int(log.num_ticks)])
             results["aggregate"] = metrics_lib.aggregate(results["laps"])
             if out is not None:
                 write_json_atomic(Path(out) / "metrics.json", results)
@@ -122,9 +146,6 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
                 bar.update(len(chunk))
                 bar.set_postfix(done=sum(lap["success"] for lap in results["laps"]))
     except KeyboardInterrupt:
-        if bar is not None:
-            bar.close()
-            bar = None
         results["interrupted"] = True
         if out is not None and results["laps"]:
             write_json_atomic(Path(out) / "metrics.json", results)
@@ -133,11 +154,30 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
         if bar is not None:
             bar.close()
     if out is not None and trajectories:
-        plot_trajectories(base.track, trajectories, Path(out) / "trajectories.png",
+        plot_trajectories(flight.base.track, trajectories, Path(out) / "trajectories.png",
                           title=f"{spec.controller}, target {spec.speed:g} m/s, {len(trajectories)} lap(s)")
-    results["trajectories"] = trajectories
-    results["covariances"] = covariances
-    return results
+    return {**results, "trajectories": trajectories, "covariances": covariances, "visibility": visibilities}
+
+
+def _progress_bar(spec: RaceSpec):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=spec.laps, desc=f"{spec.controller} @ {spec.speed:g} m/s", unit="lap")
+
+
+def draw_course(ax, track: track_lib.Track) -> None:
+    """The desired path, the gates' frames with their order and names, and the start, top down."""
+    path_xy = np.asarray(track.path_points)[:, :2]
+    ax.plot(path_xy[:, 0], path_xy[:, 1], "k:", lw=0.8, label="desired path")
+    corners = np.asarray(track.gates.outer_corners())  # (G, 4, 3)
+    for g in range(track.num_gates):
+        left, right = corners[g, 0, :2], corners[g, 1, :2]
+        ax.plot([left[0], right[0]], [left[1], right[1]], "r-", lw=3)
+        name = track.names[g] if track.names else str(g)
+        ax.annotate(f"{g + 1}:{name}", np.asarray(track.gates.centre[g, :2]), fontsize=7,
+                    xytext=(4, 4), textcoords="offset points")
+    start = np.asarray(track.start[:2])
+    ax.plot(*start, "g^", ms=9, label="start")
 
 
 def plot_trajectories(track: track_lib.Track, trajectories: list[np.ndarray], path: Path, title: str = "",
@@ -159,17 +199,7 @@ def plot_trajectories(track: track_lib.Track, trajectories: list[np.ndarray], pa
         lc = LineCollection(segments, cmap="viridis", norm=norm, linewidths=1.2, alpha=0.85)
         lc.set_array(value[:-1])
         ax.add_collection(lc)
-    path_xy = np.asarray(track.path_points)[:, :2]
-    ax.plot(path_xy[:, 0], path_xy[:, 1], "k:", lw=0.8, label="desired path")
-    corners = np.asarray(track.gates.outer_corners())  # (G, 4, 3)
-    for g in range(track.num_gates):
-        left, right = corners[g, 0, :2], corners[g, 1, :2]
-        ax.plot([left[0], right[0]], [left[1], right[1]], "r-", lw=3)
-        name = track.names[g] if track.names else str(g)
-        ax.annotate(f"{g + 1}:{name}", np.asarray(track.gates.centre[g, :2]), fontsize=7,
-                    xytext=(4, 4), textcoords="offset points")
-    start = np.asarray(track.start[:2])
-    ax.plot(*start, "g^", ms=9, label="start")
+    draw_course(ax, track)
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=ax, label=colour_label, shrink=0.7)
     ax.set_aspect("equal")
     ax.autoscale()

@@ -2,9 +2,14 @@
 :func:`~pixelmpc_jax.apps.race.run_laps` flies it, and an experiment grid keeps a finished cell only while its
 :meth:`RaceSpec.key` is unchanged.
 
+The controller's settings are its configuration as the library takes it, whole: one
+:class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`, whose ``mppi`` (:class:`~pixelmpc_jax.control.mppi.MPPIConfig`)
+and ``racing`` (:class:`~pixelmpc_jax.control.costs.RacingCostConfig`) also configure nominal MPPI. Every setting
+lives in one field of one configuration; the record, the key and the policy are derived from it.
+
 Settings that do not change a lap stay out of it: the batch size, the progress bar, the output folder, the
-video. The DOF weights enter as their fingerprint (:func:`dof_weights_hash`); the weights themselves are
-passed beside the spec.
+video, and how many devices a step's samples are split over. The DOF weights enter as their fingerprint
+(:func:`dof_weights_hash`); the weights themselves are passed beside the spec.
 """
 
 from __future__ import annotations
@@ -13,13 +18,18 @@ import dataclasses
 import functools
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, PixelMPCConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 
 COURSES = ("alphapilot", "straight")
-_FLOATS = ("speed", "t_f", "c_pixel", "max_time_s")
+
+
+def _default_config() -> PixelMPCConfig:
+    return PixelMPCConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,26 +38,26 @@ class RaceSpec:
 
     Attributes:
         controller: "mppi" (nominal MPPI) or "pixelmpc".
+        config: the controller's configuration. Nominal MPPI flies its ``mppi`` and ``racing``; its PixelMPC
+            fields are reset to their defaults for a nominal race (they fly nothing there), and
+            ``mppi.sample_devices`` to 1 (how a step runs, not what it computes: :meth:`policy` sets it).
         speed: target speed, m/s.
         laps: number of laps.
         seed: seed of the first lap.
         perturb: each lap's gates perturbed within the AlphaPilot bounds (with the lap's seed).
-        course: "alphapilot" or "straight" (:func:`~pixelmpc_jax.apps.race.make_course`).
-        detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.episode.EpisodeConfig`).
+        course: "alphapilot", "straight" or the path of a course file in the AlphaPilot file's format
+            (:func:`~pixelmpc_jax.apps.race.make_course`); a file enters the key by its contents.
+        detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`).
         estimator: "truth" or "pf" (the particle filter).
-        pixel_model: PixelMPC's pixel model, "dof" or "projection".
-        t_f: PixelMPC's pixel-cost horizon, s.
-        c_pixel: PixelMPC's pixel-cost weight.
-        temperature: MPPI's lambda; None for the tuned default.
-        num_samples: MPPI samples.
         max_time_s: timeout per lap, s.
-        options: further controller settings as sorted ``(name, value)`` pairs (a mapping is accepted; see
-            :func:`~pixelmpc_jax.sim.controllers.split_options`).
-        dof_weights: fingerprint (:func:`dof_weights_hash`) of the DOF weights flown; None for the packaged
-            paper weights. Always None for a race that does not evaluate the DOF.
+        dof_weights: the DOF weights flown: the name of weights shipped in the package
+            (:data:`~pixelmpc_jax.dynamics.dof.PACKAGED_VARIANTS`: "flown", "turned"), or the fingerprint
+            (:func:`dof_weights_hash`) of other weights; None for the packaged paper weights. Always None for a
+            race that does not evaluate the DOF.
     """
 
     controller: str = "mppi"
+    config: PixelMPCConfig = dataclasses.field(default_factory=_default_config)
     speed: float = 14.0
     laps: int = 1
     seed: int = 0
@@ -55,84 +65,167 @@ class RaceSpec:
     course: str = "alphapilot"
     detector: str = "geometry"
     estimator: str = "truth"
-    pixel_model: str = "dof"
-    t_f: float = 1.0
-    c_pixel: float = 9e6
-    temperature: float | None = None
-    num_samples: int = 512
     max_time_s: float = 60.0
-    options: tuple = ()
     dof_weights: str | None = None
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
             raise ValueError(f"unknown controller {self.controller!r}; choose one of {', '.join(CONTROLLERS)}")
-        if self.course not in COURSES:
-            raise ValueError(f"unknown course {self.course!r}; choose one of {', '.join(COURSES)}")
+        if self.course not in COURSES and not Path(self.course).is_file():
+            raise ValueError(f"unknown course {self.course!r}; choose one of {', '.join(COURSES)} or a course file")
+        if not isinstance(self.config, PixelMPCConfig):
+            raise ValueError(f"config must be a PixelMPCConfig, got {type(self.config).__name__}")
         if not (isinstance(self.speed, (int, float)) and 0 < self.speed < float("inf")):
             raise ValueError(f"speed must be a positive finite number of m/s, got {self.speed!r}")
         if not (isinstance(self.laps, int) and self.laps > 0):
             raise ValueError(f"laps must be a positive integer, got {self.laps!r}")
-        # one spelling per setting, so that the same race always has the same key: floats as floats, the
-        # options sorted by name, no DOF weights for a race that does not use them
-        for name in _FLOATS:
-            object.__setattr__(self, name, float(getattr(self, name)))
-        if self.temperature is not None:
-            object.__setattr__(self, "temperature", float(self.temperature))
-        object.__setattr__(self, "options", tuple(sorted((str(k), v) for k, v in dict(self.options).items())))
-        if not self.uses_dof:
-            object.__setattr__(self, "dof_weights", None)
+        # one spelling per race: floats as floats, no settings that fly nothing, no runtime-only settings
+        object.__setattr__(self, "speed", float(self.speed))
+        object.__setattr__(self, "max_time_s", float(self.max_time_s))
+        mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
+        if self.controller == "mppi":
+            config = PixelMPCConfig(mppi=mppi, racing=self.config.racing)
+        else:
+            config = dataclasses.replace(self.config, mppi=mppi)
+        object.__setattr__(self, "config", config)
+        packaged_dof_name = self.dof_weights in _packaged_variants()
+        if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
+            object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
 
     @property
     def uses_dof(self) -> bool:
-        """Whether the controller evaluates the DOF network (PixelMPC with the "dof" pixel model)."""
-        return self.controller == "pixelmpc" and self.pixel_model == "dof"
+        """Whether the controller evaluates a learned pixel model (PixelMPC with the "dof" or "vdof" pixel model),
+        whose weights ``dof_weights`` names."""
+        return self.controller == "pixelmpc" and self.config.pixel_model in LEARNED_PIXEL_MODELS
 
     def replace(self, **changes) -> RaceSpec:
         return dataclasses.replace(self, **changes)
 
     def record(self) -> dict:
-        """The spec in JSON types (the options as a name -> value mapping)."""
-        record = dataclasses.asdict(self)
-        record["options"] = dict(self.options)
-        return record
+        """The spec in JSON types: its fields, the configuration nested as its dataclasses (tuples as lists once
+        written). :meth:`from_record` reads it back."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_record(cls, record: dict) -> RaceSpec:
+        """The spec a :meth:`record` describes (read back from JSON). A setting the record lacks takes its
+        default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``."""
+        return _from_record(cls(), record, "")
+
+    def changed_settings(self) -> dict:
+        """The controller settings that differ from the defaults, as ``{dotted name: value}`` (for reports)."""
+        default = RaceSpec(self.controller).record()["config"]
+        return dict(_changed(self.record()["config"], default, ""))
 
     def dof_fingerprint(self) -> str | None:
-        """The fingerprint of the DOF weights flown (:func:`packaged_dof_hash` for None); None without the DOF."""
+        """The fingerprint of the DOF weights flown (:func:`packaged_dof_hash` for a packaged variant's name or
+        None); None without the DOF."""
         if not self.uses_dof:
             return None
-        return self.dof_weights or packaged_dof_hash()
+        if self.config.pixel_model == "vdof":
+            return self.dof_weights or packaged_vdof_hash()
+        if self.dof_weights is None or self.dof_weights in _packaged_variants():
+            return packaged_dof_hash(self.dof_weights or "paper")
+        return self.dof_weights
+
+    def packaged_dof(self):
+        """The DOF weights the race names, when they ship in the package (None for a race without the DOF); a
+        ValueError for weights named by a fingerprint, which the caller must pass."""
+        if not self.uses_dof:
+            return None
+        if self.dof_weights is not None and (self.config.pixel_model == "vdof"
+                                             or self.dof_weights not in _packaged_variants()):
+            raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
+        if self.config.pixel_model == "vdof":
+            from pixelmpc_jax.dynamics import vdof
+
+            return vdof.load_packaged_vdof()
+        from pixelmpc_jax.dynamics import dof
+
+        return dof.load_packaged_dof(self.dof_weights or "paper")
 
     def key(self) -> str:
-        """The cache key: 16 hex digits of the sha256 of :meth:`record` as canonical JSON, with the DOF weights
-        as flown (None resolved to the packaged weights' fingerprint). Equal for the same race however it was
-        written; any other setting, seed, number of laps or DOF weights gives another key."""
-        record = {**self.record(), "dof_weights": self.dof_fingerprint()}
-        return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+        """The cache key: 16 hex digits of the sha256 of :meth:`record` as canonical JSON (every number as a
+        float), with the DOF weights as flown (None resolved to the packaged weights' fingerprint). Equal for the
+        same race however it was written; any other setting, seed, number of laps or DOF weights gives another
+        key."""
+        record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
+        text = json.dumps(_canonical(record), sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def course_fingerprint(self) -> str:
+        """The course's name, or ``file:`` and the first 16 hex digits of a course file's sha256."""
+        if self.course in COURSES:
+            return self.course
+        return "file:" + hashlib.sha256(Path(self.course).read_bytes()).hexdigest()[:16]
 
     def policy(self, sample_devices: int = 1):
         """The controller as an episode Policy (:func:`~pixelmpc_jax.sim.controllers.make_policy`), its samples
-        split over ``sample_devices`` devices (``MPPIConfig.sample_devices``: how the step runs, not what it
-        computes, so not part of the spec)."""
+        split over ``sample_devices`` devices (``MPPIConfig.sample_devices``)."""
         from pixelmpc_jax.sim.controllers import make_policy
 
-        options = dict(self.options)
+        config = self.config
         if sample_devices != 1:
-            options["mppi.sample_devices"] = sample_devices
-        return make_policy(self.controller, self.temperature, self.num_samples, self.pixel_model, self.t_f,
-                           self.c_pixel, options)
+            config = dataclasses.replace(config, mppi=dataclasses.replace(config.mppi, sample_devices=sample_devices))
+        return make_policy(self.controller, config)
 
     def check_weights(self, dof_params) -> None:
         """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names."""
         if not self.uses_dof:
             return
         if dof_params is None:
-            if self.dof_weights is not None:
+            if self.dof_weights is not None and (self.config.pixel_model == "vdof"
+                                                 or self.dof_weights not in _packaged_variants()):
                 raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
             return
         flown = dof_weights_hash(dof_params)
         if flown != self.dof_fingerprint():
             raise ValueError(f"dof_params have fingerprint {flown}, the race names {self.dof_fingerprint()}")
+
+
+def _canonical(value):
+    """``value`` with every number as a float and every sequence as a list (one JSON spelling per value)."""
+    if isinstance(value, dict):
+        return {k: _canonical(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def _from_record(default, record: dict, where: str):
+    """``default`` (a dataclass instance) with the settings of ``record``; nested dataclass fields recursively,
+    lists as tuples."""
+    cls = type(default)
+    if not isinstance(record, dict):
+        raise ValueError(f"setting {where.rstrip('.') or 'record'} must be a mapping, got {record!r}")
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(record) - fields)
+    if unknown:
+        raise ValueError(f"unknown setting {where}{unknown[0]}: {cls.__name__} has the fields "
+                         f"{', '.join(sorted(fields))}")
+    values = {}
+    for name, value in record.items():
+        nested = getattr(default, name)
+        if dataclasses.is_dataclass(nested) and isinstance(value, dict):
+            value = _from_record(nested, value, f"{where}{name}.")
+        elif isinstance(value, list):
+            value = tuple(value)
+        values[name] = value
+    try:
+        return dataclasses.replace(default, **values)
+    except TypeError as err:
+        raise ValueError(f"setting {where.rstrip('.') or cls.__name__}: {err}") from None
+
+
+def _changed(record: dict, default: dict, prefix: str):
+    """``(dotted name, value)`` of every leaf of ``record`` that differs from ``default``."""
+    for name, value in record.items():
+        if isinstance(value, dict):
+            yield from _changed(value, default.get(name, {}), f"{prefix}{name}.")
+        elif _canonical(value) != _canonical(default.get(name)):
+            yield f"{prefix}{name}", value
 
 
 def dof_weights_hash(params) -> str:
@@ -148,19 +241,36 @@ def dof_weights_hash(params) -> str:
     return digest.hexdigest()[:16]
 
 
-def packaged_dof_hash() -> str:
-    """:func:`dof_weights_hash` of the DOF weights shipped inside the package (computed again only when the
-    weights file changes)."""
-    from pixelmpc_jax.dynamics import dof
+def packaged_vdof_hash() -> str:
+    """:func:`dof_weights_hash` of the vdof weights shipped inside the package."""
+    from pixelmpc_jax.dynamics import vdof
 
-    path = dof.PACKAGED_VARIANTS["paper"]
+    path = vdof.PACKAGED_VDOF
     stat = path.stat() if path.exists() else None
-    return _packaged_hash(str(path), stat and (stat.st_mtime_ns, stat.st_size))
+    return _packaged_hash("vdof", str(path), stat and (stat.st_mtime_ns, stat.st_size))
 
 
-@functools.lru_cache(maxsize=4)
-def _packaged_hash(path: str, version) -> str:
-    """The packaged weights' fingerprint, cached by the file's ``path`` and ``version`` (mtime, size)."""
+def _packaged_variants() -> dict:
     from pixelmpc_jax.dynamics import dof
 
-    return dof_weights_hash(dof.load_packaged_dof())
+    return dof.PACKAGED_VARIANTS
+
+
+def packaged_dof_hash(variant: str = "paper") -> str:
+    """:func:`dof_weights_hash` of DOF weights shipped inside the package (computed again only when the
+    weights file changes)."""
+    path = _packaged_variants()[variant]
+    stat = path.stat() if path.exists() else None
+    return _packaged_hash(variant, str(path), stat and (stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=8)
+def _packaged_hash(variant: str, path: str, version) -> str:
+    """The packaged weights' fingerprint, cached by the file's ``path`` and ``version`` (mtime, size)."""
+    if variant == "vdof":
+        from pixelmpc_jax.dynamics import vdof
+
+        return dof_weights_hash(vdof.load_packaged_vdof())
+    from pixelmpc_jax.dynamics import dof
+
+    return dof_weights_hash(dof.load_packaged_dof(variant))

@@ -6,6 +6,7 @@ FlightGoggles-like plant of ``sim/plant.py`` is used by the racing loop).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -13,7 +14,7 @@ import jax.numpy as jnp
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import MPPIConfig, MPPIInfo, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
 
 
@@ -81,4 +82,53 @@ def fly_to_waypoint(
     return run(jax.random.PRNGKey(seed), start, waypoint)
 
 
-__all__ = ["WaypointFlight", "fly_to_waypoint", "waypoint_config", "MPPIInfo"]
+
+def run_demo(distance: float = 5.0, seconds: float = 4.0, samples: int = 512, seed: int = 0, out=None) -> dict:
+    """``pixelmpc demo``: fly from hover at 2 m to a waypoint ``distance`` ahead for ``seconds``, print a summary
+    and, with ``out``, write ``demo.json`` and ``demo.png``; returns the summary."""
+    import numpy as np
+
+    start = quadrotor.hover_state((0.0, 0.0, 2.0))
+    waypoint = jnp.asarray([distance, 0.0, 2.0, 0.0])
+    config = waypoint_config(num_samples=samples)
+    print(f"MPPI hover-to-waypoint: {distance:.1f} m, N={config.num_samples}, T={config.horizon}, "
+          f"{seconds:.1f} s at {1 / config.dt:.0f} Hz ...")
+    flight = fly_to_waypoint(start, waypoint, num_ticks=max(1, int(round(seconds / config.dt))), seed=seed,
+                             config=config)
+    states = np.asarray(flight.states)
+    error = np.linalg.norm(states[:, :3] - np.asarray(waypoint[:3]), axis=1)
+    times = np.arange(len(states)) * config.dt
+    reached = np.nonzero(error < 0.2)[0]
+    summary = {
+        "final_position": states[-1, :3].round(3).tolist(),
+        "final_error_m": float(error[-1]),
+        "time_to_within_0.2m_s": float(times[reached[0]]) if reached.size else None,
+        "max_error_last_second_m": float(error[times >= times[-1] - 1.0].max()),
+    }
+    for key, value in summary.items():
+        print(f"  {key}: {value}")
+    if out is not None:
+        _write_demo(Path(out), summary, times, states, error)
+    return summary
+
+
+def _write_demo(out: Path, summary: dict, times, states, error) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pixelmpc_jax.strict_json import write_json_atomic
+
+    write_json_atomic(out / "demo.json", summary)
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    for i, name in enumerate("xyz"):
+        ax[0].plot(times, states[:, i], label=name)
+    ax[0].set(xlabel="time [s]", ylabel="position [m]", title="position")
+    ax[0].legend()
+    ax[1].plot(times, error)
+    ax[1].set(xlabel="time [s]", ylabel="distance to waypoint [m]", yscale="log", title="error")
+    fig.tight_layout()
+    fig.savefig(out / "demo.png", dpi=120)
+    plt.close(fig)
+    print(f"  wrote {out / 'demo.json'} and {out / 'demo.png'}")

@@ -1,9 +1,9 @@
-"""Costs for MPPI: the racing cost, Eq. (19), for one state or a batch of samples, its per-step parameters; waypoints.
+"""Costs for MPPI: the racing cost, Eq. (19), over every predicted state at once, its per-step parameters; waypoints.
 
-Each cost is a pure function of one state, of the batch of samples at one horizon step with the samples on
-the last axis (``racing_cost_batch``), or of every sample at every step at once (``racing_costs``, what the
-controllers use); the targets it reads (waypoints, gate geometry, speeds) come in ``params``, so changing
-them never recompiles. What depends only on the track (``racing_constants``) can be built once per track.
+The waypoint cost is a pure function of one state; the racing cost (``racing_costs``) of every sample at every
+horizon step at once, as the controllers call it after the rollout. The targets a cost reads (waypoints, gate
+geometry, speeds) come in ``params``, so changing them never recompiles. What depends only on the track
+(``racing_constants``) can be built once per track.
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from flax import struct
 
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import track as track_lib
+
+SPEED_CAP_NONE = 1e30  # m/s, the speed cap of the cost without one (max_lateral_acc None): above any target speed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +160,8 @@ class RacingConstants:
     Attributes:
         points: (P', 3) every ``path_stride``-th sample of the track's path.
         arc: (P',) their arc length, m.
-        attributes: (P', 4) the unit path tangents there and, in column 3, the speed cap (m/s).
+        attributes: (P', 4) the unit path tangents there and, in column 3, the speed cap (m/s; ``SPEED_CAP_NONE``
+            where there is none).
         spacing: () distance between consecutive points, m.
     """
 
@@ -172,6 +175,8 @@ def racing_constants(track: track_lib.Track, config: RacingCostConfig) -> Racing
     """The per-track constants of the racing cost (jit-able; compute once per track and config)."""
     stride = config.path_stride
     cap = speed_cap(track, config)[::stride]
+    if config.max_lateral_acc is None:  # no cap: a finite stand-in, since the cost interpolates it (inf - inf = NaN)
+        cap = jnp.full_like(cap, SPEED_CAP_NONE)
     return RacingConstants(
         points=track.path_points[::stride],
         arc=track.path_s[::stride],
@@ -239,102 +244,6 @@ def speed_cap(track: track_lib.Track, config: RacingCostConfig) -> jax.Array:
     return jnp.sqrt(config.max_lateral_acc / jnp.maximum(curvature, 1e-6))
 
 
-def closest_on_polyline(path_xyz: jax.Array, tangent_xyz: jax.Array, p: jax.Array,
-                        path_s: jax.Array | None = None, expected_s: jax.Array | None = None,
-                        progress_weight: float = 0.0):
-    """Distance from points to a polyline and the interpolated attributes (unit tangent, ...) there.
-
-    Points come with the samples on the LAST axis, ``p`` (3, N), so every array below is (..., N) with the
-    samples contiguous: the per-segment work vectorises across samples, and the segment is picked with a
-    min-mask reduction over the (short) segment axis rather than an argmin and gather.
-
-    Args:
-        path_xyz: (3, L) polyline vertices, coordinates first.
-        tangent_xyz: (C, L) per-vertex attributes; rows 0-2 are the unit tangent (renormalised after
-            interpolation), further rows are interpolated linearly.
-        p: (3, N) the points.
-        path_s, expected_s, progress_weight: optionally, (L,) arc lengths of the vertices and the expected
-            progress: the segment chosen minimises ``d^2 + progress_weight * (s - expected_s)^2``.
-
-    Returns:
-        distance: (N,) to the chosen segment; attributes: (C, N).
-    """
-    chex.assert_shape([path_xyz, p], [(3, None), (3, None)])
-    chex.assert_equal_shape_suffix([path_xyz, tangent_xyz], 1)  # (., L) both
-    a = path_xyz[:, :-1]  # (3, S), S = L - 1 segments
-    ab = path_xyz[:, 1:] - a
-    len2 = jnp.maximum(jnp.sum(ab * ab, axis=0), 1e-12)  # (S,)
-    r = p[:, None, :] - a[:, :, None]  # (3, S, N)
-    t = jnp.clip(jnp.sum(r * ab[:, :, None], axis=0) / len2[:, None], 0.0, 1.0)  # (S, N)
-    e = r - t[None] * ab[:, :, None]
-    d2 = jnp.sum(e * e, axis=0)  # (S, N)
-    metric = d2
-    if path_s is not None and progress_weight > 0.0:
-        s = path_s[:-1, None] + t * (path_s[1:] - path_s[:-1])[:, None]
-        metric = d2 + progress_weight * (s - expected_s) ** 2
-    select = (metric <= jnp.min(metric, axis=0)).astype(p.dtype)
-    select = select / jnp.sum(select, axis=0)
-    m = jnp.sum(d2 * select, axis=0)  # (N,)
-    attributes = tangent_xyz[:, :-1, None] + t[None] * (tangent_xyz[:, 1:] - tangent_xyz[:, :-1])[:, :, None]
-    attributes = jnp.sum(attributes * select[None], axis=1)  # (C, N)
-    tangent = attributes[:3] / jnp.maximum(jnp.sqrt(jnp.sum(attributes[:3] ** 2, axis=0)), 1e-6)
-    return jnp.sqrt(m), jnp.concatenate([tangent, attributes[3:]], axis=0)
-
-
-def crashed(p: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
-    """(N,) bool for points p (3, N): inside a gate frame's volume, below the floor or outside the hall."""
-    chex.assert_rank(p, 2)
-    gates = params.gates
-    r = config.vehicle_radius
-    offset = p[:, None, :] - gates.centre.T[:, :, None]  # (3, G, N)
-    # gate-frame coordinates [along normal, lateral, up]: local_i = sum_j rotation[g, j, i] offset_j. Summed
-    # over the middle axis of (i, j, G, N): the same sum over a leading axis compiles ~8 ms slower per step.
-    rotation = jnp.transpose(gates.rotation, (2, 1, 0))  # (i, j, G)
-    local = jnp.sum(rotation[:, :, :, None] * offset[None], axis=1)  # (3, G, N)
-    col = lambda v: v[:, None]  # noqa: E731  (G,) -> (G, 1)
-    slab = jnp.abs(local[0]) <= col(jnp.maximum(0.5 * gates.depth + r, config.crash_slab_halfwidth))
-    outer = (jnp.abs(local[1]) <= col(0.5 * gates.width + gates.border + r)) & (
-        jnp.abs(local[2]) <= col(0.5 * gates.height + gates.border + r))
-    opening = (jnp.abs(local[1]) < col(0.5 * gates.width - r)) & (jnp.abs(local[2]) < col(0.5 * gates.height - r))
-    frame = jnp.any(slab & outer & ~opening, axis=0)
-    ground = p[2] < params.hall_min[2] + r
-    wall = jnp.any(p < params.hall_min[:, None] + r, axis=0) | jnp.any(p > params.hall_max[:, None] - r, axis=0)
-    return frame | ground | wall
-
-
-def desired_attitude(tangent: jax.Array) -> jax.Array:
-    """q_d: level, heading along the path tangent (3, ...) -> (4, ...)."""
-    return jnp.stack(_desired_attitude_elementwise(tangent[0], tangent[1]))
-
-
-def attitude_distance(q_d: jax.Array, q: jax.Array) -> jax.Array:
-    """min(|q_d - q|^2, |q_d + q|^2) over the leading (4,) axis: q and -q are one attitude."""
-    return jnp.minimum(jnp.sum((q_d - q) ** 2, axis=0), jnp.sum((q_d + q) ** 2, axis=0))
-
-
-def racing_cost_batch(X: jax.Array, t: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
-    """Eq. (19) for a batch of states at horizon step t: ``X`` (N, >= 10) -> (N,).
-
-    The work runs with the samples on the last axis (see :func:`closest_on_polyline`); that layout makes
-    the cost about 1.6x faster on a CPU than a ``vmap`` of a one-state version (README, "Racing cost layout").
-    """
-    chex.assert_rank(X, 2)
-    x = X[:, :quadrotor.STATE_DIM].T  # (10, N)
-    p, q, v = x[quadrotor.POS], x[quadrotor.QUAT], x[quadrotor.VEL]
-    distance, attributes = closest_on_polyline(params.path_xyz[t], params.tangent_xyz[t], p, params.path_s[t],
-                                               params.expected_s[t], config.progress_weight)
-    tangent, cap = attributes[:3], attributes[3]
-    h = _path_term(distance, crashed(p, params, config), q, config)
-    attitude_error = attitude_distance(desired_attitude(tangent), q)
-    if config.heading_weight < 1.0:
-        own_heading = jnp.stack([2.0 * (q[0] * q[3] + q[1] * q[2]), 1.0 - 2.0 * (q[2] ** 2 + q[3] ** 2)])  # yaw
-        level = desired_attitude(jnp.stack([own_heading[1], own_heading[0]]))
-        attitude_error = (config.heading_weight * attitude_error
-                          + (1.0 - config.heading_weight) * attitude_distance(level, q))
-    velocity_error = jnp.sum((jnp.minimum(params.target_speed, cap) * tangent - v) ** 2, axis=0)
-    return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
-
-
 def _path_term(distance: jax.Array, crash: jax.Array, q, config: RacingCostConfig) -> jax.Array:
     """h of Eq. (19): min(distance / corridor_halfwidth, 1), or ``crash_value`` on a crash (``crash``, or a tilt
     of the attitude q = [qw, qx, qy, qz] beyond ``max_tilt_deg``)."""
@@ -346,13 +255,19 @@ def _path_term(distance: jax.Array, crash: jax.Array, q, config: RacingCostConfi
 
 
 def racing_costs(X: jax.Array, steps: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
-    """Eq. (19) for a whole batch of predicted states at once: ``X`` (T, N, >= 10) at horizon steps ``steps``
-    (T,) -> (T, N), the numbers :func:`racing_cost_batch` gives step by step (up to float rounding).
+    """Eq. (19), c1 h^2 + c2 |q_d - q|^2 + c3 |v_d - v|^2, for a whole batch of predicted states at once: ``X``
+    (T, N, >= 10) at horizon steps ``steps`` (T,) -> (T, N); ``X[t]`` is compared with step ``steps[t]``'s window.
+
+    h = min(d / corridor_halfwidth, 1) with d the distance to the desired path, or ``crash_value`` on a
+    crash (a gate frame, the floor, the walls, or a tilt beyond ``max_tilt_deg``); q_d is level and faces
+    along the path tangent (the sign of q is chosen to make the distance smallest, since q and -q are one
+    attitude); v_d = min(target_speed, speed cap at the closest point) * tangent (see
+    ``RacingCostConfig.max_lateral_acc``).
 
     Every operation is elementwise over the (T, N) batch: the short axes (coordinates, the window's
     segments, the gates, quaternion components) are unrolled here rather than reduced, so XLA fuses the
     cost into a few loop kernels over all T x N samples instead of running small reductions at every
-    step. The work per sample is the same as :func:`racing_cost_batch`'s.
+    step.
     """
     chex.assert_rank(X, 3)
     chex.assert_type(X, float)
@@ -363,14 +278,14 @@ def racing_costs(X: jax.Array, steps: jax.Array, params: RacingParams, config: R
     comp = [X[..., i] for i in range(quadrotor.STATE_DIM)]  # (T, N) each
     p, q, v = comp[0:3], comp[3:7], comp[7:10]
     distance, tangent, cap = _closest_on_windows(params, steps, p, config.progress_weight)
-    h = _path_term(distance, _crashed_elementwise(p, params, config), q, config)
-    attitude_error = _attitude_distance_elementwise(_desired_attitude_elementwise(tangent[0], tangent[1]), q)
+    h = _path_term(distance, _crashed(p, params, config), q, config)
+    attitude_error = _attitude_distance(_desired_attitude(tangent[0], tangent[1]), q)
     if config.heading_weight < 1.0:
         heading_y = 2.0 * (q[0] * q[3] + q[1] * q[2])  # the vehicle's own heading (yaw)
         heading_x = 1.0 - 2.0 * (q[2] ** 2 + q[3] ** 2)
-        level = _desired_attitude_elementwise(heading_x, heading_y)
+        level = _desired_attitude(heading_x, heading_y)
         attitude_error = (config.heading_weight * attitude_error
-                          + (1.0 - config.heading_weight) * _attitude_distance_elementwise(level, q))
+                          + (1.0 - config.heading_weight) * _attitude_distance(level, q))
     speed = jnp.minimum(params.target_speed, cap)
     velocity_error = _sum3([(speed * tangent[i] - v[i]) ** 2 for i in range(3)])
     return config.c1 * h**2 + config.c2 * attitude_error + config.c3 * velocity_error
@@ -382,9 +297,14 @@ def _sum3(terms):
 
 
 def _closest_on_windows(params: RacingParams, steps: jax.Array, p: list, progress_weight: float):
-    """:func:`closest_on_polyline` for points p = [x, y, z] (T, N) each, step t's against its own window.
+    """The closest point of each step's window of the path to points p = [x, y, z], (T, N) each, step t's
+    against its own window.
 
-    Returns distance (T, N), the unit tangent [tx, ty, tz] and the speed cap, (T, N) each.
+    The segment chosen minimises ``d^2 + progress_weight * (s - expected_s)^2`` (d^2 alone where the weight is
+    0), s the arc length of the closest point of the segment; exact ties average the tied segments. The window's
+    attributes (unit tangent, speed cap) are interpolated linearly along the segment and the tangent renormalised.
+
+    Returns distance (T, N) to the chosen segment, the unit tangent [tx, ty, tz] and the speed cap, (T, N) each.
     """
     path = jnp.take(params.path_xyz, steps, axis=0)  # (T, 3, L)
     attributes = jnp.take(params.tangent_xyz, steps, axis=0)  # (T, C, L)
@@ -431,8 +351,9 @@ def _closest_on_windows(params: RacingParams, steps: jax.Array, p: list, progres
     return distance, [attrs[i] / norm for i in range(3)], attrs[3]
 
 
-def _crashed_elementwise(p: list, params: RacingParams, config: RacingCostConfig) -> jax.Array:
-    """:func:`crashed` for points p = [x, y, z], each of any shape, one gate at a time."""
+def _crashed(p: list, params: RacingParams, config: RacingCostConfig) -> jax.Array:
+    """Points p = [x, y, z], each of any shape, inside a gate frame's volume (one gate at a time), below the floor
+    or outside the hall (bool, p's shape)."""
     gates = params.gates
     r = config.vehicle_radius
     frame = jnp.zeros(p[0].shape, bool)
@@ -452,10 +373,10 @@ def _crashed_elementwise(p: list, params: RacingParams, config: RacingCostConfig
     return frame | wall
 
 
-def _desired_attitude_elementwise(tx: jax.Array, ty: jax.Array) -> list:
-    """:func:`desired_attitude` of the tangent (tx, ty, .) as [qw, qx, qy, qz]: the yaw rotation by psi, the
+def _desired_attitude(tx: jax.Array, ty: jax.Array) -> list:
+    """q_d, level and heading along the tangent (tx, ty, .), as [qw, qx, qy, qz]: the yaw rotation by psi, the
     heading of (tx, ty), i.e. [cos(psi / 2), 0, 0, sin(psi / 2)], up to the sign of the quaternion (q and -q
-    are one attitude, and :func:`attitude_distance` takes the nearer of the two).
+    are one attitude, and :func:`_attitude_distance` takes the nearer of the two).
 
     Without trigonometry: (cos, sin)(psi / 2) is the unit bisector of the x axis and (tx, ty), the direction
     of (r + tx, ty) with r = |(tx, ty)|, or equally of (ty, r - tx) (that times sign(psi)); the first is
@@ -474,24 +395,12 @@ def _desired_attitude_elementwise(tx: jax.Array, ty: jax.Array) -> list:
     return [jnp.where(ok, c * inv, 1.0), zero, zero, s * inv]
 
 
-def _attitude_distance_elementwise(q_d: list, q: list) -> jax.Array:
-    """:func:`attitude_distance` of quaternions given as [qw, qx, qy, qz] lists of equally shaped arrays."""
+def _attitude_distance(q_d: list, q: list) -> jax.Array:
+    """min(|q_d - q|^2, |q_d + q|^2) of quaternions given as [qw, qx, qy, qz] lists of equally shaped arrays: q and
+    -q are one attitude."""
     minus = ((q_d[0] - q[0]) ** 2 + (q_d[1] - q[1]) ** 2) + ((q_d[2] - q[2]) ** 2 + (q_d[3] - q[3]) ** 2)
     plus = ((q_d[0] + q[0]) ** 2 + (q_d[1] + q[1]) ** 2) + ((q_d[2] + q[2]) ** 2 + (q_d[3] + q[3]) ** 2)
     return jnp.minimum(minus, plus)
-
-
-def racing_cost(x: jax.Array, t: jax.Array, params: RacingParams, config: RacingCostConfig) -> jax.Array:
-    """Eq. (19) for one state at horizon step t: c1 h^2 + c2 |q_d - q|^2 + c3 |v_d - v|^2.
-
-    h = min(d / corridor_halfwidth, 1) with d the distance to the desired path, or ``crash_value`` on a
-    crash (a gate frame, the floor, the walls, or a tilt beyond ``max_tilt_deg``); q_d is level and faces
-    along the path tangent (the sign of q is chosen to make the distance smallest, since q and -q are one
-    attitude); v_d = min(target_speed, speed cap at the closest point) *
-    tangent (see ``RacingCostConfig.max_lateral_acc``). The same computation as :func:`racing_cost_batch`
-    (a batch of one).
-    """
-    return racing_cost_batch(x[None], t, params, config)[0]
 
 
 def plan_progress(track: track_lib.Track, trajectory: jax.Array, progress_s: jax.Array, horizon: int,

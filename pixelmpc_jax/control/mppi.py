@@ -10,9 +10,10 @@ and ``params`` is any pytree (network weights, targets, gate geometry) passed to
 never recompile. A running cost may instead be written for the whole batch of samples at a step and
 wrapped in :class:`BatchCost`, or for every step and sample at once and wrapped in :class:`TrajectoryCost`
 (layouts the compiler vectorises better for costs with inner reductions).
-One optimisation iteration samples ``N`` noise sequences, rolls all of them out with ``lax.scan`` over
-the horizon (the dynamics ``vmap``-ed over samples at each step; the running costs are then evaluated
-over all (T, N) predicted states at once, see ``MPPIConfig.rollout``), and updates the plan
+One optimisation iteration samples ``N`` noise sequences (:func:`_sample`), rolls all of them out with
+``lax.scan`` over the horizon (the dynamics ``vmap``-ed over samples at each step; the running costs are then
+evaluated over all (T, N) predicted states at once, :func:`rollout_costs`), weighs them (:func:`_weights`)
+and updates the plan (:func:`_update`):
 
     S_k = sum_t running_cost + terminal_cost + gamma * sum_t U_t^T Sigma^-1 eps_{k,t}
     w_k = softmax(-(S_k - min_j S_j) / lambda)           (non-finite S_k get w_k = 0)
@@ -57,7 +58,6 @@ from pixelmpc_jax.control.sampling import (
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
 SIGMA_MIN, SIGMA_MAX = 1e-18, 1e18  # sigma^2 and 1 / sigma^2 (the control cost) stay normal float32 numbers
-ROLLOUTS = ("batched", "per_step")  # MPPIConfig.rollout
 
 
 def _is_number(value) -> bool:
@@ -83,17 +83,10 @@ class MPPIConfig:
             along the horizon, as in iCEM and MPPI-Generic's coloured sampler: 0 (the paper's) samples white
             noise, 1 pink, 2 red (smooth, slowly varying). Every step's marginal std stays ``noise_sigma``;
             see :func:`coloured_noise_filter`.
-        rollout: how the samples' costs are computed; the same plan either way, up to float rounding.
-            "batched" (the default): the scan over the horizon carries only the dynamics; the running costs
-            are evaluated afterwards, once, over all T x N predicted states (a :class:`TrajectoryCost` sees
-            them in one call, and XLA runs the cost as a few large kernels instead of many small ones at
-            every step). "per_step": each step's costs are evaluated inside the scan: the implementation
-            before this option, kept for one release to compare against (PixelMPC and nominal MPPI then
-            also use their former step-by-step racing cost).
         sample_devices: split the N samples over this many local devices (1: one device, the default). The
             samples are the same (drawn whole from the same key) and so is the plan, up to float rounding;
             each device rolls out N / sample_devices of them. N must split evenly. On a CPU the cores become
-            devices only if asked before JAX starts (:func:`~pixelmpc_jax.control.sampling.split_host_cpu`).
+            devices only if asked before JAX starts (:func:`~pixelmpc_jax.host.split_host_cpu`).
         cpu_matmul: whose kernels run the step's products on a CPU: "auto", "xla" or "ynnpack"
             (:func:`~pixelmpc_jax.control.sampling.compiler_options`); the same products either way.
     """
@@ -109,14 +102,12 @@ class MPPIConfig:
     control_cost_weight: float = 0.0
     nominal_sample: bool = True
     noise_exponent: float = 0.0
-    rollout: str = "batched"
     sample_devices: int = 1
     cpu_matmul: str = "auto"
 
     def __post_init__(self):
-        for name, value, choices in (("rollout", self.rollout, ROLLOUTS), ("cpu_matmul", self.cpu_matmul, CPU_MATMULS)):
-            if value not in choices:
-                raise ValueError(f"MPPIConfig.{name} must be one of {choices}, got {value!r}")
+        if self.cpu_matmul not in CPU_MATMULS:
+            raise ValueError(f"MPPIConfig.cpu_matmul must be one of {CPU_MATMULS}, got {self.cpu_matmul!r}")
         for name in ("num_samples", "horizon", "iterations", "sample_devices"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
@@ -134,9 +125,8 @@ class MPPIConfig:
         except (TypeError, ValueError) as err:
             raise ValueError(f"MPPIConfig.noise_sigma must be numbers, got {self.noise_sigma!r}") from err
         if sigma.ndim != 1 or sigma.size == 0:
-            raise ValueError(
-                f"MPPIConfig.noise_sigma must be a 1-D sequence (m,), one std per control channel; "
-                f"got shape {sigma.shape}")
+            raise ValueError(f"MPPIConfig.noise_sigma must be a 1-D sequence (m,), one std per control channel; "
+                             f"got shape {sigma.shape}")
         if not np.all((sigma == 0) | ((sigma >= SIGMA_MIN) & (sigma <= SIGMA_MAX))):
             raise ValueError(f"MPPIConfig.noise_sigma: each std must be 0 or a number in [{SIGMA_MIN:g}, "
                              f"{SIGMA_MAX:g}] (its square and inverse square must be float32 numbers), "
@@ -161,9 +151,8 @@ class MPPIConfig:
         if self.u_min is not None and self.u_max is not None:
             lo, hi = np.asarray(self.u_min), np.asarray(self.u_max)
             if np.any(lo > hi):
-                bad = np.nonzero(lo > hi)[0].tolist()
-                raise ValueError(
-                    f"MPPIConfig: u_min > u_max in channels {bad} (u_min={self.u_min}, u_max={self.u_max})")
+                raise ValueError(f"MPPIConfig: u_min > u_max in channels {np.nonzero(lo > hi)[0].tolist()} "
+                                 f"(u_min={self.u_min}, u_max={self.u_max})")
         if not (isinstance(self.noise_exponent, (int, float)) and 0.0 <= self.noise_exponent <= 4.0):
             raise ValueError(f"MPPIConfig.noise_exponent (beta) must lie in [0, 4], got {self.noise_exponent!r}")
         if not (_is_number(self.control_cost_weight) and 0 <= self.control_cost_weight <= FLOAT32_MAX):
@@ -221,8 +210,9 @@ class Controller(NamedTuple):
         step_pure: the same step, unjitted and unvalidated, to compose inside a larger jitted function
             (a closed-loop episode scanned over time).
         config: the MPPIConfig it was built with.
-        num_compilations: ``() -> int``, how many versions of the jitted step exist (one per distinct
-            input signature); a control loop must keep it at 1.
+        num_compilations: ``() -> int``, how many times the jitted step has been traced: JAX traces it once
+            per new input signature (shapes, dtypes, static structure), right before compiling that version;
+            a control loop must keep it at 1.
         shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live
             (:class:`~pixelmpc_jax.control.sampling.SampleShardings`; put params there once with
             ``jax.device_put(params, ctrl.shardings.replicated)`` to save a copy per call); else None.
@@ -256,9 +246,9 @@ class Prefix(NamedTuple):
 class BatchCost:
     """A running cost written for every sample at once: ``fn(X (N, n), U (N, m), t, params) -> (N,)``.
 
-    MPPI calls ``fn`` on the whole batch at each horizon step instead of vmapping a one-sample cost; the
-    cost can then lay its work out with the samples on the last (contiguous) axis. Called with one
-    sample, ``BatchCost(fn)(x, u, t, params)`` runs ``fn`` on a batch of one.
+    MPPI calls ``fn`` on each horizon step's batch of predicted states (``vmap``-ed over the steps) instead of
+    vmapping a one-sample cost; the cost can then lay its work out with the samples on the last (contiguous)
+    axis. Called with one sample, ``BatchCost(fn)(x, u, t, params)`` runs ``fn`` on a batch of one.
     """
 
     fn: Callable
@@ -272,9 +262,10 @@ class TrajectoryCost:
     """A running cost written for every step and sample at once: ``fn(X (T, N, n), U (T, N, m), steps (T,), params)
     -> (T, N)``, where ``X[t]`` is the state reached by ``U[t]`` at horizon step ``steps[t]``.
 
-    With the "batched" rollout MPPI calls ``fn`` once on all the predicted states, so the cost can lay its
-    work out over the whole (T, N) batch; the "per_step" rollout calls it at each step with T = 1. Called
-    with one sample, ``TrajectoryCost(fn)(x, u, t, params)`` runs ``fn`` on a batch of one.
+    MPPI calls ``fn`` once on all the predicted states of a run of steps charged by this cost, so the cost can
+    lay its work out over the whole (T, N) batch (XLA then runs it as a few large kernels instead of many
+    small ones at every step). Called with one sample, ``TrajectoryCost(fn)(x, u, t, params)`` runs ``fn`` on a
+    batch of one.
     """
 
     fn: Callable
@@ -300,9 +291,6 @@ def _checked_costs(costs, N: int, fn: Callable, batch: bool) -> jax.Array:
 def _stage_costs(cost: Callable, X: jax.Array, U: jax.Array, t, params) -> jax.Array:
     """(N,) running costs of a batch of states at one step (samples on axis 0)."""
     N = X.shape[0]
-    if isinstance(cost, TrajectoryCost):
-        return _checked_trajectory_costs(cost.fn(X[None], U[None], jnp.asarray(t)[None], params), (1, N),
-                                         cost.fn)[0]
     if isinstance(cost, BatchCost):
         return _checked_costs(cost.fn(X, U, t, params), N, cost.fn, batch=True)
     return _checked_costs(jax.vmap(cost, in_axes=(0, 0, None, None))(X, U, t, params), N, cost, batch=False)
@@ -335,40 +323,21 @@ def _segments(dynamics, running_cost, prefix: Prefix | None, horizon: int):
     return parts
 
 
-def rollout_cost(
-    dynamics: Callable,
-    running_cost: Callable,
-    terminal_cost: Callable | None,
-    x0: jax.Array,
-    controls: jax.Array,
-    params: Any,
-    prefix: Prefix | None = None,
-    rollout: str = "batched",
-) -> jax.Array:
+def rollout_cost(dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None, x0: jax.Array,
+                 controls: jax.Array, params: Any, prefix: Prefix | None = None) -> jax.Array:
     """Total cost of one control sequence from x0. controls: (T, m) -> scalar (:func:`rollout_costs` of a
     batch of one)."""
-    return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls[None], params, prefix, rollout)[0]
+    return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls[None], params, prefix)[0]
 
 
-def rollout_costs(
-    dynamics: Callable,
-    running_cost: Callable,
-    terminal_cost: Callable | None,
-    x0: jax.Array,
-    controls: jax.Array,
-    params: Any,
-    prefix: Prefix | None = None,
-    rollout: str = "batched",
-) -> jax.Array:
+def rollout_costs(dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None, x0: jax.Array,
+                  controls: jax.Array, params: Any, prefix: Prefix | None = None) -> jax.Array:
     """Total cost of N control sequences from one x0. controls: (N, T, m) -> (N,).
 
-    ``rollout`` (see :class:`MPPIConfig`): "batched" scans the dynamics over the horizon, carrying the batch
-    of states (N, n), then evaluates the running costs once over all (T, N) predicted states; "per_step"
-    evaluates each step's costs inside the scan. The dynamics are vmapped over samples; a one-sample cost is
-    vmapped, a :class:`BatchCost` called on each step's batch, a :class:`TrajectoryCost` on all the steps.
+    Scans the dynamics (vmapped over the samples) over the horizon, carrying the batch of states (N, n), then
+    evaluates the running costs once over all (T, N) predicted states: a one-sample cost vmapped, a
+    :class:`BatchCost` called on each step's batch, a :class:`TrajectoryCost` on all the steps at once.
     """
-    if rollout not in ROLLOUTS:
-        raise ValueError(f"rollout must be one of {ROLLOUTS}, got {rollout!r}")
     chex.assert_rank(controls, 3)
     chex.assert_rank(x0, 1)
     N = controls.shape[0]
@@ -376,36 +345,24 @@ def rollout_costs(
     total = jnp.zeros((N,), controls.dtype)
     per_step = jnp.swapaxes(controls, 0, 1)  # (T, N, m)
     segments = _segments(dynamics, running_cost, prefix, controls.shape[1])
-    if rollout == "per_step":
-        for first, steps, dyn, cost in segments:
+    trajectory = []
+    for first, steps, dyn, _ in segments:
 
-            def body(X, inputs, dyn=dyn, cost=cost):
-                t, U = inputs
-                X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
-                return X_next, _stage_costs(cost, X_next, U, t, params)
+        def body(X, U, dyn=dyn):
+            X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
+            return X_next, X_next
 
-            ts = jnp.arange(first, first + steps)
-            X, stage_costs = jax.lax.scan(body, X, (ts, per_step[first:first + steps]))
-            total = total + jnp.sum(stage_costs, axis=0)
-    else:
-        trajectory = []
-        for first, steps, dyn, _ in segments:
-
-            def body(X, U, dyn=dyn):
-                X_next = jax.vmap(dyn, in_axes=(0, 0, None))(X, U, params)
-                return X_next, X_next
-
-            X, states = jax.lax.scan(body, X, per_step[first:first + steps])
-            trajectory.append(states)
-        states = trajectory[0] if len(trajectory) == 1 else jnp.concatenate(trajectory)  # (T, N, n): x_1 .. x_T
-        for first, stop, cost in _cost_runs(segments):
-            stage_costs = _trajectory_costs(cost, states[first:stop], per_step[first:stop],
-                                            jnp.arange(first, stop), params)  # (steps, N)
-            # summed over the steps as a product with ones: XLA on a CPU fuses a reduction with the cost
-            # before it into one kernel that runs ~3x slower than the cost and a separate product (HIGHEST:
-            # full float32 on accelerators too, where a default product may round its inputs)
-            ones = jnp.ones((stop - first,), stage_costs.dtype)
-            total = total + jnp.matmul(ones, stage_costs, precision=jax.lax.Precision.HIGHEST)
+        X, states = jax.lax.scan(body, X, per_step[first:first + steps])
+        trajectory.append(states)
+    states = trajectory[0] if len(trajectory) == 1 else jnp.concatenate(trajectory)  # (T, N, n): x_1 .. x_T
+    for first, stop, cost in _cost_runs(segments):
+        stage_costs = _trajectory_costs(cost, states[first:stop], per_step[first:stop],
+                                        jnp.arange(first, stop), params)  # (steps, N)
+        # summed over the steps as a product with ones: XLA on a CPU fuses a reduction with the cost
+        # before it into one kernel that runs ~3x slower than the cost and a separate product (HIGHEST:
+        # full float32 on accelerators too, where a default product may round its inputs)
+        ones = jnp.ones((stop - first,), stage_costs.dtype)
+        total = total + jnp.matmul(ones, stage_costs, precision=jax.lax.Precision.HIGHEST)
     if terminal_cost is not None:
         total = total + _checked_costs(jax.vmap(terminal_cost, in_axes=(0, None))(X, params), N, terminal_cost,
                                        batch=False)
@@ -439,13 +396,107 @@ def rollout_states(dynamics: Callable, x0: jax.Array, controls: jax.Array, param
     return jnp.concatenate(trajectory, axis=0)
 
 
-def make_mppi(
-    config: MPPIConfig,
-    dynamics: Callable,
-    running_cost: Callable,
-    terminal_cost: Callable | None = None,
-    prefix: Prefix | None = None,
-) -> Controller:
+class _Sampling(NamedTuple):
+    """The config and what an MPPI iteration derives from it, built once and closed over by the step.
+
+    Attributes:
+        sigma, inv_sigma2: (m,) noise std per channel and 1 / sigma^2 (0 where sigma is 0).
+        lo, hi: (m,) control bounds, or None where unbounded.
+        colour: (T, T) filter of time-correlated noise, or None for white noise.
+        reset_plan: (T, m) what a non-finite plan is reset to: the middle of the bounds (zero where unbounded).
+        shardings: where the samples live when split over devices, else None.
+    """
+
+    config: MPPIConfig
+    sigma: jax.Array
+    inv_sigma2: jax.Array
+    lo: jax.Array | None
+    hi: jax.Array | None
+    colour: jax.Array | None
+    reset_plan: jax.Array
+    shardings: Any
+
+
+def _sampling(config: MPPIConfig) -> _Sampling:
+    T, m, N = config.horizon, config.control_dim, config.num_samples
+    sigma = jnp.asarray(config.noise_sigma, dtype=jnp.float32)
+    lo = None if config.u_min is None else jnp.asarray(config.u_min, jnp.float32)
+    hi = None if config.u_max is None else jnp.asarray(config.u_max, jnp.float32)
+    if lo is not None and hi is not None:
+        reset_control = 0.5 * lo + 0.5 * hi  # (lo + hi) / 2 could overflow float32
+    else:
+        reset_control = _clip(jnp.zeros((m,), jnp.float32), lo, hi)
+    return _Sampling(
+        config=config, sigma=sigma, inv_sigma2=jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0) ** 2, 0.0),
+        lo=lo, hi=hi, reset_plan=jnp.broadcast_to(reset_control, (T, m)),
+        colour=None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent)),
+        shardings=sample_shardings(config.sample_devices, N) if config.sample_devices > 1 else None)
+
+
+def _clip(u: jax.Array, lo: jax.Array | None, hi: jax.Array | None) -> jax.Array:
+    """u clipped to the bounds, channel by channel; a None bound leaves that side open."""
+    if lo is not None:
+        u = jnp.maximum(u, lo)
+    if hi is not None:
+        u = jnp.minimum(u, hi)
+    return u
+
+
+def _sample(key: jax.Array, plan: jax.Array, s: _Sampling) -> tuple[jax.Array, jax.Array]:
+    """Sampled control sequences around the plan (T, m): controls = clip(U + eps), (N, T, m), and the noise
+    eps = controls - U actually applied (sample 0 is the plan itself with ``nominal_sample``)."""
+    white = jax.random.normal(key, (s.config.num_samples,) + s.reset_plan.shape, dtype=plan.dtype)
+    if s.shardings is not None:  # each device draws, rolls out and costs its own rows
+        white = jax.lax.with_sharding_constraint(white, s.shardings.samples)
+    if s.colour is not None:
+        white = jnp.einsum("ts,nsm->ntm", s.colour, white)  # time-correlated, unit variance per step
+    noise = white * s.sigma  # (N, T, m)
+    if s.config.nominal_sample:
+        noise = noise.at[0].set(0.0)
+    controls = _clip(plan[None] + noise, s.lo, s.hi)  # (N, T, m)
+    return controls, controls - plan[None]
+
+
+def _weights(costs: jax.Array, plan: jax.Array, eps: jax.Array, s: _Sampling):
+    """(S, w, finite), each (N,): the sample costs S_k with the control cost ``gamma sum_t U_t^T Sigma^-1 eps_{k,t}``
+    added, their weights w_k = softmax(-(S_k - min_j S_j) / lambda) (0 where S_k is not finite), the mask."""
+    gamma = float(s.config.control_cost_weight)
+    if gamma > 0:
+        costs = costs + gamma * jnp.einsum("tm,ntm,m->n", plan, eps, s.inv_sigma2)
+    weights, finite = importance_weights(costs, float(s.config.temperature))
+    return costs, weights, finite
+
+
+def _update(plan: jax.Array, weights: jax.Array, eps: jax.Array, all_nonfinite: jax.Array, s: _Sampling):
+    """U <- clip(U + sum_k w_k eps_k); the plan is kept when every sample cost was non-finite."""
+    update = jnp.einsum("n,ntm->tm", weights, eps)
+    return jnp.where(all_nonfinite, plan, _clip(plan + update, s.lo, s.hi))
+
+
+class _IterationStats(NamedTuple):
+    """An iteration's figures (see :class:`MPPIInfo`)."""
+
+    min_cost: jax.Array
+    mean_cost: jax.Array
+    effective_sample_size: jax.Array
+    num_nonfinite: jax.Array
+    costs: jax.Array
+
+
+def _iteration_stats(costs: jax.Array, weights: jax.Array, finite: jax.Array, all_nonfinite: jax.Array):
+    finite_costs = jnp.where(finite, costs, 0.0)
+    num_finite = jnp.sum(finite)
+    return _IterationStats(
+        min_cost=jnp.min(jnp.where(finite, costs, jnp.inf)),
+        mean_cost=jnp.sum(finite_costs) / jnp.maximum(num_finite, 1),
+        effective_sample_size=jnp.where(all_nonfinite, 0.0, 1.0 / jnp.sum(weights**2)),
+        num_nonfinite=costs.shape[0] - num_finite,
+        costs=costs,
+    )
+
+
+def make_mppi(config: MPPIConfig, dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None = None,
+              prefix: Prefix | None = None) -> Controller:
     """Build a compiled MPPI controller for the given one-sample model and costs (see module docstring).
 
     ``prefix`` optionally gives the first steps of the horizon their own model and cost (see Prefix).
@@ -454,97 +505,58 @@ def make_mppi(
         raise TypeError(f"config must be an MPPIConfig, got {type(config).__name__}")
     if prefix is not None and not (isinstance(prefix.steps, int) and 0 <= prefix.steps <= config.horizon):
         raise ValueError(f"prefix.steps must be an integer in [0, horizon={config.horizon}], got {prefix.steps!r}")
-    N, T, K, m = config.num_samples, config.horizon, config.iterations, config.control_dim
-    sigma = jnp.asarray(config.noise_sigma, dtype=jnp.float32)
-    inv_sigma2 = jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
-    lo = None if config.u_min is None else jnp.asarray(config.u_min, jnp.float32)
-    hi = None if config.u_max is None else jnp.asarray(config.u_max, jnp.float32)
-    gamma = float(config.control_cost_weight)
-    colour = None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent))
-    lam = float(config.temperature)
-    shardings = sample_shardings(config.sample_devices, N) if config.sample_devices > 1 else None
-    # What a non-finite plan is reset to: the middle of the bounds, zero where a channel is unbounded.
-    if lo is not None and hi is not None:
-        reset_control = 0.5 * lo + 0.5 * hi  # (lo + hi) / 2 could overflow float32
-    else:
-        reset_control = jnp.zeros((m,), jnp.float32)
-        reset_control = reset_control if lo is None else jnp.maximum(reset_control, lo)
-        reset_control = reset_control if hi is None else jnp.minimum(reset_control, hi)
-    reset_plan = jnp.broadcast_to(reset_control, (T, m))
+    s = _sampling(config)
 
-    def clip(u):
-        if lo is not None:
-            u = jnp.maximum(u, lo)
-        if hi is not None:
-            u = jnp.minimum(u, hi)
-        return u
-
-    def cost_of(x0, controls, params):
-        return rollout_costs(dynamics, running_cost, terminal_cost, x0, controls, params, prefix, config.rollout)
-
-    def iteration(carry, key_iter, x0, params):
+    def iteration(carry, key, x0, params):
+        """One MPPI update of the plan: sample, roll out, weigh, update."""
         plan, any_all_nonfinite = carry
-        white = jax.random.normal(key_iter, (N, T, m), dtype=plan.dtype)
-        if shardings is not None:  # each device draws, rolls out and costs its own rows
-            white = jax.lax.with_sharding_constraint(white, shardings.samples)
-        if colour is not None:
-            white = jnp.einsum("ts,nsm->ntm", colour, white)  # time-correlated, unit variance per step
-        noise = white * sigma  # (N, T, m)
-        if config.nominal_sample:
-            noise = noise.at[0].set(0.0)
-        controls = clip(plan[None] + noise)  # (N, T, m)
-        eps = controls - plan[None]  # the noise actually applied
-        costs = cost_of(x0, controls, params)  # (N,)
-        if gamma > 0:
-            costs = costs + gamma * jnp.einsum("tm,ntm,m->n", plan, eps, inv_sigma2)
-        weights, finite = importance_weights(costs, lam)
+        controls, eps = _sample(key, plan, s)
+        costs = rollout_costs(dynamics, running_cost, terminal_cost, x0, controls, params, prefix)
+        costs, weights, finite = _weights(costs, plan, eps, s)
         all_nonfinite = ~jnp.any(finite)
-        update = jnp.einsum("n,ntm->tm", weights, eps)
-        new_plan = jnp.where(all_nonfinite, plan, clip(plan + update))
-        finite_costs = jnp.where(finite, costs, 0.0)
-        num_finite = jnp.sum(finite)
-        stats = (
-            jnp.min(jnp.where(finite, costs, jnp.inf)),
-            jnp.sum(finite_costs) / jnp.maximum(num_finite, 1),
-            jnp.where(all_nonfinite, 0.0, 1.0 / jnp.sum(weights**2)),
-            N - num_finite,
-            costs,
-        )
-        return (new_plan, any_all_nonfinite | all_nonfinite), stats
+        new_plan = _update(plan, weights, eps, all_nonfinite, s)
+        return (new_plan, any_all_nonfinite | all_nonfinite), _iteration_stats(costs, weights, finite, all_nonfinite)
 
     def init(key, u_init) -> MPPIState:
-        u_init = _validate_u_init(u_init, T, m)
-        state = MPPIState(plan=clip(jnp.broadcast_to(u_init, (T, m)).astype(jnp.float32)), key=key)
-        return state if shardings is None else jax.device_put(state, shardings.replicated)
+        u_init = _validate_u_init(u_init, config.horizon, config.control_dim)
+        plan = _clip(jnp.broadcast_to(u_init, s.reset_plan.shape).astype(jnp.float32), s.lo, s.hi)
+        state = MPPIState(plan=plan, key=key)
+        return state if s.shardings is None else jax.device_put(state, s.shardings.replicated)
 
     def step_pure(state: MPPIState, x0, params):
         key, key_iters = jax.random.split(state.key)
-        keys = jax.random.split(key_iters, K)
+        keys = jax.random.split(key_iters, config.iterations)
         carried_finite = jnp.all(jnp.isfinite(state.plan))
-        start = jnp.where(carried_finite, state.plan, reset_plan)  # the last finite plan
-        (plan, all_nonfinite), stats = jax.lax.scan(
-            lambda c, k: iteration(c, k, x0, params), (start, jnp.asarray(False)), keys
-        )
+        start = jnp.where(carried_finite, state.plan, s.reset_plan)  # the last finite plan
+        (plan, all_nonfinite), stats = jax.lax.scan(lambda c, k: iteration(c, k, x0, params),
+                                                    (start, jnp.asarray(False)), keys)
         updated_finite = jnp.all(jnp.isfinite(plan))
         plan = jnp.where(updated_finite, plan, start)
-        min_cost, mean_cost, ess, num_nonfinite, costs = jax.tree_util.tree_map(lambda s: s[-1], stats)
+        last = jax.tree_util.tree_map(lambda a: a[-1], stats)
         u0 = plan[0]
         shifted = jnp.concatenate([plan[1:], plan[-1:]], axis=0)
-        info = MPPIInfo(
-            min_cost=min_cost,
-            mean_cost=mean_cost,
-            effective_sample_size=ess,
-            num_nonfinite=num_nonfinite,
-            all_nonfinite=all_nonfinite,
-            nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix),
-            costs=costs,
-            plan_reset=~(carried_finite & updated_finite),
-        )
+        info = MPPIInfo(**last._asdict(), all_nonfinite=all_nonfinite, plan_reset=~(carried_finite & updated_finite),
+                        nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix))
         return u0, MPPIState(plan=shifted, key=key), info
 
     options = compiler_options(config.cpu_matmul, config.sample_devices)
-    step_jit = jax.jit(step_pure, compiler_options=options)
+    step, num_compilations = _validated_jit(step_pure, dynamics, s, options)
+    return Controller(init=init, step=step, step_pure=step_pure, config=config, num_compilations=num_compilations,
+                      shardings=s.shardings, compiler_options=options)
+
+
+def _validated_jit(step_pure: Callable, dynamics: Callable, s: _Sampling, options):
+    """The public ``step(state, x0, params)``: ``step_pure`` jitted, its inputs checked before tracing; and
+    ``num_compilations() -> int``, the traces of the jitted step so far (one per compiled version)."""
+    traces = [0]
+
+    def traced_step(state, x0, params):
+        traces[0] += 1  # Python runs here only while JAX traces: once per new input signature, before compiling
+        return step_pure(state, x0, params)
+
+    step_jit = jax.jit(traced_step, compiler_options=options)
     checked_state_shapes: set = set()
+    T, m = s.reset_plan.shape
 
     def step(state: MPPIState, x0, params):
         if not isinstance(state, MPPIState):
@@ -556,13 +568,13 @@ def make_mppi(
         if signature not in checked_state_shapes:
             _validate_x0(dynamics, x0, m, params)
             checked_state_shapes.add(signature)
-        if shardings is not None and not all(getattr(leaf, "sharding", None) == shardings.replicated
-                                             for leaf in jax.tree_util.tree_leaves((state, x0, params))):
-            state, x0, params = jax.device_put((state, x0, params), shardings.replicated)  # onto every device
+        replicated = None if s.shardings is None else s.shardings.replicated
+        if replicated is not None and not all(getattr(leaf, "sharding", None) == replicated
+                                              for leaf in jax.tree_util.tree_leaves((state, x0, params))):
+            state, x0, params = jax.device_put((state, x0, params), replicated)  # onto every device
         return step_jit(state, x0, params)
 
-    return Controller(init=init, step=step, step_pure=step_pure, config=config,
-                      num_compilations=step_jit._cache_size, shardings=shardings, compiler_options=options)
+    return step, lambda: traces[0]
 
 
 def _validate_u_init(u_init, T: int, m: int) -> jax.Array:
@@ -582,6 +594,5 @@ def _validate_x0(dynamics: Callable, x0: jax.Array, m: int, params) -> None:
     except Exception as err:  # the dynamics could not even be traced with this x0
         raise ValueError(f"x0 of shape {x0.shape} does not fit the dynamics: {err}") from err
     if getattr(out, "shape", None) != x0.shape:
-        raise ValueError(
-            f"x0 has shape {x0.shape} but the dynamics map it to shape {getattr(out, 'shape', out)}; "
-            f"x0 must be the full state (n,) that dynamics(x, u, params) returns")
+        raise ValueError(f"x0 has shape {x0.shape} but the dynamics map it to shape {getattr(out, 'shape', out)}; "
+                         f"x0 must be the full state (n,) that dynamics(x, u, params) returns")

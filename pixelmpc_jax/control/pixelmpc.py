@@ -1,4 +1,4 @@
-"""PixelMPC (Section IV, Algorithm 3): MPPI over X = [robot state; target pixel] (12,).
+"""PixelMPC (Section IV, Algorithm 3): MPPI over X = [robot state; target pixel] (12,), or (13,) with a depth cue.
 
 The robot follows the paper's quadrotor model; the target gate's pixel follows a pixel model:
 
@@ -6,16 +6,21 @@ The robot follows the paper's quadrotor model; the target gate's pixel follows a
   Eqs. (10)-(12), starting from the detector's pixel;
 * ``"projection"`` (PAMPC-style, for comparison): the target's known 3D centre projected through the
   camera intrinsics at every predicted pose (no network, but the gate's position and the camera must
-  be known).
+  be known);
+* ``"vdof"`` (beyond the paper, its conclusion's next step): the pixel and the detected gate's apparent size s,
+  X = [x; u, v, s] (13,), moved by a learned interaction matrix of the body-frame velocity and the body rates
+  (:mod:`pixelmpc_jax.dynamics.vdof`): the velocity and a depth cue the DOF cannot see, and still neither the
+  gate's position nor the camera.
 
 The cost is the racing cost of Eq. (19) plus the pixel cost of Eq. (18), ``c_pixel * L1(uv_t, centre)``,
 counted over the first ``t_f`` seconds of the horizon, only while the detector reports the target, and
 for each predicted state only until it passes the target gate's plane (the target then switches).
 The pixel does not feed back into the robot, so the pixel model runs only over those first
 ``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.mppi.Prefix`); the rest of the horizon
-rolls out the robot alone. Both costs are then evaluated once over all the predicted states
-(``MPPIConfig.rollout``). The whole step is one compiled function; DOF weights, the target pixel and
-the gates are arguments (new values never recompile), ``t_f``, ``c_pixel`` and sizes are configuration.
+rolls out the robot alone. Both costs are then evaluated once over all the predicted states (a
+:class:`~pixelmpc_jax.control.mppi.TrajectoryCost`). The whole step is one compiled function; DOF weights, the
+target pixel and the gates are arguments (new values never recompile), ``t_f``, ``c_pixel`` and sizes are
+configuration.
 """
 
 from __future__ import annotations
@@ -26,16 +31,19 @@ import math
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import BatchCost, Controller, MPPIConfig, Prefix, TrajectoryCost, make_mppi
+from pixelmpc_jax.control.mppi import Controller, MPPIConfig, Prefix, TrajectoryCost, make_mppi
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.dynamics import vdof as vdof_lib
 from pixelmpc_jax.world import camera as camera_lib
 
-PIXEL_MODELS = ("dof", "projection")
+PIXEL_MODELS = ("dof", "projection", "vdof")
+LEARNED_PIXEL_MODELS = ("dof", "vdof")  # the pixel models whose weights are PixelMPCParams.dof
 PIXEL_COSTS = ("l1", "border")
 BEHIND_CAMERA_OFFSET = 1e3  # a target behind the camera sits this far off the image (before any clip)
 STATE_DIM = quadrotor.STATE_DIM + 2
@@ -49,10 +57,13 @@ def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: fl
 
     The temperature (lambda) and the body-rate limit are not given in the paper: lambda = 200 suits the
     scale of our racing cost (the closed-loop laps are least sensitive there), the thrust range is the
-    vehicle's.
+    vehicle's. The bounds are :meth:`~pixelmpc_jax.dynamics.quadrotor.QuadParams.control_bounds`' float32
+    numbers, computed in numpy: building the config creates no JAX array (it may run before the backend starts).
     """
-    params = quadrotor.QuadParams(rate_max=(rate_max,) * 3)
-    lo, hi = params.control_bounds()
+    params = quadrotor.QuadParams()
+    rates = np.full(3, rate_max, np.float32)
+    lo = np.concatenate([-rates, np.asarray([params.thrust_min], np.float32)])
+    hi = np.concatenate([rates, np.asarray([params.thrust_max], np.float32)])
     return MPPIConfig(num_samples=num_samples, horizon=horizon, dt=dt, noise_sigma=(0.2, 0.2, 0.3, 2.2),
                       temperature=temperature, iterations=1, u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
 
@@ -69,8 +80,8 @@ class PixelMPCConfig:
         pixel_cost_scale: our stage cost is ``c_pixel * pixel_cost_scale * L1`` per step. The paper's
             numbers do not transfer as they stand (its cost's units and step weighting are not given);
             the scale is calibrated so the paper's c_pixel grid spans the same range of behaviour
-            (see the README).
-        pixel_model: "dof" or "projection".
+            (see docs/choices.md).
+        pixel_model: "dof", "projection" or "vdof" (see the module docstring).
         pixel_error_clip: each axis of ``uv - centre`` is clipped to this many image widths/heights before
             the L1 norm (None: unclipped, as the paper writes it). A target pixel outside the image is lost
             wherever it is; unclipped, the error of a predicted pixel near the camera plane (a gate just
@@ -131,7 +142,8 @@ class PixelMPCParams:
 
     Attributes:
         racing: the racing cost's per-tick params (path windows, gates, target speed).
-        dof: the DOF network's weights and normalisation (unused by the projection model).
+        dof: the learned pixel model's weights: :class:`~pixelmpc_jax.dynamics.dof.DOFParams` for "dof",
+            :class:`~pixelmpc_jax.dynamics.vdof.VDOFParams` for "vdof" (unused by the projection model).
         target_active: () bool, the detector reports the target this tick (else no pixel cost).
         target_centre: (3,) the target gate's centre, world frame.
         target_normal: (3,) the target gate's normal (direction of travel). A predicted state past the
@@ -142,7 +154,7 @@ class PixelMPCParams:
     """
 
     racing: costs.RacingParams
-    dof: dof_lib.DOFParams
+    dof: dof_lib.DOFParams | vdof_lib.VDOFParams
     target_active: jax.Array
     target_centre: jax.Array
     target_normal: jax.Array
@@ -190,12 +202,6 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     def dynamics(x, u, p):
         return quadrotor.step(x, u, dt, quad_params)
 
-    if mppi_config.rollout == "per_step":
-        def running_cost(X, U, t, p):
-            return costs.racing_cost_batch(X, t, p, cost_config)
-
-        return make_mppi(mppi_config, dynamics, BatchCost(running_cost))
-
     def trajectory_cost(X, U, steps, p):
         return costs.racing_costs(X, steps, p, cost_config)
 
@@ -206,7 +212,8 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
                   quad_params: quadrotor.QuadParams | None = None) -> Controller:
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.
 
-    The controller's state is X = [x (10,); uv (2,)]; ``step(state, X0, params: PixelMPCParams)``.
+    The controller's state is X = [x (10,); uv (2,)] ([x; uv; s] (13,) for "vdof");
+    ``step(state, X0, params: PixelMPCParams)``.
     The initial pixel ``uv`` is the detector's (normalised) target pixel; with the projection model it
     is recomputed from the pose at every step. ``config`` defaults to ``PixelMPCConfig()`` (built here, not at
     import: building it creates arrays, which would start the JAX backend before ``jax.distributed``).
@@ -229,6 +236,12 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
             uv_dot = dof_lib.pixel_velocity(p.dof, x[quadrotor.QUAT], uv, u)
             return jnp.concatenate([robot_step(X, u), uv + dt * uv_dot])
 
+    elif config.pixel_model == "vdof":
+        def prefix_dynamics(X, u, p):
+            x, pixel = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
+            pixel_dot = vdof_lib.pixel_state_velocity(p.dof, x, pixel, u)
+            return jnp.concatenate([robot_step(X, u), pixel + dt * pixel_dot])
+
     else:
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u)
@@ -236,22 +249,6 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
             # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
             uv = jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
             return jnp.concatenate([x_next, uv])
-
-    if config.mppi.rollout == "per_step":  # the former step-by-step costs (see MPPIConfig.rollout)
-        def racing(X, t, p):  # X (N, 12) -> (N,)
-            return costs.racing_cost_batch(X, t, p.racing, config.racing)
-
-        def pixel_term(X, p):
-            """The pixel cost of a predicted state while the target is detected and not yet passed."""
-            ahead = jnp.dot(X[quadrotor.POS] - p.target_centre, p.target_normal) < 0.0
-            active = (p.target_active & ahead).astype(X.dtype)
-            return active * pixel_cost(X[quadrotor.STATE_DIM:], config)
-
-        def prefix_cost(X, U, t, p):
-            return racing(X, t, p) + jax.vmap(pixel_term, in_axes=(0, None))(X, p)
-
-        prefix = Prefix(n_f, prefix_dynamics, BatchCost(prefix_cost)) if n_f > 0 else None
-        return make_mppi(config.mppi, dynamics, BatchCost(lambda X, U, t, p: racing(X, t, p)), prefix=prefix)
 
     def trajectory_cost(X, U, steps, p):
         """X (T, N, 12) -> (T, N): the racing cost, plus over the first n_f steps the pixel cost of each predicted
@@ -262,7 +259,8 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
         offset = [X[..., i] - p.target_centre[i] for i in range(3)]  # elementwise, as in racing_costs
         ahead = offset[0] * p.target_normal[0] + offset[1] * p.target_normal[1] + offset[2] * p.target_normal[2] < 0.0
         counted = (steps < n_f)[:, None] & p.target_active & ahead
-        return total + counted.astype(X.dtype) * pixel_cost(X[..., quadrotor.STATE_DIM:], config)
+        uv = X[..., quadrotor.STATE_DIM:quadrotor.STATE_DIM + 2]  # a pixel state may carry more than the pixel
+        return total + counted.astype(X.dtype) * pixel_cost(uv, config)
 
     cost = TrajectoryCost(trajectory_cost)  # one call over the whole horizon: the prefix shares it
     prefix = Prefix(n_f, prefix_dynamics, cost) if n_f > 0 else None

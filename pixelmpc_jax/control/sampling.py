@@ -7,19 +7,15 @@ split over devices and the kernels the step compiles to.
   Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
   weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
   lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
-  device. On a CPU, the host's cores become devices with :func:`split_host_cpu` (before JAX starts): XLA runs
+  device. On a CPU, the host's cores become devices with :func:`pixelmpc_jax.host.split_host_cpu` (before JAX
+  starts): XLA runs
   one device's program on one core but for its largest kernels, and splitting the samples splits all of the
   step's work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the noise).
 * :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``MPPIConfig.cpu_matmul``).
-* :func:`keep_host_memory`: the C allocator keeps the memory a step frees for the next step, instead of
-  handing its largest buffers back to the system and faulting them in again, page by page, every step.
 """
 
 from __future__ import annotations
 
-import ctypes
-import os
-import platform
 from typing import NamedTuple
 
 import chex
@@ -30,12 +26,6 @@ import numpy as np
 SAMPLE_AXIS = "samples"
 CPU_MATMULS = ("auto", "xla", "ynnpack")  # MPPIConfig.cpu_matmul
 YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
-HOST_CPU_DEVICES_MAX = 8  # split_host_cpu's default: one device per usable core, at most this many
-# glibc's mallopt parameters (malloc.h) and its defaults, restored by keep_host_memory(False)
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
-_GLIBC_TRIM_THRESHOLD, _GLIBC_MMAP_MAX = 128 * 1024, 65536
-KEPT_FREE_BYTES = 1 << 30  # keep_host_memory: free memory above this at the top of the heap still goes back
-_host_memory = {"kept": False}  # what keep_host_memory last set (the C library cannot be asked)
 
 
 def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
@@ -131,60 +121,3 @@ def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
     if cpu_matmul == "xla" or (cpu_matmul == "auto" and (sample_devices > 1 or jax.default_backend() != "cpu")):
         return None
     return dict(YNNPACK_MATMULS)
-
-
-def usable_cores() -> int:
-    """The CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
-def split_host_cpu(count: int | None = None) -> int:
-    """Make the host CPU appear to JAX as ``count`` devices (default: one per usable core, at most
-    :data:`HOST_CPU_DEVICES_MAX`), so that a step split over them runs on every core. Must run before JAX
-    starts its backend (before any array is made); afterwards it changes nothing. An ``XLA_FLAGS`` setting of
-    ``--xla_force_host_platform_device_count`` wins. Returns the count now in effect for the CPU platform."""
-    if count is None:
-        count = min(usable_cores(), HOST_CPU_DEVICES_MAX)
-    if count < 1:
-        raise ValueError(f"count must be a positive number of devices, got {count!r}")
-    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
-        try:
-            jax.config.update("jax_num_cpu_devices", int(count))
-        except RuntimeError:  # JAX has started: the devices are what they are
-            pass
-    try:
-        return len(jax.devices("cpu"))
-    except RuntimeError:  # no CPU platform
-        return 0
-
-
-def keep_host_memory(keep: bool = True) -> bool:
-    """Have the C allocator (glibc) keep freed memory for the process instead of giving it back to the system.
-
-    An XLA step on a CPU allocates its buffers afresh at every call. glibc serves a buffer over 32 MiB (at 8192
-    samples, one step's temporaries) with its own ``mmap`` and unmaps it when freed, so the next step faults
-    every page of it in again: 74 MB and about 18,000 page faults per PixelMPC step at N = 8192 here, none at
-    N = 512. With ``keep``, every allocation comes from the heap (``M_MMAP_MAX`` 0) and up to
-    :data:`KEPT_FREE_BYTES` of freed memory stays with the process (``M_TRIM_THRESHOLD``), so a step reuses the
-    last step's pages. The cost: the process holds on to its peak memory, up to that much more. ``keep=False``
-    restores glibc's defaults (its dynamic ``mmap`` threshold stays off once set). Process-wide; safe at any
-    time. Returns whether the settings took effect (False where the C library is not glibc, e.g. macOS)."""
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    mmap_max, trim = (0, KEPT_FREE_BYTES) if keep else (_GLIBC_MMAP_MAX, _GLIBC_TRIM_THRESHOLD)
-    done = bool(mallopt(_M_MMAP_MAX, mmap_max)) and bool(mallopt(_M_TRIM_THRESHOLD, trim))
-    _host_memory["kept"] = keep and done
-    return done
-
-
-def host_memory_kept() -> bool:
-    """Whether :func:`keep_host_memory` has the allocator keeping freed memory now."""
-    return _host_memory["kept"]

@@ -30,7 +30,7 @@ import hashlib
 import shlex
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -39,9 +39,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import strict_json, timing
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.perception import flow as flow_lib
-from pixelmpc_jax.sim import controllers
+from pixelmpc_jax.sim import controllers, policies
+from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.world import render as render_lib
@@ -170,9 +172,10 @@ def _same_config(recorded: dict | None, config: CollectConfig) -> bool:
 
 @functools.lru_cache(maxsize=4)
 def _cached_runner(num_samples: int, max_time_s: float, excitation: tuple | None = None) -> episode_lib.Runner:
-    """The nominal MPPI episode runner (current ``controllers.make_policy`` defaults), compiled once per size;
-    with ``excitation`` (``CollectConfig.excitation_params()``) wrapped in :func:`excited_policy`."""
-    policy = controllers.make_policy("mppi", num_samples=num_samples)
+    """The nominal MPPI episode runner (``controllers.make_policy("mppi", ...)`` on the paper's MPPI settings at
+    ``num_samples`` and the default racing cost), compiled once per size; with ``excitation``
+    (``CollectConfig.excitation_params()``) wrapped in :func:`excited_policy`."""
+    policy = controllers.make_policy("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=num_samples)))
     if excitation is not None:
         policy = excited_policy(policy, *excitation, num_samples=num_samples)
     return episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s))
@@ -186,8 +189,8 @@ class ExcitationState(NamedTuple):
     key: jax.Array
 
 
-def excited_policy(base: episode_lib.Policy, pulse_rad_s: float = 1.5, hold_s: float = 0.3, gap_s: float = 0.5,
-                   dither_rad_s: float = 0.3, num_samples: int = 512) -> episode_lib.Policy:
+def excited_policy(base: policies.Policy, pulse_rad_s: float = 1.5, hold_s: float = 0.3, gap_s: float = 0.5,
+                   dither_rad_s: float = 0.3, num_samples: int = 512) -> policies.Policy:
     """``base`` with held rate pulses and dither added to its body-rate command (thrust untouched).
 
     Per axis and tick: an idle axis starts a pulse with probability ``dt / gap_s``, of amplitude uniform in
@@ -197,7 +200,7 @@ def excited_policy(base: episode_lib.Policy, pulse_rad_s: float = 1.5, hold_s: f
     the attitude and the place on the course.
     """
     dt = timing.CONTROL_DT
-    bounds = episode_lib.paper_mppi_config(num_samples=num_samples)
+    bounds = paper_mppi_config(num_samples=num_samples)
     lo, hi = jnp.asarray(bounds.u_min[:3], jnp.float32), jnp.asarray(bounds.u_max[:3], jnp.float32)
     hold_max = max(int(round(hold_s / dt)), 3)
     hold_min = max(hold_max // 3, 1)
@@ -223,8 +226,8 @@ def excited_policy(base: episode_lib.Policy, pulse_rad_s: float = 1.5, hold_s: f
         return u, (base_state, ExcitationState(pulse.astype(jnp.float32), remaining.astype(jnp.int32), key)), \
             prediction
 
-    return episode_lib.Policy(init=init, act=act, name=f"{base.name}+excitation",
-                              compiler_options=base.compiler_options)
+    return policies.Policy(init=init, act=act, name=f"{base.name}+excitation",
+                           compiler_options=base.compiler_options)
 
 
 def _versions() -> dict:
@@ -237,13 +240,12 @@ def _versions() -> dict:
 def _controller_source() -> dict:
     """sha256 (first 16 hex) of the controller's source files: the nominal MPPI's defaults change with them."""
     from pixelmpc_jax.control import costs
-    from pixelmpc_jax.sim import env, policies
 
     return {Path(m.__file__).name: hashlib.sha256(Path(m.__file__).read_bytes()).hexdigest()[:16]
-            for m in (episode_lib, env, policies, costs, controllers)}
+            for m in (episode_lib, env_lib, policies, costs, controllers)}
 
 
-def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> tuple[np.ndarray, np.ndarray,
+def fly_lap(world: env_lib.World, seed: int, runner: episode_lib.Runner) -> tuple[np.ndarray, np.ndarray,
                                                                                     np.ndarray, dict]:
     """Fly one lap; returns states (F + 1, 10), controls (F, 4), targets (F + 1,) and a summary (its
     ``rates`` entry: the true body rates (F + 1, 3) at each state).
@@ -259,7 +261,7 @@ def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> 
         "ticks_flown": n,
         "frames": frames,
         "flight_time_s": n * timing.CONTROL_DT,
-        "end": "finished" if bool(log.finished) else episode_lib.END_NAMES.get(cause, str(cause)),
+        "end": "finished" if bool(log.finished) else env_lib.END_NAMES.get(cause, str(cause)),
         "gates_passed": int(log.gates_passed),
         "finished": bool(log.finished),
         "rates": np.asarray(log.body_rates[: frames + 1], np.float32),
@@ -268,7 +270,7 @@ def fly_lap(world: episode_lib.World, seed: int, runner: episode_lib.Runner) -> 
             np.asarray(log.target[: frames + 1], np.int32), summary)
 
 
-def render_lap(world: episode_lib.World, states: np.ndarray, config: CollectConfig, with_depth: bool,
+def render_lap(world: env_lib.World, states: np.ndarray, config: CollectConfig, with_depth: bool,
                bar=None) -> tuple[np.ndarray, np.ndarray | None]:
     """Grey frames (F + 1, H, W) uint8 and, with ``with_depth``, depth (F + 1, H, W) float32 of ``states``.
 
@@ -295,7 +297,7 @@ def render_lap(world: episode_lib.World, states: np.ndarray, config: CollectConf
 _exact_flow_batch = jax.jit(jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, None)))
 
 
-def lap_arrays(world: episode_lib.World, states: np.ndarray, controls: np.ndarray, targets: np.ndarray,
+def lap_arrays(world: env_lib.World, states: np.ndarray, controls: np.ndarray, targets: np.ndarray,
                config: CollectConfig, with_exact: bool, bar=None, rates: np.ndarray | None = None) -> dict:
     """Render a flown lap and compute its flows: the arrays of one lap file (their format: ``learn.dataset``).
     ``rates``: the true body rates (F + 1, 3) at each state, stored when given."""
@@ -323,7 +325,7 @@ def lap_arrays(world: episode_lib.World, states: np.ndarray, controls: np.ndarra
 
 
 def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = True,
-            policy: episode_lib.Policy | None = None) -> dict:
+            policy: policies.Policy | None = None) -> dict:
     """Collect (or resume collecting) a DOF dataset into ``out_dir``; returns the manifest.
 
     Args:
@@ -346,31 +348,73 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
                                  or previous.get("policy") != policy_name):
         raise ValueError(f"{root} holds a dataset collected with another config ({previous.get('config')}, policy "
                          f"{previous.get('policy')!r}); use a new directory or the same config to resume")
-    if policy is not None:
-        nominal = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
-        excitation = config.excitation_params()
-        runners = {False: nominal,
-                   True: episode_lib.make_runner(excited_policy(policy, *excitation,
-                                                                num_samples=config.num_samples),
-                                                 episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s))
-                   if config.excitation else None}
-    else:
-        runners = {False: None, True: None}
+    runner_of = _lap_runners(config, policy)
+    base = env_lib.make_world()
+    manifest = _initial_manifest(config, policy, base, previous)
+    recorded_sha256 = {e["lap"]: e.get("sha256") for e in (previous or {}).get("laps", [])}
+    done: dict[int, dict] = {}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
 
-    def runner_for(lap: int) -> episode_lib.Runner:
+        bar = tqdm(total=config.laps, desc="collect", unit="lap")
+    t0 = time.perf_counter()
+    interrupted = False
+    try:
+        for lap in range(config.laps):
+            path = root / dataset_lib.lap_filename(lap)
+            digest = dataset_lib.intact_lap_sha256(path, recorded_sha256.get(lap))
+            if digest is not None:
+                done[lap] = _lap_entry(lap, path, config.split_of(lap), dataset_lib.lap_meta(path), digest)
+            else:
+                if path.exists():
+                    print(f"{path}: damaged (its checksum does not match); flying lap {lap} again", file=sys.stderr)
+                done[lap] = _fly_and_store_lap(path, lap, base, runner_of, config, bar)
+                _write_manifest(root, manifest, done, config, complete=False)
+            if bar is not None:
+                bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+        print(f"\ninterrupted: keeping the {len(done)} finished lap(s) in {root}; run again to resume")
+    finally:
+        if bar is not None:
+            bar.close()
+    manifest = _write_manifest(root, manifest, done, config, complete=not interrupted and len(done) == config.laps)
+    manifest["wall_s_this_call"] = time.perf_counter() - t0
+    manifest["interrupted"] = interrupted
+    return manifest
+
+
+def _lap_runners(config: CollectConfig, policy: policies.Policy | None) -> Callable[[int], episode_lib.Runner]:
+    """The episode runner of each lap (by index), built on first use: ``policy``, or the nominal MPPI
+    (:func:`_cached_runner`), wrapped in :func:`excited_policy` for the excited laps."""
+    runners: dict[bool, episode_lib.Runner | None] = {False: None, True: None}
+    if policy is not None:
+        episode = episode_lib.EpisodeConfig(max_time_s=config.max_lap_time_s)
+        runners[False] = episode_lib.make_runner(policy, episode)
+        if config.excitation:
+            excited = excited_policy(policy, *config.excitation_params(), num_samples=config.num_samples)
+            runners[True] = episode_lib.make_runner(excited, episode)
+
+    def runner_of(lap: int) -> episode_lib.Runner:
         excited = config.excited(lap)
         if runners[excited] is None:
             runners[excited] = _cached_runner(int(config.num_samples), float(config.max_lap_time_s),
                                               config.excitation_params() if excited else None)
         return runners[excited]
-    base = episode_lib.make_world()
-    speeds, seeds = config.speeds(), config.seeds()
+
+    return runner_of
+
+
+def _initial_manifest(config: CollectConfig, policy: policies.Policy | None, base: env_lib.World,
+                      previous: dict | None) -> dict:
+    """The manifest before any lap of this call is stored: what is collected, how, and with what."""
     manifest = {
         "format": dataset_lib.DATASET_FORMAT,
         "format_version": dataset_lib.DATASET_VERSION,
         "config": config.to_json(),
-        "policy": policy_name,
-        "mppi_config": dataclasses.asdict(episode_lib.paper_mppi_config(num_samples=config.num_samples))
+        "policy": policy.name if policy is not None else "mppi",
+        "mppi_config": dataclasses.asdict(paper_mppi_config(num_samples=config.num_samples))
         if policy is None else None,
         "image_size_wh": [int(base.camera.width), int(base.camera.height)],
         "frame_dt_s": timing.CONTROL_DT,
@@ -389,66 +433,38 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
     }
     if previous is not None and previous.get("format_version", 1) != dataset_lib.DATASET_VERSION:
         manifest["format_version"] = previous.get("format_version", 1)  # laps of mixed formats: the oldest
-    manifest = strict_json.json_safe(manifest)
-    recorded_sha256 = {e["lap"]: e.get("sha256") for e in (previous or {}).get("laps", [])}
-    done: dict[int, dict] = {}
-    bar = frames_bar = None
-    if progress:
+    return strict_json.json_safe(manifest)
+
+
+def _fly_and_store_lap(path: Path, lap: int, base: env_lib.World, runner_of: Callable[[int], episode_lib.Runner],
+                       config: CollectConfig, bar=None) -> dict:
+    """Fly lap ``lap``, render it, compute its flows and write its file to ``path``; returns its manifest
+    entry. ``bar``: the laps' progress bar (a frames bar is shown beside it while the lap renders)."""
+    split, speed, seed = config.split_of(lap), config.speeds()[lap], config.seeds()[lap]
+    world = base.replace(target_speed=jnp.asarray(speed, jnp.float32))
+    if bar is not None:
+        bar.set_postfix(lap=lap, speed=f"{speed:.1f}", stage="fly")
+    states, controls, targets, summary = fly_lap(world, seed, runner_of(lap))
+    rates = summary.pop("rates")
+    if summary["frames"] < 1:
+        raise RuntimeError(f"lap {lap} (seed {seed}, {speed:.1f} m/s) ended before a single "
+                           f"frame pair ({summary['end']}); nothing to store")
+    frames_bar = None
+    if bar is not None:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=config.laps, desc="collect", unit="lap")
-    t0 = time.perf_counter()
-    interrupted = False
+        bar.set_postfix(lap=lap, speed=f"{speed:.1f}", stage="render+flow")
+        frames_bar = tqdm(total=states.shape[0], desc=f"lap {lap} frames", unit="frame", leave=False)
+    with_exact = config.exact_flow == "all" or split == "test"
     try:
-        for lap in range(config.laps):
-            path = root / dataset_lib.lap_filename(lap)
-            split = config.split_of(lap)
-            digest = dataset_lib.intact_lap_sha256(path, recorded_sha256.get(lap))
-            if digest is not None:
-                done[lap] = _lap_entry(lap, path, split, dataset_lib.lap_meta(path), digest)
-                if bar is not None:
-                    bar.update(1)
-                continue
-            if path.exists():
-                print(f"{path}: damaged (its checksum does not match); flying lap {lap} again", file=sys.stderr)
-            world = base.replace(target_speed=jnp.asarray(speeds[lap], jnp.float32))
-            if bar is not None:
-                bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="fly")
-            states, controls, targets, summary = fly_lap(world, seeds[lap], runner_for(lap))
-            rates = summary.pop("rates")
-            if summary["frames"] < 1:
-                raise RuntimeError(f"lap {lap} (seed {seeds[lap]}, {speeds[lap]:.1f} m/s) ended before a single "
-                                   f"frame pair ({summary['end']}); nothing to store")
-            if bar is not None:
-                from tqdm.auto import tqdm
-
-                bar.set_postfix(lap=lap, speed=f"{speeds[lap]:.1f}", stage="render+flow")
-                frames_bar = tqdm(total=states.shape[0], desc=f"lap {lap} frames", unit="frame", leave=False)
-            with_exact = config.exact_flow == "all" or split == "test"
-            arrays = lap_arrays(world, states, controls, targets, config, with_exact, frames_bar, rates)
-            if frames_bar is not None:
-                frames_bar.close()
-                frames_bar = None
-            meta = {"lap": lap, "split": split, "speed": speeds[lap], "seed": seeds[lap],
-                    "excited": config.excited(lap), **summary}
-            arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
-            strict_json.write_atomic(path, functools.partial(np.savez_compressed, **arrays))
-            done[lap] = _lap_entry(lap, path, split, dataset_lib.lap_meta(path), dataset_lib.file_sha256(path))
-            _write_manifest(root, manifest, done, config, complete=False)
-            if bar is not None:
-                bar.update(1)
-    except KeyboardInterrupt:
-        interrupted = True
-        print(f"\ninterrupted: keeping the {len(done)} finished lap(s) in {root}; run again to resume")
+        arrays = lap_arrays(world, states, controls, targets, config, with_exact, frames_bar, rates)
     finally:
         if frames_bar is not None:
             frames_bar.close()
-        if bar is not None:
-            bar.close()
-    manifest = _write_manifest(root, manifest, done, config, complete=not interrupted and len(done) == config.laps)
-    manifest["wall_s_this_call"] = time.perf_counter() - t0
-    manifest["interrupted"] = interrupted
-    return manifest
+    meta = {"lap": lap, "split": split, "speed": speed, "seed": seed, "excited": config.excited(lap), **summary}
+    arrays.update({f"meta_{k}": np.asarray(v) for k, v in meta.items()})
+    strict_json.write_atomic(path, functools.partial(np.savez_compressed, **arrays))
+    return _lap_entry(lap, path, split, dataset_lib.lap_meta(path), dataset_lib.file_sha256(path))
 
 
 def _lap_entry(lap: int, path: Path, split: str, meta: dict, sha256: str) -> dict:

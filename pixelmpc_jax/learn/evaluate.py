@@ -34,7 +34,8 @@ from pixelmpc_jax.learn import control_response
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.learn.aee import OrientationBinBaseline, fit_orientation_bin_baseline, predict_flow_fields
 from pixelmpc_jax.perception import flow as flow_lib
-from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.sim import env as env_lib
+from pixelmpc_jax.sim import policies
 from pixelmpc_jax.world import render as render_lib
 
 PAPER_AEE_PX = 2.45
@@ -268,7 +269,7 @@ def default_cache_dir() -> Path:
 
 
 def heldout_dataset(cache_dir=None, config: collect_lib.CollectConfig = HELDOUT_CONFIG, progress: bool = True,
-                    policy: episode_lib.Policy | None = None) -> Path:
+                    policy: policies.Policy | None = None) -> Path:
     """Collect (or reuse) the seeded held-out set in the cache; returns its directory."""
     tag = f"dof_heldout_seed{config.seed}_laps{config.laps}_t{config.max_lap_time_s:g}_ss{config.supersample}"
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir() / tag
@@ -318,18 +319,10 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     train_data = dataset_lib.load_dataset(data_dir, "train")
     baseline = fit_orientation_bin_baseline(train_data.q, train_data.u, train_data.flow, bins_per_angle)
     del train_data
-    laps = dataset_lib.load_laps(data_dir, "test")
-    world = episode_lib.make_world()
-    W, H = manifest["image_size_wh"]
-    if (world.camera.width, world.camera.height) != (W, H):
-        raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
-                         f"{world.camera.height}")
+    laps, world = _test_laps(data_dir, manifest)
     dt = float(manifest["frame_dt_s"])
     accuracy = flow_accuracy(dof_params, laps, baseline, dt, progress=progress, input=input)
-    multistep = control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt, input=input)
-    parts = {part: control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt,
-                                                    input=input, part=part)["mean_px"]
-             for part in control_response.PIXEL_MODEL_PARTS if part != "dof"}
+    multistep = _multistep_results(dof_params, laps, world, horizon, dt, input)
     rotation = control_response.rotation_response(
         dof_params, np.concatenate([lap.q for lap in laps]),
         np.concatenate([dataset_lib.lap_input(lap, input) for lap in laps]), world.camera, dt)
@@ -344,8 +337,42 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         "rotation_response": rotation,
         "pixel_cost_rank_correlation": ranking,
         "paper_aee_px": PAPER_AEE_PX,
-        "image_size_wh": [W, H],
+        "image_size_wh": list(manifest["image_size_wh"]),
         "units": "pixels per frame (1/40 s) at the image size; multistep: pixels",
+        **multistep,
+        "data": _data_record(data_dir, manifest),
+        "baseline_bins_per_angle": bins_per_angle,
+        "created": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+    if figures:
+        results.update(_write_figures(out, dof_params, laps[0], world, manifest, input, multistep["multistep"],
+                                      multistep["multistep_parts"]["mean_px"]))
+    results["wall_s"] = time.perf_counter() - t0
+    results = strict_json.json_safe(results)
+    strict_json.write_json_atomic(out / "dof_eval.json", results)
+    return results
+
+
+def _test_laps(data_dir: Path, manifest: dict) -> tuple[list[dataset_lib.Lap], env_lib.World]:
+    """The dataset's test laps and the world they were flown in (its camera must render the images' size)."""
+    laps = dataset_lib.load_laps(data_dir, "test")
+    world = env_lib.make_world()
+    W, H = manifest["image_size_wh"]
+    if (world.camera.width, world.camera.height) != (W, H):
+        raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
+                         f"{world.camera.height}")
+    return laps, world
+
+
+def _multistep_results(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap], world: env_lib.World,
+                       horizon: int, dt: float, input: str) -> dict:
+    """The multi-step pixel prediction (Fig. 7): ``multistep`` (per step), ``multistep_at`` (at steps 1, 10, 20, 40, 80)
+    and ``multistep_parts`` (the same prediction with parts of the pixel model swapped)."""
+    multistep = control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt, input=input)
+    parts = {part: control_response.multistep_error(dof_params, laps, world.track, world.camera, horizon, dt,
+                                                    input=input, part=part)["mean_px"]
+             for part in control_response.PIXEL_MODEL_PARTS if part != "dof"}
+    return {
         "multistep": multistep,
         "multistep_at": {str(k): {"mean_px": multistep["mean_px"][k - 1], "std_px": multistep["std_px"][k - 1],
                                   "count": multistep["count"][k - 1]} for k in (1, 10, 20, 40, 80) if k <= horizon},
@@ -353,37 +380,41 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         "multistep_parts": {"mean_px": parts,
                             "at": {part: {str(k): v[k - 1] for k in (10, 20, 40, 80) if k <= horizon}
                                    for part, v in parts.items()}},
-        "data": {
-            "dir": str(data_dir),
-            "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
-                          manifest["laps"] if e["split"] == "test"],
-            "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
-            "collect_config": manifest["config"],
-        },
-        "baseline_bins_per_angle": bins_per_angle,
-        "created": datetime.datetime.now().isoformat(timespec="seconds"),
     }
-    if figures:
-        lap = laps[0]
-        t = _figure_frame(lap)
-        frame = render_lib.render(world.track, jnp.asarray(lap.states[t]), world.camera,
-                                  supersample=int(manifest["config"]["supersample"]))
-        lap_u = dataset_lib.lap_input(lap, input)
-        predicted = np.asarray(predict_flow_fields(dof_params, lap.q[t:t + 1], lap_u[t:t + 1], W, H, dt))[0]
-        exact = None if lap.exact_flow is None else lap.exact_flow[t].astype(np.float32)
-        valid = None if lap.exact_valid is None else lap.exact_valid[t]
-        speed = float(np.linalg.norm(lap.states[t, 7:10]))
-        plot_flow_fields(out / "dof_flow_fields.png", np.asarray(frame.rgb), exact, valid,
-                         lap.flow[t].astype(np.float32), predicted,
-                         title=f"test lap {lap.info.get('lap')} frame {t}, {speed:.1f} m/s")
-        plot_multistep(out / "dof_multistep.png", multistep,
-                       title=f"multi-step gate-centre prediction, {multistep['starts']} starts", parts=parts)
-        results["figures"] = ["dof_flow_fields.png", "dof_multistep.png"]
-        results["figure_frame"] = {"lap": lap.info.get("lap"), "frame": t}
-    results["wall_s"] = time.perf_counter() - t0
-    results = strict_json.json_safe(results)
-    strict_json.write_json_atomic(out / "dof_eval.json", results)
-    return results
+
+
+def _data_record(data_dir: Path, manifest: dict) -> dict:
+    """Where the evaluated laps came from: the dataset, its test laps, the baseline's train laps."""
+    return {
+        "dir": str(data_dir),
+        "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
+                      manifest["laps"] if e["split"] == "test"],
+        "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
+        "collect_config": manifest["config"],
+    }
+
+
+def _write_figures(out: Path, dof_params: dof.DOFParams, lap: dataset_lib.Lap, world: env_lib.World,
+                   manifest: dict, input: str, multistep: dict, parts: dict) -> dict:
+    """Fig. 2-like flow fields of a representative frame of ``lap`` and the multi-step curve into ``out``;
+    returns their record (``figures``, ``figure_frame``)."""
+    W, H = manifest["image_size_wh"]
+    dt = float(manifest["frame_dt_s"])
+    t = _figure_frame(lap)
+    frame = render_lib.render(world.track, jnp.asarray(lap.states[t]), world.camera,
+                              supersample=int(manifest["config"]["supersample"]))
+    lap_u = dataset_lib.lap_input(lap, input)
+    predicted = np.asarray(predict_flow_fields(dof_params, lap.q[t:t + 1], lap_u[t:t + 1], W, H, dt))[0]
+    exact = None if lap.exact_flow is None else lap.exact_flow[t].astype(np.float32)
+    valid = None if lap.exact_valid is None else lap.exact_valid[t]
+    speed = float(np.linalg.norm(lap.states[t, 7:10]))
+    plot_flow_fields(out / "dof_flow_fields.png", np.asarray(frame.rgb), exact, valid,
+                     lap.flow[t].astype(np.float32), predicted,
+                     title=f"test lap {lap.info.get('lap')} frame {t}, {speed:.1f} m/s")
+    plot_multistep(out / "dof_multistep.png", multistep,
+                   title=f"multi-step gate-centre prediction, {multistep['starts']} starts", parts=parts)
+    return {"figures": ["dof_flow_fields.png", "dof_multistep.png"],
+            "figure_frame": {"lap": lap.info.get("lap"), "frame": t}}
 
 
 def summarise(results: dict) -> str:

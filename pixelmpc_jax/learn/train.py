@@ -28,8 +28,8 @@ the squared endpoint error instead, ``L = mean |PolarToEuler(l_hat, theta_hat) -
 The two differ where the flow at a given (q, uv, u) is uncertain, which is most of the flow here: the DOF
 does not see the velocity or the depth that make up the translational flow. The polar loss is minimised by
 the mean flow LENGTH along the l^2-weighted mean direction; the endpoint loss by the mean flow VECTOR, which
-is what the pixel dynamics uv_{t+1} = uv_t + dt * uv_dot integrates. Measured on the same data and steps
-(README, "DOF loss"): the same AEE, a much smaller multi-step pixel error, the same response to the controls.
+is what the pixel dynamics uv_{t+1} = uv_t + dt * uv_dot integrates. Measured (docs/choices.md, "The DOF's
+loss"): the same AEE, a much smaller multi-step pixel error, the same response to the controls.
 A further loss is one function in :data:`LOSS_FUNCTIONS`.
 """
 
@@ -520,81 +520,81 @@ def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
     strict_json.write_json_atomic(path.with_suffix(".json"), record)
 
 
-def run_train(data_dir, out_dir="runs/dof_train", steps: int = 20_000, batch_size: int = 4096,
-              learning_rate: float = 1e-3, seed: int = 0, resume: bool = False, progress: bool = True,
-              ship: bool = False, loss: str = "polar", input: str = "command", rotation_augment: float = 0.0,
-              rotation_augment_fraction: float = 1.0) -> dict:
+def run_train(data_dir, out_dir="runs/dof_train", config: TrainConfig = TrainConfig(), resume: bool = False,
+              ship: bool = False) -> dict:
     """Train the DOF on ``data_dir``'s train laps (:func:`train`, Algorithm 1), report the test-lap AEE, and
     write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
     (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
     the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
-
-    ``loss``: "polar" (the paper's) or "endpoint"; ``input``: the network's control input, "command" (the
-    paper's) or "flown" (the rates flown over the frame; ``dataset.INPUTS``); ``rotation_augment``,
-    ``rotation_augment_fraction``: see :class:`TrainConfig` (0: off, the paper's). The variant is recorded in
-    the weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
-    if input not in INPUTS:
-        raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
+    ``config``: every training setting (:class:`TrainConfig`); its ``width``, ``height``, ``dt`` and
+    ``checkpoint_path`` are set from the dataset and ``out_dir``. The variant (input, loss) is recorded in the
+    weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
     data_dir, out = Path(data_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     manifest = dataset_lib.read_manifest(data_dir)
     W, H = manifest["image_size_wh"]
-    train_data = dataset_lib.load_dataset(data_dir, "train", input=input)
-    has_test = bool(manifest["split"]["test"]) and manifest["frames"]["test"] > 0
-    test_data = dataset_lib.load_dataset(data_dir, "test", input=input) if has_test else None
     checkpoint = out / "checkpoint.msgpack"
-    config = TrainConfig(steps=steps, batch_size=batch_size, learning_rate=learning_rate, seed=seed, width=W,
-                         height=H, dt=float(manifest["frame_dt_s"]), checkpoint_path=str(checkpoint),
-                         progress=progress, loss=loss, input=input, rotation_augment=float(rotation_augment),
-                         rotation_augment_fraction=float(rotation_augment_fraction))
+    config = dataclasses.replace(config, width=W, height=H, dt=float(manifest["frame_dt_s"]),
+                                 checkpoint_path=str(checkpoint))
+    train_data = dataset_lib.load_dataset(data_dir, "train", input=config.input)
+    has_test = bool(manifest["split"]["test"]) and manifest["frames"]["test"] > 0
+    test_data = dataset_lib.load_dataset(data_dir, "test", input=config.input) if has_test else None
     t0 = time.perf_counter()
     dof_params, history = train(config, train_data, test_data,
                                 resume_from=checkpoint if (resume and checkpoint.exists()) else None)
     wall = time.perf_counter() - t0
     strict_json.write_json_atomic(out / "history.json", history)
-    record = {
-        "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
-        "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
-        "variant": {"input": input, "loss": loss, "layer_sizes": list(dof.LAYER_SIZES),
-                    "input_means": "the body rates commanded at the frame's tick (the paper's)" if input == "command"
-                    else "the body rates flown over the frame interval (dataset w_flown), commanded thrust",
-                    "rotation_augment": {"sigma_rad_s": float(rotation_augment),
-                                         "fraction": float(rotation_augment_fraction)}},
-        "train_wall_s": wall,
-        "steps_done": history["step"][-1] if history["step"] else 0,
-        "interrupted": history["interrupted"],
-        "data": {
-            "dir": str(data_dir),
-            "collect_config": manifest["config"],
-            "policy": manifest.get("policy"),
-            "format_version": manifest.get("format_version"),
-            "excited_laps": manifest.get("excited_laps", []),
-            "frames": manifest["frames"],
-            "bytes": manifest.get("bytes"),
-            "laps": [{k: e[k] for k in ("lap", "split", "speed", "seed", "frames", "end", "gates_passed")}
-                     for e in manifest["laps"]],
-        },
-        "results": {"test_aee_px": history.get("test_aee_px"),
-                    "test_zero_flow_aee_px": history.get("test_zero_flow_aee_px")},
-        "calls": [
-            f"pixelmpc_jax.learn.collect.collect({str(data_dir)!r}, "
-            f"CollectConfig(**{json.dumps(manifest['config'])}))",
-            f"pixelmpc_jax.learn.train.run_train({str(data_dir)!r}, {str(out)!r}, steps={steps}, "
-            f"batch_size={batch_size}, learning_rate={learning_rate}, seed={seed}, loss={loss!r}, input={input!r}, "
-            f"rotation_augment={rotation_augment}, rotation_augment_fraction={rotation_augment_fraction})",
-        ],
-        "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
-        "created": datetime.datetime.now().isoformat(timespec="seconds"),
-    }
+    record = _weights_record(config, data_dir, out, manifest, history, wall)
     weights = out / dof.PACKAGED_WEIGHTS.name  # dof_weights.msgpack, with its record dof_weights.json
     export_weights(weights, dof_params, record)
     if ship:
         shutil.copyfile(weights, dof.PACKAGED_WEIGHTS)
         shutil.copyfile(weights.with_suffix(".json"), dof.PACKAGED_WEIGHTS.with_suffix(".json"))
-    aee = history.get("test_aee_px")
-    zero = history.get("test_zero_flow_aee_px")
-    turned = f", rows turned by {rotation_augment:g} rad/s" if rotation_augment else ""
-    print(f"trained {record['steps_done']} steps ({input} input, {loss} loss{turned}) in {wall / 60:.1f} min on "
-          f"{manifest['frames']['train']} frames; test AEE {'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow "
-          f"{'-' if zero is None else f'{zero:.2f}'}); weights: {weights}")
+    aee, zero = history.get("test_aee_px"), history.get("test_zero_flow_aee_px")
+    turned = f", rows turned by {config.rotation_augment:g} rad/s" if config.rotation_augment else ""
+    print(f"trained {record['steps_done']} steps ({config.input} input, {config.loss} loss{turned}) in "
+          f"{wall / 60:.1f} min on {manifest['frames']['train']} frames; test AEE "
+          f"{'-' if aee is None else f'{aee:.2f}'} px/frame (zero flow {'-' if zero is None else f'{zero:.2f}'}); "
+          f"weights: {weights}")
     return record
+
+
+def _train_call(config: TrainConfig, data_dir: Path, out: Path) -> str:
+    """The :func:`run_train` call that repeats this run, every training setting spelled out (not the fields
+    run_train sets from the dataset and ``out_dir``, nor the progress bar)."""
+    derived = ("width", "height", "dt", "checkpoint_path", "progress")
+    settings = ", ".join(f"{f.name}={getattr(config, f.name)!r}" for f in dataclasses.fields(TrainConfig)
+                         if f.name not in derived)
+    return f"pixelmpc_jax.learn.train.run_train({str(data_dir)!r}, {str(out)!r}, TrainConfig({settings}))"
+
+
+def _weights_record(config: TrainConfig, data_dir: Path, out: Path, manifest: dict, history: dict,
+                    wall: float) -> dict:
+    """The provenance record shipped with the weights: config, variant, data, results, calls, versions."""
+    return {
+        "what": "DOF weights (parameters + input/output normalisation), pixelmpc_jax.learn",
+        "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
+        "variant": {"input": config.input, "loss": config.loss, "layer_sizes": list(dof.LAYER_SIZES),
+                    "input_means": ("the body rates commanded at the frame's tick (the paper's)"
+                                    if config.input == "command" else
+                                    "the body rates flown over the frame interval (dataset w_flown), commanded thrust"),
+                    "rotation_augment": {"sigma_rad_s": float(config.rotation_augment),
+                                         "fraction": float(config.rotation_augment_fraction)}},
+        "train_wall_s": wall,
+        "steps_done": history["step"][-1] if history["step"] else 0,
+        "interrupted": history["interrupted"],
+        "data": {"dir": str(data_dir), "collect_config": manifest["config"], "policy": manifest.get("policy"),
+                 "format_version": manifest.get("format_version"), "excited_laps": manifest.get("excited_laps", []),
+                 "frames": manifest["frames"], "bytes": manifest.get("bytes"),
+                 "laps": [{k: e[k] for k in ("lap", "split", "speed", "seed", "frames", "end", "gates_passed")}
+                          for e in manifest["laps"]]},
+        "results": {"test_aee_px": history.get("test_aee_px"),
+                    "test_zero_flow_aee_px": history.get("test_zero_flow_aee_px")},
+        "calls": [
+            f"pixelmpc_jax.learn.collect.collect({str(data_dir)!r}, "
+            f"CollectConfig(**{json.dumps(manifest['config'])}))",
+            _train_call(config, data_dir, out),
+        ],
+        "versions": manifest.get("versions", {}) | {"jax": jax.__version__},
+        "created": datetime.datetime.now().isoformat(timespec="seconds"),
+    }

@@ -236,21 +236,40 @@ def detect_from_image(
         return _not_found(gate_id)
     contours, hierarchy = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
     hierarchy = hierarchy[0]
-    outers = [i for i in range(len(contours)) if hierarchy[i][3] < 0]
-    areas = [cv2.contourArea(contours[i]) + len(contours[i]) for i in outers]
-    main = outers[int(np.argmax(areas))]
-    # The frame: every sizeable component (occlusion can split it), for the box.
-    keep = np.zeros_like(mask)
-    for i in outers:
-        if cv2.contourArea(contours[i]) + len(contours[i]) >= 0.1 * max(areas):
-            cv2.drawContours(keep, contours, i, 255, thickness=cv2.FILLED)
-    frame = cv2.bitwise_and(keep, mask)
+    main, frame = _gate_frame(mask, contours, hierarchy)
     ys, xs = np.nonzero(frame)
     if len(xs) < min_pixels:
         return _not_found(gate_id)
     bbox_px = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
+    opening = _opening(mask, contours, hierarchy, main)
+    corners, visible = _opening_corners(opening, mask, W, H)
+    centre = _gate_centre(corners, visible, bbox_px)
+    scale = np.array([W, H], np.float64)
+    return Detection(
+        found=np.bool_(True),
+        centre=(centre / scale).astype(np.float32),
+        bbox=(bbox_px / np.tile(scale, 2)).astype(np.float32),
+        corners=np.where(visible[:, None], corners / scale, 0.0).astype(np.float32),
+        corners_visible=visible,
+        gate_id=np.int32(gate_id),
+    )
 
-    # The opening: the main component's largest hole, else its convex hull minus the frame.
+
+def _gate_frame(mask: np.ndarray, contours, hierarchy: np.ndarray) -> tuple[int, np.ndarray]:
+    """The main (largest) outer component's contour index, and the frame (H, W) uint8: the mask's pixels of
+    every sizeable outer component (occlusion can split the frame), for the box."""
+    outers = [i for i in range(len(contours)) if hierarchy[i][3] < 0]
+    areas = [cv2.contourArea(contours[i]) + len(contours[i]) for i in outers]
+    main = outers[int(np.argmax(areas))]
+    keep = np.zeros_like(mask)
+    for i in outers:
+        if cv2.contourArea(contours[i]) + len(contours[i]) >= 0.1 * max(areas):
+            cv2.drawContours(keep, contours, i, 255, thickness=cv2.FILLED)
+    return main, cv2.bitwise_and(keep, mask)
+
+
+def _opening(mask: np.ndarray, contours, hierarchy: np.ndarray, main: int) -> np.ndarray:
+    """The gate's opening (H, W) uint8: the main component's largest hole, else its convex hull minus the frame."""
     holes = [i for i in range(len(contours)) if hierarchy[i][3] == main]
     opening = np.zeros_like(mask)
     if holes:
@@ -259,22 +278,33 @@ def detect_from_image(
     else:
         hull = cv2.convexHull(contours[main])
         cv2.drawContours(opening, [hull], 0, 255, thickness=cv2.FILLED)
-    opening = cv2.bitwise_and(opening, cv2.bitwise_not(mask))
+    return cv2.bitwise_and(opening, cv2.bitwise_not(mask))
+
+
+def _opening_corners(opening: np.ndarray, mask: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Corners (4, 2) in pixels (TL, TR, BR, BL; zeros where not found) and their visibility (4,) bool, from
+    lines fitted to the sides of the opening's largest region."""
     corners = np.zeros((4, 2))
     visible = np.zeros(4, bool)
     open_contours, _ = cv2.findContours(opening, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if open_contours:
         contour_int = max(open_contours, key=cv2.contourArea)
-        if cv2.contourArea(contour_int) >= 4:
+        # approxPolyN needs a hull of 4 or more vertices (a triangular opening has 3: no corners then)
+        if cv2.contourArea(contour_int) >= 4 and len(cv2.convexHull(contour_int)) >= 4:
             contour = contour_int.reshape(-1, 2).astype(np.float64) + 0.5  # pixel centres
             quad = cv2.approxPolyN(contour_int, 4, ensure_convex=True).reshape(-1, 2).astype(np.float64) + 0.5
             if len(quad) == 4:
                 quad = _refine_quad(contour, _cyclic_from_top_left(quad))
                 reference = contour.mean(0)
                 for slot, point in _label_corners(quad, reference):
-                    if _is_true_corner(point, reference, mask, W, H):
+                    if _is_true_corner(point, reference, mask, width, height):
                         corners[slot], visible[slot] = point, True
+    return corners, visible
 
+
+def _gate_centre(corners: np.ndarray, visible: np.ndarray, bbox_px: np.ndarray) -> np.ndarray:
+    """The gate centre's image (2,) in pixels: all 4 corners -> the diagonals' intersection; a diagonal's two
+    ends only -> its midpoint; otherwise (or parallel diagonals) the centre of the frame's box."""
     if visible.all():
         centre = _diagonal_intersection(corners)
     elif visible[0] and visible[2]:
@@ -285,15 +315,7 @@ def detect_from_image(
         centre = None
     if centre is None:
         centre = 0.5 * (bbox_px[:2] + bbox_px[2:])
-    scale = np.array([W, H], np.float64)
-    return Detection(
-        found=np.bool_(True),
-        centre=(centre / scale).astype(np.float32),
-        bbox=(bbox_px / np.tile(scale, 2)).astype(np.float32),
-        corners=np.where(visible[:, None], corners / scale, 0.0).astype(np.float32),
-        corners_visible=visible,
-        gate_id=np.int32(gate_id),
-    )
+    return centre
 
 
 def _cyclic_from_top_left(quad: np.ndarray) -> np.ndarray:

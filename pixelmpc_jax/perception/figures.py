@@ -97,9 +97,8 @@ def write_render_figures(
         ``{case: render_figure's dict}``.
     """
     if track is None:
-        from pixelmpc_jax.world import track as track_lib
-
-        track = track_lib.load_course()
+        from pixelmpc_jax.world import course as course_lib
+        track = course_lib.load_course()
     camera = camera or camera_lib.default_camera()
     x0 = render_lib.pose_before_gate(track.gate(gate_index), distance, lateral=0.5, height=0.3)
     results = {}

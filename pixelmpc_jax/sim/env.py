@@ -27,6 +27,7 @@ from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
 # Episode end causes beyond the track's crash causes.
@@ -70,7 +71,7 @@ def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
     """A World with defaults: the AlphaPilot course, the reference vehicle, the paper's camera."""
     if not (isinstance(target_speed, (int, float)) and target_speed > 0):
         raise ValueError(f"target_speed must be a positive number of m/s, got {target_speed!r}")
-    track = track if track is not None else track_lib.load_course()
+    track = track if track is not None else course_lib.load_course()
     plant_params = plant_params if plant_params is not None else plant_lib.PlantParams()
     camera = camera if camera is not None else camera_lib.default_camera()
     leaves = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32)

@@ -6,8 +6,6 @@ flown (plant, gate passage, collisions, the episode's end), then writes the tick
 episode is one ``lax.while_loop`` over ticks, so a finished lap stops computing; a batch of episodes (seeds,
 speeds, course perturbations) is a ``vmap`` of it, split over the devices (:mod:`pixelmpc_jax.sim.sharding`),
 and runs until its last member ends.
-
-The names of the closed loop stay importable from here; each comment says where a name lives.
 """
 
 from __future__ import annotations
@@ -19,48 +17,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from pixelmpc_jax.control.pixelmpc import paper_mppi_config  # control/pixelmpc.py
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import env as env_lib
-from pixelmpc_jax.sim.env import (  # sim/env.py (CONTROL_DT and SUBSTEPS from pixelmpc_jax/timing.py)
-    CONTROL_DT,
-    CRASH_MISSED_GATE,
-    CRASH_TIMEOUT,
-    DETECTORS,
-    END_NAMES,
-    ESTIMATORS,
-    SUBSTEPS,
-    EnvConfig,
-    Observation,
-    SimState,
-    World,
-    make_world,
-    stack_worlds,
-)
-from pixelmpc_jax.sim.policies import (  # sim/policies.py
-    DEFAULT_FEEDFORWARD_GAIN,
-    Policy,
-    RacingPolicyState,
-    nominal_mppi_policy,
-    pixelmpc_policy,
-    rate_feedforward,
-)
-from pixelmpc_jax.sim.sharding import gather_batch, shard_batch  # sim/sharding.py
-
-__all__ = [
-    # defined here: the driver
-    "EpisodeConfig", "EpisodeLog", "Runner", "episode_fn", "make_runner",
-    # sim/env.py (CONTROL_DT and SUBSTEPS are pixelmpc_jax/timing.py's)
-    "CONTROL_DT", "SUBSTEPS", "CRASH_MISSED_GATE", "CRASH_TIMEOUT", "END_NAMES", "DETECTORS", "ESTIMATORS",
-    "EnvConfig", "Observation", "SimState", "World", "make_world", "stack_worlds",
-    # sim/policies.py
-    "DEFAULT_FEEDFORWARD_GAIN", "Policy", "RacingPolicyState", "nominal_mppi_policy", "pixelmpc_policy",
-    "rate_feedforward",
-    # sim/sharding.py
-    "gather_batch", "shard_batch",
-    # control/pixelmpc.py
-    "paper_mppi_config",
-]
+from pixelmpc_jax.sim.env import Observation, SimState, World
+from pixelmpc_jax.sim.policies import Policy
+from pixelmpc_jax.sim.sharding import gather_batch, shard_batch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -198,7 +159,12 @@ class Runner(NamedTuple):
 
 def make_runner(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Runner:
     """Compiled runners; ``batch`` splits its episodes over every device present, across processes too
-    (see :func:`~pixelmpc_jax.sim.sharding.shard_batch`), and returns them whole."""
+    (see :func:`~pixelmpc_jax.sim.sharding.shard_batch`), and returns them whole.
+
+    ``single`` compiles with the policy's XLA options (``Policy.compiler_options``: chosen for one controller
+    step, e.g. YNNPACK's products for a step on one CPU device, which split each product over the cores).
+    ``batch`` compiles with XLA's own kernels: its laps are spread over the devices, one core each, where
+    kernels that take every core would contend with the other devices' laps."""
     run = episode_fn(policy, config)
     batch_jit = jax.jit(jax.vmap(run))
 

@@ -12,7 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax.dynamics import quadrotor
-from pixelmpc_jax.sim.episode import CONTROL_DT, END_NAMES, EpisodeLog
+from pixelmpc_jax.sim.env import END_NAMES
+from pixelmpc_jax.sim.episode import EpisodeLog
+from pixelmpc_jax.timing import CONTROL_DT
 from pixelmpc_jax.world import camera as camera_lib
 
 LAP_KEYS = (
@@ -20,7 +22,7 @@ LAP_KEYS = (
     "time_vis_below_50_unavoidable_s",
     *(f"time_vis_below_50_{cause}_s" for cause in ("above", "below", "left", "right", "behind", "inside")),
     "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
-    "mean_angular_acc", "mean_speed", "flight_time_s",
+    "mean_angular_acc", "mean_speed", "flight_time_s", "share_target_in_view", "mean_target_angle_deg",
 )
 
 
@@ -118,6 +120,34 @@ def _target_projection(gates, states: jax.Array, camera: camera_lib.Camera):
     return jax.vmap(one)(gates, states)
 
 
+@jax.jit
+def _target_angles(gates, states: jax.Array, camera: camera_lib.Camera) -> jax.Array:
+    """(S,) degrees between the optical axis at state s and the ray to gate s's centre."""
+
+    def one(gate, x):
+        rotation, position = camera_lib.world_to_camera(x, camera)
+        p_cam = rotation @ (gate.centre - position)
+        return jnp.degrees(jnp.arctan2(jnp.linalg.norm(p_cam[:2]), p_cam[2]))
+
+    return jax.vmap(one)(gates, states)
+
+
+def view_metrics(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, num_ticks: int, track,
+                 camera) -> dict:
+    """The two visibility families of current perception-aware racing work, over a lap's flown ticks:
+    ``share_target_in_view``, the share of flight time with any of the target gate's outline in the image
+    (visibility > 0), and ``mean_target_angle_deg``, the mean angle between the camera's optical axis and the
+    ray to the target gate's centre (0 when flying straight at it; the perception term of learned racing
+    policies)."""
+    if num_ticks == 0:
+        return {"share_target_in_view": None, "mean_target_angle_deg": None}
+    flown = slice(1, num_ticks + 1)  # the states reached by the flown ticks
+    gates = jax.tree_util.tree_map(lambda leaf: leaf[target], track.gates)
+    angles = np.asarray(_target_angles(gates, jnp.asarray(states), camera))
+    return {"share_target_in_view": float(np.mean(visibility[flown] > 0.0)),
+            "mean_target_angle_deg": float(np.mean(angles[flown]))}
+
+
 def loss_causes(states: np.ndarray, below_50: np.ndarray, unavoidable: np.ndarray, target: np.ndarray, track,
                 camera) -> np.ndarray:
     """(S,) int: for each tick of the ``below_50`` mask, why the target gate was not in view, as an index into
@@ -168,7 +198,9 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
     below_50, zero = float(np.sum(low_50)) * dt, float(np.sum(low_zero)) * dt
     unavoidable = None
     causes = dict.fromkeys(LOSS_CAUSES[1:])
+    view = {"share_target_in_view": None, "mean_target_angle_deg": None}
     if track is not None and camera is not None:
+        view = view_metrics(np.asarray(log.states), visibility, target, n, track, camera)
         all_states = np.asarray(log.states)
         unavoidable_mask = _unavoidable(all_states, low_50, target, track, camera)
         unavoidable = float(np.sum(unavoidable_mask)) * dt
@@ -190,6 +222,7 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
         "mean_angular_acc": float(np.mean(angular_acc)),
         "mean_speed": float(np.mean(np.linalg.norm(velocity, axis=1))),
         "flight_time_s": n * dt,
+        **view,
     }
 
 

@@ -18,9 +18,8 @@ from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import MPPIConfig
 from pixelmpc_jax.control.pixelmpc import paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.dynamics import vdof as vdof_lib
 from pixelmpc_jax.sim.env import Observation, World
-
-DEFAULT_FEEDFORWARD_GAIN = 0.0
 
 
 class Policy(NamedTuple):
@@ -54,20 +53,8 @@ class RacingPolicyState(NamedTuple):
     racing_constants: costs.RacingConstants
 
 
-def rate_feedforward(u0: jax.Array, u1: jax.Array, gain: float, u_min, u_max) -> jax.Array:
-    """The command sent to the plant: ``u0`` with its body rates led by ``gain * (u1 - u0)``.
-
-    The model assumes the rates follow the command at once; the plant's rate loop lags it with a time
-    constant of about 1 / P = 0.11 s. Leading the planned rate change (u1 is the plan's next control)
-    lets the plant's rates follow the plan the model optimised. Thrust is passed through. Clipped.
-    """
-    rates = u0[:3] + gain * (u1[:3] - u0[:3])
-    u = jnp.concatenate([rates, u0[3:]])
-    return jnp.clip(u, jnp.asarray(u_min), jnp.asarray(u_max))
-
-
 def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
-                  quad_params: quadrotor.QuadParams, feedforward_gain: float) -> Policy:
+                  quad_params: quadrotor.QuadParams) -> Policy:
     """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
 
     ``build(obs, world, racing_params) -> (x0, params)`` makes the controller's state and params from an
@@ -91,8 +78,6 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
-        if feedforward_gain:
-            u = rate_feedforward(u, mppi_state.plan[0], feedforward_gain, mppi_config.u_min, mppi_config.u_max)
         return u, RacingPolicyState(mppi_state, next_progress, state.racing_constants), info.nominal_trajectory
 
     return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
@@ -100,8 +85,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
                         cost_config: costs.RacingCostConfig | None = None,
-                        quad_params: quadrotor.QuadParams | None = None,
-                        feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
+                        quad_params: quadrotor.QuadParams | None = None) -> Policy:
     """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
@@ -111,14 +95,14 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     def build(obs, world, racing):
         return obs.x_est, racing
 
-    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, feedforward_gain)
+    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params)
 
 
 def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
-                    quad_params: quadrotor.QuadParams | None = None,
-                    feedforward_gain: float = DEFAULT_FEEDFORWARD_GAIN) -> Policy:
-    """PixelMPC in the loop: the target pixel is the detector's, the pixel cost is active while it
-    detects the target; the DOF weights come from ``world.dof``."""
+                    quad_params: quadrotor.QuadParams | None = None) -> Policy:
+    """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
+    size of its corners), the pixel cost is active while it detects the target; the learned pixel model's weights
+    come from ``world.dof``."""
     config = config or pixelmpc_lib.PixelMPCConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
@@ -126,6 +110,8 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
     def build(obs, world, racing):
         detection = obs.detection
         uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
+        if config.pixel_model == "vdof":  # not costed while the target is not detected, whatever it holds
+            uv0 = vdof_lib.initial_pixel_state(uv0, detection.corners)
         params = pixelmpc_lib.PixelMPCParams(
             racing=racing, dof=world.dof, target_active=detection.found,
             target_centre=world.track.gates.centre[obs.target_gate],
@@ -134,4 +120,4 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
         return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
 
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
-                         quad_params, feedforward_gain)
+                         quad_params)

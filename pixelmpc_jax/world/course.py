@@ -1,6 +1,6 @@
 """Building a race course (:class:`~pixelmpc_jax.world.track.Track`): from a course file (the packaged
 AlphaPilot course by default), the straight course of the paper's straight-lane test, and a course with its
-gates perturbed within their bounds.
+gates perturbed within their bounds; and generating a seeded course file (:func:`generate_course`).
 
 A built course gets its hall (``HALL_MARGIN`` around every gate frame, the start and the desired path; the
 ceiling at ``max(HALL_CEILING, highest point + 3 m)``) and its desired path with the number of path points P
@@ -9,6 +9,7 @@ fixed from the nominal length; a perturbed course keeps both (see :mod:`pixelmpc
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -18,10 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world.track import (
     GATE_BORDER,
     HALL_CEILING,
     HALL_MARGIN,
+    PATH_RUNOUT,
     Gate,
     Track,
     build_nominal_path,
@@ -36,6 +39,9 @@ _TOP_LEVEL_FIELDS = {"about", "race", "gates", "camera", "vehicle"}
 _RACE_FIELDS = {"gate_order", "init_pose", "timeout_s", "gate_frame_width_m", "perturbation_bounds_note"}
 _POSE_FIELDS = {"position", "quaternion_xyzw", "note"}
 _GATE_FIELDS = {"corners", "perturbation_bound"}
+
+GATE_WIDTH = 1.8  # m, inner opening of the AlphaPilot gates
+GATE_HEIGHT = 1.85  # m
 
 
 _outer_corners_jit = jax.jit(gate_outer_corners)
@@ -186,8 +192,8 @@ def straight_course(
     spacing: float = 20.0,
     height: float = 3.0,
     first_gate_x: float = 20.0,
-    width: float = 1.8,
-    gate_height: float = 1.85,
+    width: float = GATE_WIDTH,
+    gate_height: float = GATE_HEIGHT,
     border: float = GATE_BORDER,
     perturbation_bound=(0.0, 0.0, 0.0),
 ) -> Track:
@@ -232,3 +238,180 @@ def perturb_course(track: Track, key: jax.Array, bounds=None) -> Track:
     gates = track.gates.replace(centre=centre, rotation=rz @ track.gates.rotation)
     pts, tan, s_path, gate_s = build_path(track.start[:3], gates, track.num_path_points)
     return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
+
+
+# --------------------------------------------------------------------------------------------------
+# A seeded course generator.
+# --------------------------------------------------------------------------------------------------
+
+GENERATOR_VERSION = 1
+GATE_CENTRE_Z = (3.0, 7.0)  # m, gate centre height
+LEG_LENGTH = (10.0, 22.0)  # m, between consecutive gate centres
+START_DISTANCE = (15.0, 20.0)  # m, level from the start to the first gate
+MAX_TURN_DEG = 70.0  # heading change between consecutive legs (the start -> first gate leg included)
+MIN_SEPARATION = 6.0  # m, horizontal, between any two gate centres, and between the start and any gate
+LEG_CLEARANCE = 4.0  # m, horizontal, from a leg (or the run-out) to any gate that is not one of its ends
+FOOTPRINT = 70.0  # m, side of the square holding the start, the gate frames and the desired path
+PATH_SWING = 2.0  # m, room left on each side of the footprint for the path's swing out of its straight legs
+PERTURBATION_BOUND = (1.0, 1.0, 5.0)  # per gate: x, y (m), yaw (deg), as the AlphaPilot bounds
+_CANDIDATES_PER_GATE = 64
+_MAX_ATTEMPTS = 1000
+_DECIMALS = 4  # rounding of the written coordinates (0.1 mm)
+
+
+def _heading(yaw: float) -> np.ndarray:
+    return np.array([math.cos(yaw), math.sin(yaw)])
+
+
+def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) distances of points (N, 2) to the segment a-b ((2,) each)."""
+    ab = b - a
+    t = np.clip((points - a) @ ab / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(points - (a + t[:, None] * ab), axis=-1)
+
+
+def _runout_route(start: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(G + 2, 2) horizontal route: the start, the gate centres, the run-out end along the last leg."""
+    route = np.concatenate([start[None], centres])[:, :2]
+    last_leg = route[-1] - route[-2]
+    return np.concatenate([route, (route[-1] + PATH_RUNOUT * last_leg / np.linalg.norm(last_leg))[None]])
+
+
+def _footprint(route: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal box (lo (2,), hi (2,)) of route points (N, 2) and the frames of gates at centres (G, 3)."""
+    half = 0.5 * GATE_WIDTH + GATE_BORDER  # a frame's corners lie within this of its centre, horizontally
+    lo = np.minimum(route.min(axis=0), centres[:, :2].min(axis=0) - half)
+    hi = np.maximum(route.max(axis=0), centres[:, :2].max(axis=0) + half)
+    return lo, hi
+
+
+def _layout_fits(start: np.ndarray, centres: np.ndarray, final: bool) -> bool:
+    """Whether start (3,) and gate centres (k, 3) keep MIN_SEPARATION, LEG_CLEARANCE and FOOTPRINT (less
+    the PATH_SWING on each side), all horizontal; with ``final`` the run-out past the last gate (along its
+    last leg) is checked too."""
+    knots = np.concatenate([start[None], centres])[:, :2]  # (k + 1, 2): the start, then the gates
+    gap = np.linalg.norm(knots[:, None] - knots[None], axis=-1)[np.triu_indices(len(knots), 1)]
+    if gap.min() < MIN_SEPARATION:
+        return False
+    route = _runout_route(start, centres) if final else knots
+    for i in range(len(route) - 1):
+        others = [j for j in range(1, len(knots)) if j not in (i, i + 1)]
+        if others and _segment_distance(knots[others], route[i], route[i + 1]).min() < LEG_CLEARANCE:
+            return False
+    lo, hi = _footprint(route, centres)
+    return bool((hi - lo).max() <= FOOTPRINT - 2 * PATH_SWING)
+
+
+def _sample_layout(rng: np.random.Generator, num_gates: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """One try at a layout: start (3,) and gate centres (G, 3), or None where a gate found no place.
+
+    The first gate is at the origin, the start level with it ``START_DISTANCE`` behind along a random
+    heading; each next gate is a leg of ``LEG_LENGTH`` (3-D) on, turned by at most ``MAX_TURN_DEG``, at a
+    height in ``GATE_CENTRE_Z``; a gate tries ``_CANDIDATES_PER_GATE`` places that keep
+    :func:`_layout_fits`.
+    """
+    yaw = rng.uniform(-math.pi, math.pi)
+    z = rng.uniform(*GATE_CENTRE_Z)
+    centres = np.array([[0.0, 0.0, z]])
+    start = np.array([*(-rng.uniform(*START_DISTANCE) * _heading(yaw)), z])
+    for k in range(1, num_gates):
+        for _ in range(_CANDIDATES_PER_GATE):
+            turn = math.radians(rng.uniform(-MAX_TURN_DEG, MAX_TURN_DEG))
+            length, z = rng.uniform(*LEG_LENGTH), rng.uniform(*GATE_CENTRE_Z)
+            level = math.sqrt(length**2 - (z - centres[-1, 2]) ** 2)  # |dz| <= 4 m < the shortest leg
+            candidate = np.array([*(centres[-1, :2] + level * _heading(yaw + turn)), z])
+            placed = np.concatenate([centres, candidate[None]])
+            if _layout_fits(start, placed, final=k == num_gates - 1):
+                centres, yaw = placed, yaw + turn
+                break
+        else:
+            return None
+    if num_gates == 1 and not _layout_fits(start, centres, final=True):
+        return None
+    return start, centres
+
+
+def _gate_yaws(start: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(G,) yaw of each gate's normal: the bisector of its legs in and out (the last gate: its leg in)."""
+    route = np.concatenate([start[None], centres])[:, :2]
+    legs = np.diff(route, axis=0)
+    legs /= np.linalg.norm(legs, axis=-1, keepdims=True)  # (G, 2) unit leg into each gate
+    facing = legs + np.concatenate([legs[1:], legs[-1:]])  # in + out; never zero (turns <= MAX_TURN_DEG)
+    return np.arctan2(facing[:, 1], facing[:, 0])
+
+
+def _gate_corners(centre: np.ndarray, yaw: float) -> np.ndarray:
+    """(4, 3) inner corners of a vertical AlphaPilot-size gate facing ``yaw``: top-left, top-right,
+    bottom-right, bottom-left seen along the normal (the order of ``Gate.corners``)."""
+    lateral = np.array([-math.sin(yaw), math.cos(yaw), 0.0])  # up x normal: left of the direction of travel
+    up = np.array([0.0, 0.0, 1.0])
+    signs = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])  # (lateral, up)
+    return centre + signs[:, :1] * 0.5 * GATE_WIDTH * lateral + signs[:, 1:] * 0.5 * GATE_HEIGHT * up
+
+
+def generate_course(seed: int, num_gates: int = 8) -> dict:
+    """A random race course in the course-file format of ``alphapilot_course.json``, deterministic in
+    ``seed`` (numpy ``default_rng``).
+
+    AlphaPilot-size vertical gates (1.8 x 1.85 m opening, 0.3 m frame) facing the direction of travel, centres
+    3-7 m high, legs of 10-22 m turning at most 70 deg, gates at least 6 m apart and legs at least 4 m from
+    the gates they do not join, the start level with the first gate 15-20 m before it and facing it, all
+    within a 70 m square centred on the origin (see the bounds above; a try that breaks them is redrawn). The
+    ``camera`` and ``vehicle`` blocks are the AlphaPilot file's. Load it with :func:`load_course` after
+    :func:`write_course`.
+    """
+    if num_gates < 1:
+        raise ValueError(f"generate_course: need num_gates >= 1, got {num_gates}")
+    rng = np.random.default_rng(seed)
+    for _ in range(_MAX_ATTEMPTS):
+        layout = _sample_layout(rng, num_gates)
+        if layout is not None:
+            break
+    else:
+        raise RuntimeError(f"generate_course: no layout of {num_gates} gates found in {_MAX_ATTEMPTS} tries")
+    start, centres = layout
+    yaws = _gate_yaws(start, centres)
+    corners = np.stack([_gate_corners(c, y) for c, y in zip(centres, yaws, strict=True)])  # (G, 4, 3)
+    lo, hi = _footprint(_runout_route(start, centres), centres)
+    shift = np.array([*(-0.5 * (lo + hi)), 0.0])  # the footprint centred on the origin
+    return _course_file(seed, start + shift, corners + shift)
+
+
+def _course_file(seed: int, start: np.ndarray, corners: np.ndarray) -> dict:
+    """The course-file dict of a generated layout: start (3,), gate corners (G, 4, 3)."""
+    alphapilot = json.loads(COURSE_FILE.read_text())
+    names = [f"Gate{k + 1}" for k in range(len(corners))]
+    to_first = corners[0].mean(axis=0) - start
+    start_yaw = math.atan2(to_first[1], to_first[0])
+    quaternion_xyzw = [0.0, 0.0, math.sin(0.5 * start_yaw), math.cos(0.5 * start_yaw)]
+    rounded = lambda a: np.round(np.asarray(a, np.float64), _DECIMALS).tolist()  # noqa: E731
+    return {
+        "about": (
+            f"Generated by pixelmpc_jax.world.course.generate_course (generator version {GENERATOR_VERSION}, "
+            f"seed {seed}): {len(names)} AlphaPilot-size gates. World frame is ENU (z up), metres; gate corners "
+            "are top-left, top-right, bottom-right, bottom-left seen along the direction of travel. The camera "
+            "and vehicle blocks are those of the AlphaPilot course file."
+        ),
+        "race": {
+            "gate_order": names,
+            "init_pose": {
+                "position": rounded(start),
+                "quaternion_xyzw": quaternion_xyzw,
+                "note": f"yaw {math.degrees(start_yaw):+.1f} deg, hovering, facing {names[0]}",
+            },
+            "timeout_s": alphapilot["race"]["timeout_s"],
+            "gate_frame_width_m": GATE_BORDER,
+            "perturbation_bounds_note": alphapilot["race"]["perturbation_bounds_note"],
+        },
+        "gates": {
+            name: {"corners": rounded(c), "perturbation_bound": list(PERTURBATION_BOUND)}
+            for name, c in zip(names, corners, strict=True)
+        },
+        "camera": copy.deepcopy(alphapilot["camera"]),
+        "vehicle": copy.deepcopy(alphapilot["vehicle"]),
+    }
+
+
+def write_course(course: dict, path: str | Path) -> None:
+    """Write a course dict (as :func:`generate_course` makes) to ``path`` as strict JSON, atomically."""
+    write_json_atomic(path, course)

@@ -465,16 +465,3 @@ def collision(track: Track, p0: jax.Array, p1: jax.Array, radius: float | jax.Ar
     cause = jnp.where(gate, CRASH_GATE, jnp.where(ground, CRASH_GROUND, jnp.where(wall, CRASH_WALL, 0)))
     cause = cause.astype(jnp.int32)
     return cause != CRASH_NONE, cause
-
-
-# Building a course (the course file, the straight course, the perturbation) lives in world/course.py; these
-# names stay reachable here for the importers that use them from track.
-_COURSE_NAMES = ("COURSE_FILE", "load_course", "straight_course", "perturb_course")
-
-
-def __getattr__(name: str):
-    if name in _COURSE_NAMES:
-        from pixelmpc_jax.world import course
-
-        return getattr(course, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

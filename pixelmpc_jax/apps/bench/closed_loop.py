@@ -18,16 +18,18 @@ import time
 import jax
 import numpy as np
 
+from pixelmpc_jax import timing
 from pixelmpc_jax.apps import race
 from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.control.sampling import usable_sample_devices
+from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
-from pixelmpc_jax.sim.controllers import split_options
 
 GROUP = "loop"
-TICK_TARGET_MS = 1e3 * episode_lib.CONTROL_DT  # 25 ms: one tick of wall time per tick flown is real time
+TICK_TARGET_MS = 1e3 * timing.CONTROL_DT  # 25 ms: one tick of wall time per tick flown is real time
 RUNNERS = ("single", "batch")  # Runner.single(world, key); Runner.batch of one lap, as ``pixelmpc race`` runs it
 
 
@@ -36,7 +38,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
     """Time the race ``spec``'s first lap in the closed loop.
 
     Args:
-        spec: the race (controller, course, max_time_s, ...); its ``options`` may shrink the controller.
+        spec: the race (controller, course, max_time_s, ...); its ``config`` may shrink the controller.
         repeats: timed laps after the compilation.
         runner: "single" (the jitted episode) or "batch" (the vmapped episode with a batch of one lap, the
             way ``pixelmpc race`` flies it).
@@ -60,7 +62,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
     runners = episode_lib.make_runner(policy, config)
     if spec.uses_dof and dof_params is None:
         dof_params = bench_dof_params()
-    world = episode_lib.make_world(track=race.make_course(spec.course), target_speed=spec.speed,
+    world = env_lib.make_world(track=race.make_course(spec.course), target_speed=spec.speed,
                                    dof=dof_params if spec.uses_dof else None)
     key = jax.random.PRNGKey(spec.seed)
     start = time.perf_counter()
@@ -69,7 +71,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
         args = (world, key)
     else:
         # Runner.batch shards, runs the jitted vmap and gathers; its first call compiles (and flies one lap)
-        args = (episode_lib.stack_worlds([world]), key[None])
+        args = (env_lib.stack_worlds([world]), key[None])
         call = runners.batch
         jax.block_until_ready(call(*args))
     first_call_s = time.perf_counter() - start
@@ -86,11 +88,11 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
     lap_wall_s = float(np.median(walls))
     # Runner.single is compiled ahead of time; Runner.batch's first call also flew a lap
     compile_s = first_call_s - (lap_wall_s if runner == "batch" else 0.0)
-    sim_s = num_ticks * episode_lib.CONTROL_DT
+    sim_s = num_ticks * timing.CONTROL_DT
     end = int(np.asarray(log.end_cause).reshape(-1)[0])
     finished = bool(np.asarray(log.finished).reshape(-1)[0])
     mppi = policy_sizes(spec)
-    controller = (f"PixelMPC ({spec.pixel_model}, t_f={spec.t_f:g} s)" if spec.controller == "pixelmpc"
+    controller = (f"PixelMPC ({spec.config.pixel_model}, t_f={spec.config.t_f:g} s)" if spec.controller == "pixelmpc"
                   else "nominal MPPI")
     name = f"closed-loop tick: {controller}, {spec.detector} detector, plant"
     if runner == "batch":
@@ -102,15 +104,14 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
                     course=spec.course, max_time_s=spec.max_time_s, sample_devices=sample_devices, speed=spec.speed,
                     ticks=num_ticks, ticks_per_repeat=ticks,
                     sim_s=sim_s, lap_wall_s=lap_wall_s, real_time_factor=sim_s / lap_wall_s,
-                    end_cause="finished" if finished else episode_lib.END_NAMES.get(end, "flying"),
+                    end_cause="finished" if finished else env_lib.END_NAMES.get(end, "flying"),
                     gates_passed=int(np.asarray(log.gates_passed).reshape(-1)[0]),
                     target_ms=TICK_TARGET_MS, meets_target=stats["median_ms"] <= TICK_TARGET_MS)
 
 
 def policy_sizes(spec: RaceSpec) -> dict:
     """The MPPI samples and horizon the spec's controller plans with."""
-    horizon = split_options(dict(spec.options))[1].get("horizon", episode_lib.paper_mppi_config().horizon)
-    return {"num_samples": spec.num_samples, "horizon": horizon}
+    return {"num_samples": spec.config.mppi.num_samples, "horizon": spec.config.mppi.horizon}
 
 
 def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -> list[dict]:
@@ -127,8 +128,8 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     repeats = repeats or (2 if mode == "smoke" else 3)
     base = RaceSpec(controller="pixelmpc", max_time_s={"full": 60.0, "quick": 2.5, "smoke": 0.25}[mode])
     if mode == "smoke":
-        base = base.replace(num_samples=16, t_f=0.1, options={"mppi.horizon": 8})
-    devices = usable_sample_devices(base.num_samples)
+        base = base.replace(config=PixelMPCConfig(mppi=paper_mppi_config(num_samples=16, horizon=8), t_f=0.1))
+    devices = usable_sample_devices(base.config.mppi.num_samples)
     rows = [loop_row(base, repeats, dof_params=dof_params, sample_devices=devices),
             loop_row(base.replace(controller="mppi"), repeats, sample_devices=devices)]
     if devices > 1:

@@ -1,9 +1,7 @@
 """The controller step: PixelMPC (DOF pixel model over t_f = 1 s) and nominal MPPI at the paper's sizes,
 scaling over N and T, and the step's fraction of this device's matmul rate.
 
-Every timed call is the public jitted ``ctrl.step`` with the MPPI state carried from call to call. Rows with
-``rollout`` "per_step" time the former implementation of the same step (``MPPIConfig.rollout``, kept for one
-release) beside the default "batched", so the change is measured in one run.
+Every timed call is the public jitted ``ctrl.step`` with the MPPI state carried from call to call.
 """
 
 from __future__ import annotations
@@ -17,13 +15,11 @@ from pixelmpc_jax.apps.bench.measure import make_row, measure
 from pixelmpc_jax.control.sampling import usable_sample_devices
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
-from pixelmpc_jax.world import track as track_lib
+from pixelmpc_jax.world import course as course_lib
 
 GROUP = "controller"
 SCALING_SAMPLES = (128, 512, 2048, 8192, 32768)
 SCALING_HORIZONS = (20, 40, 80, 160)
-PER_STEP_SAMPLES = (512, 2048, 8192)  # the former ("per_step") rollout in the scaling, at T = PER_STEP_HORIZON
-PER_STEP_HORIZON = 80
 PIXELMPC_NAME = "PixelMPC step (DOF, t_f=1 s)"
 NOMINAL_NAME = "nominal MPPI step (quadrotor + racing cost)"
 
@@ -31,11 +27,6 @@ NOMINAL_NAME = "nominal MPPI step (quadrotor + racing cost)"
 def _rates(row: dict) -> dict:
     n, t, median = row["num_samples"], row["horizon"], row["median_ms"]
     return {"samples_per_s": n / (median / 1e3), "sample_steps_per_s": n * t / (median / 1e3)}
-
-
-def rollout_name(name: str, rollout: str) -> str:
-    """A row's name with its MPPIConfig.rollout, where not the default."""
-    return name if rollout == "batched" else f"{name}, {rollout} rollout"
 
 
 ONE_DEVICE = ", one device"  # the suffix of a row whose step runs on one device where more are present
@@ -50,27 +41,27 @@ def devices_name(name: str, sample_devices: int, auto: int) -> str:
 
 
 def pixelmpc_row(num_samples: int, horizon: int, t_f: float = 1.0, repeats: int = 30, group: str = GROUP,
-                 track=None, dof_params=None, rollout: str = "batched", sample_devices: int | None = None) -> dict:
+                 track=None, dof_params=None, sample_devices: int | None = None) -> dict:
     auto = usable_sample_devices(num_samples)
     devices = auto if sample_devices is None else sample_devices
     problem = problems.pixelmpc_problem(num_samples, horizon, t_f, track=track, dof_params=dof_params,
-                                        rollout=rollout, sample_devices=devices)
+                                        sample_devices=devices)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
     name = PIXELMPC_NAME if t_f > 0 else "PixelMPC step without pixel model (t_f=0)"
-    row = make_row(group, devices_name(rollout_name(name, rollout), devices, auto), num_samples, horizon, stats,
-                   t_f=t_f, pixel_steps=problem.config.pixel_steps, rollout=rollout, sample_devices=devices)
+    row = make_row(group, devices_name(name, devices, auto), num_samples, horizon, stats,
+                   t_f=t_f, pixel_steps=problem.config.pixel_steps, sample_devices=devices)
     row.update(_rates(row))
     return row
 
 
 def nominal_row(num_samples: int, horizon: int, repeats: int = 30, group: str = GROUP, track=None,
-                rollout: str = "batched", sample_devices: int | None = None) -> dict:
+                sample_devices: int | None = None) -> dict:
     auto = usable_sample_devices(num_samples)
     devices = auto if sample_devices is None else sample_devices
-    problem = problems.nominal_problem(num_samples, horizon, track=track, rollout=rollout, sample_devices=devices)
+    problem = problems.nominal_problem(num_samples, horizon, track=track, sample_devices=devices)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
-    row = make_row(group, devices_name(rollout_name(NOMINAL_NAME, rollout), devices, auto), num_samples,
-                   horizon, stats, rollout=rollout, sample_devices=devices)
+    row = make_row(group, devices_name(NOMINAL_NAME, devices, auto), num_samples, horizon, stats,
+                   sample_devices=devices)
     row.update(_rates(row))
     return row
 
@@ -94,20 +85,17 @@ def dof_part_row(num_samples: int, pixel_steps: int, dof_params, repeats: int = 
 
 
 def paper_size_rows(repeats: int = 30, smoke: bool = False) -> list[dict]:
-    """PixelMPC at N=512, T=80, t_f=1 (first), also with the former per_step rollout; the same without the
-    pixel model; nominal MPPI, also per_step; the DOF part alone; and the roofline rows (flops, matmul rate,
-    fractions)."""
+    """PixelMPC at N=512, T=80, t_f=1 (first); the same without the pixel model; nominal MPPI; the DOF part
+    alone; and the roofline rows (flops, matmul rate, fractions)."""
     n, t = (16, 8) if smoke else (512, 80)
     t_f = 0.1 if smoke else 1.0
-    track = track_lib.load_course()
+    track = course_lib.load_course()
     dof_params = problems.bench_dof_params()
     full = pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params)
     without = pixelmpc_row(n, t, 0.0, repeats, track=track, dof_params=dof_params)
     nominal = nominal_row(n, t, repeats, track=track)
     dof_alone = dof_part_row(n, full["pixel_steps"], dof_params, repeats)
-    full_per_step = pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params, rollout="per_step")
-    nominal_per_step = nominal_row(n, t, repeats, track=track, rollout="per_step")
-    rows = [full, full_per_step, without, nominal, nominal_per_step, dof_alone]
+    rows = [full, without, nominal, dof_alone]
     if full["sample_devices"] > 1:  # the same steps on one device, measured in the same run
         rows += [pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params, sample_devices=1),
                  nominal_row(n, t, repeats, track=track, sample_devices=1)]
@@ -142,23 +130,19 @@ def paper_size_rows(repeats: int = 30, smoke: bool = False) -> list[dict]:
 
 
 def scaling_rows(repeats: int = 30, max_seconds_per_row: float = 10.0, samples=SCALING_SAMPLES,
-                 horizons=SCALING_HORIZONS, per_step_samples=PER_STEP_SAMPLES,
-                 per_step_horizon: int = PER_STEP_HORIZON) -> list[dict]:
-    """PixelMPC (t_f = 1 s) over the N x T grid, then the former per_step rollout over ``per_step_samples`` at
-    T = ``per_step_horizon``. Rows whose calls take long get fewer repeats so each row spends about
-    ``max_seconds_per_row`` timing (at least 5 calls; the row's ``repeats`` says how many)."""
-    track = track_lib.load_course()
+                 horizons=SCALING_HORIZONS) -> list[dict]:
+    """PixelMPC (t_f = 1 s) over the N x T grid. Rows whose calls take long get fewer repeats so each row spends
+    about ``max_seconds_per_row`` timing (at least 5 calls; the row's ``repeats`` says how many)."""
+    track = course_lib.load_course()
     dof_params = problems.bench_dof_params()
-    grid = [(n, t, "batched") for t in horizons for n in samples]
-    grid += [(n, per_step_horizon, "per_step") for n in per_step_samples]
+    grid = [(n, t) for t in horizons for n in samples]
     rows = []
-    for n, t, rollout in grid:
+    for n, t in grid:
         devices = usable_sample_devices(n)
-        problem = problems.pixelmpc_problem(n, t, 1.0, track=track, dof_params=dof_params, rollout=rollout,
-                                            sample_devices=devices)
+        problem = problems.pixelmpc_problem(n, t, 1.0, track=track, dof_params=dof_params, sample_devices=devices)
         stats = measure(problems.control_loop_call(problem), repeats=repeats, budget_s=max_seconds_per_row)
-        row = make_row("scaling", rollout_name(PIXELMPC_NAME, rollout), n, t, stats,
-                       pixel_steps=problem.config.pixel_steps, rollout=rollout, sample_devices=devices)
+        row = make_row("scaling", PIXELMPC_NAME, n, t, stats, pixel_steps=problem.config.pixel_steps,
+                       sample_devices=devices)
         row.update(_rates(row))
         rows.append(row)
     return rows

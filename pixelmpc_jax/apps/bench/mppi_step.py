@@ -1,7 +1,6 @@
 """Median step time of the quadrotor MPPI at the paper's sizes (N=512, T=80, K=1).
 
     python benchmarks/mppi_step.py [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
-                                   [--rollout batched|per_step]
 
 The step is the public jitted ``ctrl.step`` (inputs validated, one compiled call), timed after
 compilation with ``block_until_ready``; the state changes every call as in a control loop.
@@ -18,7 +17,7 @@ import jax.numpy as jnp
 from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import ROLLOUTS, BatchCost, MPPIConfig, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig, TrajectoryCost, make_mppi
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 
@@ -30,24 +29,20 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--cost", choices=("racing", "waypoint"), default="racing",
                         help="racing: Eq. (19) on the AlphaPilot course (default); waypoint: the demo's cost")
-    parser.add_argument("--rollout", choices=ROLLOUTS, default="batched",
-                        help="MPPIConfig.rollout: batched (default) or per_step (the former implementation)")
     args = parser.parse_args(argv)
 
     params = quadrotor.QuadParams()
     lo, hi = params.control_bounds()
     config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=timing.CONTROL_DT,
-                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()),
-                        rollout=args.rollout)
+                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
     if args.cost == "racing":
-        from pixelmpc_jax.world import track as track_lib
-
-        track = track_lib.load_course()
+        from pixelmpc_jax.world import course as course_lib
+        track = course_lib.load_course()
         cost_config = costs.RacingCostConfig()
         x = track.start
         cost_params = costs.racing_params(track, jnp.linspace(0.0, 25.0, args.horizon), 14.0, cost_config)
 
-        running_cost = BatchCost(lambda X, U, t, p: costs.racing_cost_batch(X, t, p, cost_config))
+        running_cost = TrajectoryCost(lambda X, U, steps, p: costs.racing_costs(X, steps, p, cost_config))
     else:
         weights = costs.WaypointWeights()
         x = quadrotor.hover_state((0.0, 0.0, 2.0))
@@ -71,7 +66,7 @@ def main(argv=None) -> dict:
     rollouts_per_s = args.samples * args.horizon / (result["median_ms"] / 1e3)
     print(f"device: {device['platform']} ({device['device_kind']}; {device['cpu_model']}, "
           f"{device['cpu_count']} cores), jax {device['jax']}")
-    print(f"quadrotor MPPI step ({args.cost} cost, {args.rollout} rollout), N={args.samples}, T={args.horizon}: "
+    print(f"quadrotor MPPI step ({args.cost} cost), N={args.samples}, T={args.horizon}: "
           f"median {result['median_ms']:.2f} ms "
           f"(mean {result['mean_ms']:.2f} +- {result['two_sigma_ms']:.2f} ms 2sigma, max {result['max_ms']:.2f} ms, "
           f"{args.repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")

@@ -25,13 +25,13 @@ from pixelmpc_jax.perception import particle_filter as pf
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.plant import hover_tick_imu
 from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as render_lib
-from pixelmpc_jax.world import track as track_lib
 
 
 def _problem(particles: int):
     config = pf.PFConfig(num_particles=particles)
-    track = track_lib.load_course()
+    track = course_lib.load_course()
     camera = camera_lib.default_camera()
     gate_index = 2
     x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)

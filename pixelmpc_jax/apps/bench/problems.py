@@ -19,7 +19,7 @@ from pixelmpc_jax.control.mppi import Controller, MPPIConfig, MPPIState, make_mp
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as camera_lib
-from pixelmpc_jax.world import track as track_lib
+from pixelmpc_jax.world import course as course_lib
 
 TARGET_SPEED = 14.0  # m/s, the paper's Table II speed
 START_SPEED = 5.0  # m/s along the path tangent at x0, so the rollouts fly (not hover)
@@ -66,18 +66,16 @@ _racing_params = jax.jit(costs.racing_params, static_argnames=("config",))
 
 
 def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0, track=None,
-                     dof_params=None, seed: int = 0, rollout: str = "batched",
-                     sample_devices: int = 1) -> ControllerProblem:
+                     dof_params=None, seed: int = 0, sample_devices: int = 1) -> ControllerProblem:
     """The full PixelMPC step (DOF pixel model over t_f, racing + pixel cost) at the given sizes.
 
     ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline);
-    ``rollout`` is ``MPPIConfig.rollout`` ("per_step": the former implementation of the same step);
     ``sample_devices`` is ``MPPIConfig.sample_devices`` (x0 and the params are then placed on every device
     once, as a control loop keeps them).
     """
-    track = track or track_lib.load_course()
+    track = track or course_lib.load_course()
     dof_params = bench_dof_params() if dof_params is None else dof_params
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout,
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
                                       sample_devices=sample_devices)
     config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f)
     ctrl = pixelmpc_lib.make_pixelmpc(config)
@@ -100,11 +98,11 @@ def _placed(problem: ControllerProblem) -> ControllerProblem:
 
 
 def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed: int = 0,
-                    rollout: str = "batched", sample_devices: int = 1) -> ControllerProblem:
+                    sample_devices: int = 1) -> ControllerProblem:
     """Nominal MPPI (the paper's baseline): the 10-state quadrotor with the racing cost, no pixel model;
-    ``rollout`` and ``sample_devices`` as in :func:`pixelmpc_problem`."""
-    track = track or track_lib.load_course()
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon), rollout=rollout,
+    ``sample_devices`` as in :func:`pixelmpc_problem`."""
+    track = track or course_lib.load_course()
+    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
                                       sample_devices=sample_devices)
     cost_config = costs.RacingCostConfig()
     quad_params = quadrotor.QuadParams()

@@ -21,8 +21,8 @@ from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render
-from pixelmpc_jax.world import track as track_lib
 
 
 def path_poses(track, count: int) -> jax.Array:
@@ -51,7 +51,7 @@ def main(argv=None) -> list[dict]:
     args = parser.parse_args(argv)
 
     print(f"device: {device_line()} | load avg {os.getloadavg()[0]:.1f}")
-    track = track_lib.load_course()
+    track = course_lib.load_course()
     camera = camera_lib.default_camera()
     print(
         f"image {camera.width} x {camera.height}, supersample {args.supersample} "

@@ -7,7 +7,8 @@ How the work is counted (``step_flops``):
   The DOF's matmul flops are what its rate is compared with the measured matmul rate.
 * Robot dynamics, racing cost, pixel cost (with the DOF's input/output scaling and PolarToEuler): XLA's
   own count (``compiled.cost_analysis()['flops']``, one flop per elementwise op, transcendentals apart)
-  of ONE step vmapped over a batch, divided by the batch: per sample-step figures, times N x T (dynamics,
+  of ONE step over a batch (the dynamics and the pixel part vmapped, the racing cost ``costs.racing_costs``
+  of the batch at one horizon step), divided by the batch: per sample-step figures, times N x T (dynamics,
   racing cost) or N x n_f (pixel part).
 * MPPI bookkeeping (noise, clipping, weights, update): ``MPPI_FLOPS_PER_SAMPLE_STEP x m`` per sample-step
   (about 8 elementwise ops per control channel), counted by hand.
@@ -71,20 +72,20 @@ def _xla_flops(fn, *args) -> float:
 
 def per_sample_step_flops(problem, batch: int = 256) -> dict:
     """XLA's flop count per sample-step of the robot step, the racing cost and the pixel part (pixel model
-    and cost, without the DOF's dense layers), from a vmapped step over ``batch`` samples."""
+    and cost, without the DOF's dense layers), from one step over ``batch`` samples."""
     config = problem.config
     params = problem.params
     quad_params = quadrotor.QuadParams()
     X = jnp.broadcast_to(problem.x0, (batch, problem.x0.shape[0]))
     U = jnp.broadcast_to(quadrotor.hover_control(quad_params), (batch, 4))
-    t = jnp.zeros((), jnp.int32)
+    steps = jnp.zeros((1,), jnp.int32)
     dt = config.mppi.dt
 
     def dynamics(X, U):
         return jax.vmap(lambda x, u: quadrotor.step(x[:10], u, dt, quad_params))(X, U)
 
-    def racing(X):
-        return jax.vmap(lambda x: costs.racing_cost(x[:10], t, params.racing, config.racing))(X)
+    def racing(X):  # the batch as the samples of one horizon step, (1, batch, 10)
+        return costs.racing_costs(X[None, :, :10], steps, params.racing, config.racing)
 
     def pixel_full(X, U):
         def one(x, u):

@@ -9,8 +9,7 @@ Modes: full (everything, with one closed-loop AlphaPilot lap per controller, ~15
 ``quick`` (the paper-size controller rows, the roofline, the particle filter tick, the first 2.5 s of a lap
 in the closed loop and the pytorch-mppi peer, under 5 min on 2 CPU cores); ``smoke`` (every code path at
 N=16, T=8, 3 repeats, laps of 10 ticks timed twice: a schema check, about a minute). CPU by default;
-JAX's default device where it finds a GPU. The controller rows time the MPPI step with
-``MPPIConfig.rollout`` "batched" (the default) and "per_step" (the former implementation) in one run.
+JAX's default device where it finds a GPU.
 
 bench.json: ``device`` (platform, device kind, CPU model, cores), ``versions`` (jax, jaxlib, numpy, torch,
 pytorch-mppi, python), ``mode``, ``rows`` (each with at least group, name, num_samples, horizon, median_ms,
@@ -29,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax import host
 from pixelmpc_jax.apps.bench import closed_loop, controller, particle_filter_step, peers, table1
 from pixelmpc_jax.apps.bench.measure import fmt_ms
-from pixelmpc_jax.control import sampling
 from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -93,7 +92,7 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
     start = time.perf_counter()
     device = device_description()
     device["load_average_1min"] = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    device["host_memory_kept"] = sampling.host_memory_kept()  # freed memory kept for the next step (or not)
+    device["host_memory_kept"] = host.host_memory_kept()  # freed memory kept for the next step (or not)
     vers = versions()
     mode = "smoke" if smoke else "quick" if quick else "full"
     print(f"device: {device['platform']} ({device['device_kind']}); CPU {device['cpu_model']}, "
@@ -127,8 +126,7 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
         rows += table1.table1_rows(smoke=smoke, repeats=repeats)
         _log("scaling over N and T", start)
         if smoke:
-            rows += controller.scaling_rows(repeats=repeats, samples=(32,), horizons=(8,), max_seconds_per_row=1.0,
-                                            per_step_samples=(32,), per_step_horizon=8)
+            rows += controller.scaling_rows(repeats=repeats, samples=(32,), horizons=(8,), max_seconds_per_row=1.0)
         else:
             rows += controller.scaling_rows(repeats=repeats)
 
@@ -159,9 +157,6 @@ def summarize(rows: list[dict]) -> dict:
     """Headline figures and the targets (met or not)."""
     step = rows[0]
     nominal = _first(rows, group="controller", name=controller.NOMINAL_NAME)
-    step_per_step = _first(rows, group="controller", name=controller.rollout_name(step["name"], "per_step")) or {}
-    nominal_per_step = _first(rows, group="controller",
-                              name=controller.rollout_name(controller.NOMINAL_NAME, "per_step")) or {}
     loop = _first(rows, group="loop", controller="pixelmpc", runner="single") or {}
     loop_nominal = _first(rows, group="loop", controller="mppi", runner="single") or {}
     roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate") or {}
@@ -174,8 +169,6 @@ def summarize(rows: list[dict]) -> dict:
         "samples_per_s": step.get("samples_per_s"),
         "sample_steps_per_s": step.get("sample_steps_per_s"),
         "nominal_mppi_median_ms": nominal and nominal["median_ms"],
-        "pixelmpc_step_per_step_median_ms": step_per_step.get("median_ms"),
-        "nominal_mppi_per_step_median_ms": nominal_per_step.get("median_ms"),
         "loop_tick_median_ms": loop.get("median_ms"),
         "loop_tick_p95_ms": loop.get("p95_ms"),
         "loop_ticks": loop.get("ticks"),
@@ -222,11 +215,9 @@ def headline(summary: dict) -> str:
                 f"{summary['loop_real_time_factor']:.2f}x real time; nominal MPPI "
                 f"{_num(summary['nominal_loop_tick_median_ms'])} ms; ")
     return (f"PixelMPC step N={summary['num_samples']} T={summary['horizon']}: median "
-            f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}; per_step "
-            f"rollout {_num(summary.get('pixelmpc_step_per_step_median_ms'))} ms), "
+            f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}), "
             f"{summary['samples_per_s'] / 1e3:.1f} k samples/s, {summary['sample_steps_per_s'] / 1e6:.2f} M "
-            f"sample-steps/s; nominal MPPI {nominal:.2f} ms (per_step rollout "
-            f"{_num(summary.get('nominal_mppi_per_step_median_ms'))} ms); {loop}ours/pytorch-mppi {ratio}; "
+            f"sample-steps/s; nominal MPPI {nominal:.2f} ms; {loop}ours/pytorch-mppi {ratio}; "
             f"matmul {summary['matmul_rate_gflops']:.1f} GFLOP/s, step at "
             f"{summary['step_fraction_of_matmul_rate']:.1%}, DOF alone at {summary['dof_alone_fraction']:.1%}, "
             f"DOF in step at {summary['dof_fraction_in_step']:.1%}; targets {summary['targets']}")
@@ -240,9 +231,87 @@ def _num(value, digits: int = 2) -> str:
     return str(value)
 
 
+def _table(heading: str, columns: list[str], cells: list[list[str]], intro: str = "") -> list[str]:
+    """A markdown section: ``## heading``, an optional intro paragraph, and a table of one row per entry of
+    ``cells`` (each a list of formatted cells, one per column). No rows: no section."""
+    if not cells:
+        return []
+    lines = [f"## {heading}", ""] + ([intro, ""] if intro else [])
+    lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    return lines + ["| " + " | ".join(row) + " |" for row in cells] + [""]
+
+
+def _table1_cells(r: dict) -> list[str]:
+    paper = r.get("paper") or (f"{r['paper_mean_ms']} ± {r['paper_two_sigma_ms']} (max {r['paper_max_ms']})"
+                               if r.get("paper_mean_ms") is not None else "")
+    return [r["name"], str(r.get("n_pixel", "")), str(r["num_samples"]), str(r["horizon"]), fmt_ms(r),
+            _num(r["median_ms"]), str(r["repeats"]), paper]
+
+
+def _controller_cells(r: dict) -> list[str]:
+    return [r["name"], _num(r["num_samples"]), _num(r["horizon"]), _num(r["median_ms"]), _num(r.get("p95_ms")),
+            fmt_ms(r), _num(r["min_ms"]), str(r["repeats"]), _num(r.get("samples_per_s"), 0),
+            _num(r.get("gflops_per_s"), 1)]
+
+
+def _loop_cells(r: dict) -> list[str]:
+    return [r["name"], str(r["num_samples"]), str(r["horizon"]), f"{r['course']} ({r['max_time_s']:g})",
+            str(r["ticks"]), _num(r["median_ms"]), _num(r["p95_ms"]), fmt_ms(r), str(r["repeats"]), _num(r["sim_s"]),
+            _num(r["lap_wall_s"], 3), _num(r["real_time_factor"]), _num(r["compile_s"], 1), str(r["end_cause"]),
+            "yes" if r["meets_target"] else "no"]
+
+
+def _estimator_cells(r: dict) -> list[str]:
+    return [r["name"], str(r["num_samples"]), _num(r["median_ms"]), fmt_ms(r), _num(r["min_ms"]), str(r["repeats"])]
+
+
+def _peer_cells(r: dict) -> list[str]:
+    return [r["name"], str(r["num_samples"]), str(r["horizon"]), _num(r["median_ms"]), fmt_ms(r), str(r["repeats"]),
+            f"{_num(r.get('ratio'), 3)}{' (best peer)' if r.get('best_peer') else ''}"]
+
+
+def _mppi_generic_cells(r: dict) -> list[str]:
+    return [str(r["num_samples"]), _num(r["median_ms"], 3), fmt_ms(r),
+            *(_num(r["published_ms"].get(n), 3) for n in peers.MPPI_GENERIC_PUBLISHED)]
+
+
+def _scaling_cells(r: dict) -> list[str]:
+    return [str(r["num_samples"]), str(r["horizon"]), str(r.get("rollout", "batched")), _num(r["median_ms"]),
+            fmt_ms(r), str(r["repeats"]), _num(r["samples_per_s"], 0), _num(r["sample_steps_per_s"], 0)]
+
+
+def _roofline_section(roof: dict | None) -> list[str]:
+    """The limit: the work of one step and the share of the matmul rate it reaches."""
+    if not roof:
+        return []
+    f = roof["flops"]
+    return ["## The limit", "",
+            f"Work of one step (N={roof['num_samples']}, T={roof['horizon']}): "
+            f"total {f['total'] / 1e9:.3f} GFLOP; "
+            f"DOF dense layers {f['dof_matmul'] / 1e9:.3f} GFLOP (2 x MACs, N x n_f evaluations), DOF bias+ReLU "
+            f"{f['dof_elementwise'] / 1e6:.1f} MFLOP, racing cost {f['racing'] / 1e6:.1f} MFLOP, robot dynamics "
+            f"{f['dynamics'] / 1e6:.1f} MFLOP, pixel model/cost rest {f['pixel'] / 1e6:.2f} MFLOP, MPPI "
+            f"bookkeeping {f['mppi'] / 1e6:.2f} MFLOP (per sample-step, XLA cost analysis: "
+            f"{', '.join(f'{k} {v:.0f}' for k, v in roof['per_sample_step_flops'].items())}).", "",
+            f"Matmul rate (best median of the measured shapes): {roof['matmul_rate_gflops']:.1f} GFLOP/s. "
+            f"Step: {roof['step_gflops_per_s']:.1f} GFLOP/s = {roof['step_fraction_of_matmul_rate']:.1%} of it. "
+            f"DOF part alone (n_f steps over N samples): {roof['dof_alone_fraction']:.1%}; DOF part inside the "
+            f"step (step minus the t_f=0 step, {roof['dof_marginal_ms']:.2f} ms): "
+            f"{roof['dof_fraction_in_step']:.1%}. From the fastest calls (min time, against the best matmul "
+            f"rate {roof['matmul_rate_best_gflops']:.1f} GFLOP/s): step "
+            f"{roof['step_fraction_of_matmul_rate_min']:.1%}, "
+            f"DOF alone {roof['dof_alone_fraction_min']:.1%}.",
+            ""]
+
+
 def markdown(result: dict) -> str:
+    """bench.md: the device and versions, the headline, one table per group of rows and the limit."""
     d, v = result["device"], result["versions"]
     rows = result["rows"]
+
+    def cells(format_row, *groups: str, timed: bool = False) -> list[list[str]]:
+        return [format_row(r) for r in rows if r["group"] in groups and (not timed or r.get("median_ms") is not None)]
+
     lines = [
         "# pixelmpc-jax runtime benchmarks", "",
         f"Device: {d['platform']} ({d['device_kind']}); CPU {d['cpu_model']}, {d['cpu_count']} cores "
@@ -252,107 +321,35 @@ def markdown(result: dict) -> str:
         f"until ready, compilation and warm-up excluded.", "",
         headline(result["summary"]), "",
     ]
-    t1 = [r for r in rows if r["group"] == "table1"]
-    if t1:
-        lines += ["## Table I (paper: GTX 1060 + Xeon E5-1650 v4)", "",
-                  "| model | N_pixel | N_sample | N_timestep | ours: mean ± 2σ (max) | median | repeats | paper |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for r in t1:
-            paper = r.get("paper") or (f"{r['paper_mean_ms']} ± {r['paper_two_sigma_ms']} (max {r['paper_max_ms']})"
-                                       if r.get("paper_mean_ms") is not None else "")
-            lines.append(f"| {r['name']} | {r.get('n_pixel', '')} | {r['num_samples']} | {r['horizon']} | "
-                         f"{fmt_ms(r)} | {_num(r['median_ms'])} | {r['repeats']} | {paper} |")
-        lines.append("")
-    ctrl = [r for r in rows if r["group"] in ("controller", "roofline") and r.get("median_ms") is not None]
-    if ctrl:
-        lines += ["## Controller step and matmul rate", "",
-                  "Rows named \"per_step rollout\" time the former implementation of the same step "
-                  "(`MPPIConfig.rollout=\"per_step\"`, the costs inside the scan) beside the default "
-                  "(\"batched\": the costs over all (T, N) states after it).", "",
-                  "| row | N | T | median | p95 | mean ± 2σ (max) | min | repeats | samples/s | GFLOP/s |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        for r in ctrl:
-            lines.append(f"| {r['name']} | {_num(r['num_samples'])} | {_num(r['horizon'])} | {_num(r['median_ms'])} | "
-                         f"{_num(r.get('p95_ms'))} | {fmt_ms(r)} | {_num(r['min_ms'])} | {r['repeats']} | "
-                         f"{_num(r.get('samples_per_s'), 0)} | {_num(r.get('gflops_per_s'), 1)} |")
-        lines.append("")
-    loop = [r for r in rows if r["group"] == "loop"]
-    if loop:
-        lines += [f"## Closed loop: the tick of a lap (target {TARGETS['loop_tick_ms']:g} ms median, one tick of "
-                  f"wall time per 40 Hz tick flown)", "",
-                  "A lap flown as `pixelmpc race` flies it (14 m/s, geometric detector, true state, the "
-                  "FlightGoggles-like plant), the compiled episode timed whole and divided by the ticks flown; "
-                  "compilation excluded (its time is given). Real-time factor: simulated s / wall s (above 1: "
-                  "faster than real time).", "",
-                  "| row | N | T | course (max s) | ticks | per-tick median | p95 | mean ± 2σ (max) | repeats | "
-                  "simulated s | wall s | real-time factor | compile s | end | ≤ target |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in loop:
-            lines.append(f"| {r['name']} | {r['num_samples']} | {r['horizon']} | {r['course']} "
-                         f"({r['max_time_s']:g}) | {r['ticks']} | {_num(r['median_ms'])} | {_num(r['p95_ms'])} | "
-                         f"{fmt_ms(r)} | {r['repeats']} | {_num(r['sim_s'])} | {_num(r['lap_wall_s'], 3)} | "
-                         f"{_num(r['real_time_factor'])} | {_num(r['compile_s'], 1)} | {r['end_cause']} | "
-                         f"{'yes' if r['meets_target'] else 'no'} |")
-        lines.append("")
-    roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate")
-    if roof:
-        f = roof["flops"]
-        lines += ["## The limit", "",
-                  f"Work of one step (N={roof['num_samples']}, T={roof['horizon']}): "
-                  f"total {f['total'] / 1e9:.3f} GFLOP; "
-                  f"DOF dense layers {f['dof_matmul'] / 1e9:.3f} GFLOP (2 x MACs, N x n_f evaluations), DOF bias+ReLU "
-                  f"{f['dof_elementwise'] / 1e6:.1f} MFLOP, racing cost {f['racing'] / 1e6:.1f} MFLOP, robot dynamics "
-                  f"{f['dynamics'] / 1e6:.1f} MFLOP, pixel model/cost rest {f['pixel'] / 1e6:.2f} MFLOP, MPPI "
-                  f"bookkeeping {f['mppi'] / 1e6:.2f} MFLOP (per sample-step, XLA cost analysis: "
-                  f"{', '.join(f'{k} {v:.0f}' for k, v in roof['per_sample_step_flops'].items())}).", "",
-                  f"Matmul rate (best median of the measured shapes): {roof['matmul_rate_gflops']:.1f} GFLOP/s. "
-                  f"Step: {roof['step_gflops_per_s']:.1f} GFLOP/s = {roof['step_fraction_of_matmul_rate']:.1%} of it. "
-                  f"DOF part alone (n_f steps over N samples): {roof['dof_alone_fraction']:.1%}; DOF part inside the "
-                  f"step (step minus the t_f=0 step, {roof['dof_marginal_ms']:.2f} ms): "
-                  f"{roof['dof_fraction_in_step']:.1%}. From the fastest calls (min time, against the best matmul "
-                  f"rate {roof['matmul_rate_best_gflops']:.1f} GFLOP/s): step "
-                  f"{roof['step_fraction_of_matmul_rate_min']:.1%}, "
-                  f"DOF alone {roof['dof_alone_fraction_min']:.1%}.",
-                  ""]
-    est = [r for r in rows if r["group"] == "estimator"]
-    if est:
-        lines += ["## Particle filter (Section V-D)", "",
-                  "| row | particles | median | mean ± 2σ (max) | min | repeats |", "|---|---|---|---|---|---|"]
-        for r in est:
-            lines.append(f"| {r['name']} | {r['num_samples']} | {_num(r['median_ms'])} | {fmt_ms(r)} | "
-                         f"{_num(r['min_ms'])} | {r['repeats']} |")
-        lines.append("")
-    peer = [r for r in rows if r["group"] == "peer"]
-    if peer:
-        lines += ["## Peers on identical work: pytorch-mppi (PixelMPC problem ported to torch)", "",
-                  "| implementation | N | T | median | mean ± 2σ (max) | repeats | ours / theirs |",
-                  "|---|---|---|---|---|---|---|"]
-        for r in peer:
-            lines.append(f"| {r['name']} | {r['num_samples']} | {r['horizon']} | {_num(r['median_ms'])} | "
-                         f"{fmt_ms(r)} | {r['repeats']} | {_num(r.get('ratio'), 3)}"
-                         f"{' (best peer)' if r.get('best_peer') else ''} |")
-        lines.append("")
-    gen = [r for r in rows if r["group"] == "mppi_generic"]
-    if gen:
-        names = list(peers.MPPI_GENERIC_PUBLISHED)
-        lines += ["## MPPI-Generic's benchmark problem (diff drive, cost map, dt 0.02, T 100, λ 1, σ 0.2)", "",
-                  "Ours on this device; published figures on their hardware (not a same-run comparison).", "",
-                  "| N | ours median | ours mean ± 2σ (max) | " + " | ".join(names) + " |",
-                  "|---|---|---|" + "---|" * len(names)]
-        for r in gen:
-            pub = " | ".join(_num(r["published_ms"].get(n), 3) for n in names)
-            lines.append(f"| {r['num_samples']} | {_num(r['median_ms'], 3)} | {fmt_ms(r)} | {pub} |")
-        lines.append("")
-    scaling = [r for r in rows if r["group"] == "scaling"]
-    if scaling:
-        lines += ["## Scaling of the PixelMPC step (t_f = 1 s)", "",
-                  "| N | T | rollout | median | mean ± 2σ (max) | repeats | samples/s | sample-steps/s |",
-                  "|---|---|---|---|---|---|---|---|"]
-        for r in scaling:
-            lines.append(f"| {r['num_samples']} | {r['horizon']} | {r.get('rollout', 'batched')} | "
-                         f"{_num(r['median_ms'])} | {fmt_ms(r)} | {r['repeats']} | {_num(r['samples_per_s'], 0)} | "
-                         f"{_num(r['sample_steps_per_s'], 0)} |")
-        lines.append("")
+    lines += _table("Table I (paper: GTX 1060 + Xeon E5-1650 v4)",
+                    ["model", "N_pixel", "N_sample", "N_timestep", "ours: mean ± 2σ (max)", "median", "repeats",
+                     "paper"], cells(_table1_cells, "table1"))
+    lines += _table("Controller step and matmul rate",
+                    ["row", "N", "T", "median", "p95", "mean ± 2σ (max)", "min", "repeats", "samples/s", "GFLOP/s"],
+                    cells(_controller_cells, "controller", "roofline", timed=True))
+    lines += _table(f"Closed loop: the tick of a lap (target {TARGETS['loop_tick_ms']:g} ms median, one tick of "
+                    f"wall time per 40 Hz tick flown)",
+                    ["row", "N", "T", "course (max s)", "ticks", "per-tick median", "p95", "mean ± 2σ (max)",
+                     "repeats", "simulated s", "wall s", "real-time factor", "compile s", "end", "≤ target"],
+                    cells(_loop_cells, "loop"),
+                    intro="A lap flown as `pixelmpc race` flies it (14 m/s, geometric detector, true state, the "
+                    "FlightGoggles-like plant), the compiled episode timed whole and divided by the ticks flown; "
+                    "compilation excluded (its time is given). Real-time factor: simulated s / wall s (above 1: "
+                    "faster than real time).")
+    lines += _roofline_section(_first(rows, group="roofline", name="PixelMPC step vs matmul rate"))
+    lines += _table("Particle filter (Section V-D)",
+                    ["row", "particles", "median", "mean ± 2σ (max)", "min", "repeats"],
+                    cells(_estimator_cells, "estimator"))
+    lines += _table("Peers on identical work: pytorch-mppi (PixelMPC problem ported to torch)",
+                    ["implementation", "N", "T", "median", "mean ± 2σ (max)", "repeats", "ours / theirs"],
+                    cells(_peer_cells, "peer"))
+    lines += _table("MPPI-Generic's benchmark problem (diff drive, cost map, dt 0.02, T 100, λ 1, σ 0.2)",
+                    ["N", "ours median", "ours mean ± 2σ (max)", *peers.MPPI_GENERIC_PUBLISHED],
+                    cells(_mppi_generic_cells, "mppi_generic"),
+                    intro="Ours on this device; published figures on their hardware (not a same-run comparison).")
+    lines += _table("Scaling of the PixelMPC step (t_f = 1 s)",
+                    ["N", "T", "rollout", "median", "mean ± 2σ (max)", "repeats", "samples/s", "sample-steps/s"],
+                    cells(_scaling_cells, "scaling"))
     reduced = [r["name"] + f" (N={r['num_samples']}, T={r['horizon']})" for r in rows if r.get("reduced_repeats")]
     if reduced:
         lines += ["Rows timed with fewer than 30 repeats (calls over 1 s, or a row's time budget): "

@@ -167,10 +167,9 @@ def detector_row(repeats: int = 30) -> dict:
     """Our colour detector on one rendered 204 x 153 frame with the first gate 6 m ahead."""
     from pixelmpc_jax.perception import detector
     from pixelmpc_jax.world import camera as camera_lib
+    from pixelmpc_jax.world import course as course_lib
     from pixelmpc_jax.world import render
-    from pixelmpc_jax.world import track as track_lib
-
-    track = track_lib.load_course()
+    track = course_lib.load_course()
     camera = camera_lib.default_camera()
     gate = jax.tree_util.tree_map(lambda a: a[0], track.gates)
     frame = render.render(track, render.pose_before_gate(gate, 6.0), camera)

@@ -1,0 +1,309 @@
+"""Velocity-and-depth DOF ("vdof"): a learned pixel model shaped like the interaction matrix.
+
+The paper's DOF (:mod:`pixelmpc_jax.dynamics.dof`) maps ``(q, uv, u)`` to the target pixel's flow; it has
+neither the camera's velocity nor the target's depth, which set the translational part of the flow. The
+paper's conclusion names the fix: the target's depth and the robot's velocity as inputs, and propagating the
+target's box. Here the pixel state is ``p = [u, v, s]`` (3,): the target's normalised pixel and a depth cue a
+monocular drone has, the detected gate's apparent size ``s`` (:func:`box_size`, about ``k / Z`` for a gate at
+depth ``Z``). Image motion of a point is ``uv_dot = (1/Z) A(uv) v_cam + B(uv) w_cam`` (visual servoing's
+interaction matrix), and ``Z_dot / Z`` is linear in ``v / Z`` and ``w`` too, so the model is
+
+    uv_dot = s A(uv) v_b + B(uv) w,        s_dot = s (s a(uv) . v_b + b(uv) . w),
+
+``v_b = R(q)^T v`` the body-frame velocity, ``w = u[:3]`` the body rates, and ``g(uv) -> (A (2, 3), B (2, 3),
+a (3,), b (3,))`` a small MLP of the pixel alone (:func:`interaction`). The learned scale of ``s`` absorbs the
+gate's size and the focal length: the model never sees the gate's 3-D position or the camera intrinsics.
+At zero velocity and zero rate the pixel state does not move, by construction.
+
+Every quantity enters normalised (``VDOFParams``'s constants, set from the training rows); the box size is
+saturated at ``box_max`` (the largest seen in training) before it multiplies, so a rollout that drives ``s``
+up (the drone flying at the gate, ``s_dot ~ s^2``) grows it at most linearly and stays finite.
+
+Checkpoints are single msgpack files (``flax.serialization``), as :mod:`dof`'s: format name and version,
+the architecture (checked on load against the weights' shapes), the normalisation constants and the
+training record, written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import chex
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization, struct
+
+from pixelmpc_jax import strict_json
+from pixelmpc_jax.dynamics import quadrotor
+
+PIXEL_STATE_NAMES = ("u", "v", "s")
+PIXEL_STATE_DIM = 3
+HIDDEN_SIZES = (64, 64)
+ACTIVATION = "tanh"
+# g(uv) -> [A (2x3, row-major), B (2x3), a (3,), b (3,)]
+OUTPUT_NAMES = ("A", "B", "a", "b")
+OUTPUT_DIM = 6 + 6 + 3 + 3
+STRUCTURE = "uv_dot = s A(uv) v_b + B(uv) w; s_dot = s (s a(uv).v_b + b(uv).w)"
+
+CHECKPOINT_FORMAT = "pixelmpc_jax.vdof"
+CHECKPOINT_VERSION = 1
+
+
+def box_size(corners: jax.Array) -> jax.Array:
+    """The depth cue ``s``: sqrt of the area of the corner quadrilateral (shoelace), normalised image units.
+
+    corners: (4, 2) normalised uv in order around the quadrilateral (TL, TR, BR, BL) -> (). For a gate facing
+    the camera ``s`` is proportional to inverse depth. Zero for a degenerate quadrilateral, with a finite
+    gradient there.
+    """
+    corners = jnp.asarray(corners)
+    chex.assert_shape(corners, (4, 2))
+    following = jnp.roll(corners, -1, axis=0)
+    cross = corners[:, 0] * following[:, 1] - following[:, 0] * corners[:, 1]
+    area = 0.5 * jnp.abs(jnp.sum(cross))
+    ok = area > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, area, 1.0)), 0.0)
+
+
+class InteractionNetwork(nn.Module):
+    """The MLP g: (..., 2) normalised pixel -> (..., 18) = [A, B, a, b], normalised units; tanh hidden layers."""
+
+    hidden_sizes: tuple[int, ...] = HIDDEN_SIZES
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for width in self.hidden_sizes:
+            x = jnp.tanh(nn.Dense(width)(x))
+        return nn.Dense(OUTPUT_DIM)(x)
+
+
+@struct.dataclass
+class VDOFParams:
+    """Weights and the constants that go with them; a pytree (new weights never recompile).
+
+    Attributes:
+        weights: the flax ``params`` of :class:`InteractionNetwork` (the only trainable part).
+        uv_mean, uv_std: (2,) pixel normalisation, ``(uv - mean) / std``.
+        velocity_scale: (3,) m/s, body-frame velocity scale.
+        rate_scale: (3,) rad/s, body-rate scale.
+        box_scale: () the box size's scale.
+        box_max: () the box size saturates here before it multiplies (the largest in training).
+        p_dot_scale: (3,) output scale of ``[u_dot, v_dot, s_dot]`` per second.
+    """
+
+    weights: Any
+    uv_mean: jax.Array
+    uv_std: jax.Array
+    velocity_scale: jax.Array
+    rate_scale: jax.Array
+    box_scale: jax.Array
+    box_max: jax.Array
+    p_dot_scale: jax.Array
+
+
+CONSTANTS = {  # name: (shape, default, must be positive)
+    "uv_mean": ((2,), (0.5, 0.5), False),
+    "uv_std": ((2,), (0.29, 0.29), True),
+    "velocity_scale": ((3,), (1.0, 1.0, 1.0), True),
+    "rate_scale": ((3,), (1.0, 1.0, 1.0), True),
+    "box_scale": ((), 0.1, True),
+    "box_max": ((), 1.0, True),
+    "p_dot_scale": ((3,), (1.0, 1.0, 1.0), True),
+}
+
+
+def _constant(name: str, value) -> jax.Array:
+    shape, default, positive = CONSTANTS[name]
+    arr = np.asarray(default if value is None else value, dtype=np.float32)
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)) or (positive and not np.all(arr > 0)):
+        raise ValueError(f"{name} must be finite{' and > 0' if positive else ''}, got {arr}")
+    return jnp.asarray(arr)
+
+
+def init_vdof_params(key: jax.Array, hidden_sizes: tuple[int, ...] = HIDDEN_SIZES, **constants) -> VDOFParams:
+    """Fresh weights (flax default initialisers) and the normalisation ``constants`` (names of
+    :data:`CONSTANTS`; missing ones take their defaults)."""
+    unknown = sorted(set(constants) - set(CONSTANTS))
+    if unknown:
+        raise ValueError(f"unknown VDOFParams constants {unknown}; expected some of {sorted(CONSTANTS)}")
+    network = InteractionNetwork(tuple(int(h) for h in hidden_sizes))
+    weights = network.init({"params": key}, jnp.zeros((2,), jnp.float32))["params"]
+    return VDOFParams(weights=weights, **{name: _constant(name, constants.get(name)) for name in CONSTANTS})
+
+
+def hidden_sizes_of(weights) -> tuple[int, ...]:
+    """The hidden widths the weights' kernel shapes imply (static: read from shapes, not values)."""
+    try:
+        names = sorted(weights, key=lambda n: int(str(n).split("_")[-1]))
+        kernels = [np.shape(weights[n]["kernel"]) for n in names]
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"weights are not an InteractionNetwork params tree: {err!r}") from err
+    if not kernels or any(len(k) != 2 for k in kernels) or kernels[0][0] != 2 or kernels[-1][1] != OUTPUT_DIM:
+        raise ValueError(f"weights are not an InteractionNetwork params tree: kernel shapes {kernels}")
+    return tuple(int(k[1]) for k in kernels[:-1])
+
+
+def num_trainable_params(params: VDOFParams) -> int:
+    """Number of trainable scalars (the normalisation constants are not trained)."""
+    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params.weights)))
+
+
+def interaction(params: VDOFParams, uv: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """g(uv) for one pixel (2,): ``A`` (2, 3), ``B`` (2, 3), ``a`` (3,), ``b`` (3,), in normalised units."""
+    network = InteractionNetwork(hidden_sizes_of(params.weights))
+    out = network.apply({"params": params.weights}, (uv - params.uv_mean) / params.uv_std)  # (18,)
+    return out[0:6].reshape(2, 3), out[6:12].reshape(2, 3), out[12:15], out[15:18]
+
+
+def body_velocity(x: jax.Array) -> jax.Array:
+    """``v_b = R(q)^T v``: the robot's velocity (3,) in the body frame, from the state x (10,)."""
+    q = quadrotor.normalize_quat(x[quadrotor.QUAT])
+    return quadrotor.rotation_matrix(q).T @ x[quadrotor.VEL]
+
+
+def _check_shapes(x, p, u) -> None:
+    for name, arr, size in (("x", x, quadrotor.STATE_DIM), ("p", p, PIXEL_STATE_DIM), ("u", u, quadrotor.CONTROL_DIM)):
+        if jnp.shape(arr) != (size,):
+            raise ValueError(f"vdof: {name} must have shape ({size},) (one sample; vmap for a batch), "
+                             f"got {jnp.shape(arr)}")
+
+
+def pixel_state_velocity(params: VDOFParams, x: jax.Array, p: jax.Array, u: jax.Array) -> jax.Array:
+    """The vdof pixel dynamics for one sample: ``p_dot = [uv_dot, s_dot]`` (3,), per second, in ``p``'s dtype.
+
+    uv_dot = s A(uv) v_b + B(uv) w;  s_dot = s (s a(uv) . v_b + b(uv) . w).
+
+    Args:
+        params: the network and its constants.
+        x: (10,) robot state (its attitude and velocity are used).
+        p: (3,) pixel state ``[u, v, s]``: the target's normalised pixel and its box size (:func:`box_size`).
+        u: (4,) control ``[wx, wy, wz, thrust]``; the rates are those flown (thrust is not used).
+    """
+    _check_shapes(x, p, u)
+    p = jnp.asarray(p)
+    dtype = params.uv_mean.dtype
+    s = jnp.clip(p[2].astype(dtype), 0.0, params.box_max) / params.box_scale
+    v_b = body_velocity(jnp.asarray(x).astype(dtype)) / params.velocity_scale
+    w = jnp.asarray(u)[:3].astype(dtype) / params.rate_scale
+    A, B, a, b = interaction(params, p[:2].astype(dtype))
+    uv_dot = s * (A @ v_b) + B @ w
+    s_dot = s * (s * jnp.dot(a, v_b) + jnp.dot(b, w))
+    p_dot = jnp.concatenate([uv_dot, s_dot[None]]) * params.p_dot_scale
+    return p_dot.astype(p.dtype) if jnp.issubdtype(p.dtype, jnp.floating) else p_dot
+
+
+def initial_pixel_state(centre: jax.Array, corners: jax.Array, gate_size: float | jax.Array = 1.0) -> jax.Array:
+    """The pixel state ``[u, v, s]`` (3,) of one detection: its centre (2,) and :func:`box_size` of its corners
+    (4, 2) divided by ``gate_size`` (1 for the apparent size; the opening's ``sqrt(width * height)`` in metres
+    for weights trained with ``box_cue="per_gate_size"``, see ``learn.vdof_train``)."""
+    centre = jnp.asarray(centre)
+    return jnp.concatenate([centre, (box_size(corners) / gate_size)[None].astype(centre.dtype)])
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints.
+# --------------------------------------------------------------------------------------------------
+
+
+def architecture(hidden_sizes: tuple[int, ...] = HIDDEN_SIZES) -> dict:
+    """The architecture recorded in (and checked against) checkpoints; only the hidden widths may vary."""
+    return {"hidden_sizes": [int(h) for h in hidden_sizes], "activation": ACTIVATION, "inputs": ["u", "v"],
+            "outputs": list(OUTPUT_NAMES), "output_dim": OUTPUT_DIM, "structure": STRUCTURE,
+            "pixel_state": list(PIXEL_STATE_NAMES)}
+
+
+def _to_numpy_tree(tree):
+    return jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(tree))
+
+
+def save_vdof(path, params: VDOFParams, config: Mapping) -> None:
+    """Write ``params`` and ``config`` (a JSON-serialisable record: how they were made) to one msgpack file,
+    atomically (``strict_json.write_atomic``)."""
+    try:
+        config_json = strict_json.dumps(dict(config), sort_keys=True)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"config must be a JSON-serialisable dict: {err}") from err
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": CHECKPOINT_VERSION,
+        "architecture": strict_json.dumps(architecture(hidden_sizes_of(params.weights)), sort_keys=True),
+        "config": config_json,
+        "params": _to_numpy_tree(params),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = serialization.msgpack_serialize(payload)
+    strict_json.write_atomic(path, lambda f: f.write(data))
+
+
+def _read_payload(path: Path) -> dict:
+    data = path.read_bytes()
+    try:
+        payload = serialization.msgpack_restore(data)
+    except Exception as err:  # msgpack raises several unrelated types on bad bytes
+        detail = " ".join(str(err).split()) if len(str(err)) <= 100 else type(err).__name__
+        raise ValueError(f"{path}: not a readable vdof checkpoint (corrupted or truncated, {len(data)} bytes): "
+                         f"{detail}") from err
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{path}: not a vdof checkpoint: format expected {CHECKPOINT_FORMAT!r}, found {found!r}")
+    if payload.get("format_version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: format_version expected {CHECKPOINT_VERSION}, "
+                         f"found {payload.get('format_version')!r}")
+    return payload
+
+
+def load_vdof(path) -> tuple[VDOFParams, dict]:
+    """``(params, config)`` from a file written by :func:`save_vdof`, bit-exact; ``ValueError`` (one line, naming
+    what is wrong) for a corrupted, truncated, foreign or mismatched file."""
+    path = Path(path)
+    payload = _read_payload(path)
+    try:
+        found = json.loads(payload["architecture"])
+        config = json.loads(payload["config"])
+        state = payload["params"]
+        hidden = tuple(int(h) for h in found["hidden_sizes"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: vdof checkpoint header is damaged: {err!r}") from err
+    expected = architecture(hidden)
+    diffs = [f"{k}: expected {expected.get(k)!r}, found {found.get(k, '<missing>')!r}"
+             for k in sorted(set(expected) | set(found)) if expected.get(k) != found.get(k, "<missing>")]
+    if diffs:
+        raise ValueError(f"{path}: architecture mismatch: " + "; ".join(diffs))
+    template = init_vdof_params(jax.random.key(0), hidden)
+    try:
+        params = serialization.from_state_dict(template, state)
+    except Exception as err:
+        raise ValueError(f"{path}: vdof parameters do not match the architecture: {err!r}") from err
+    bad = [f"{jax.tree_util.keystr(p)}: expected float32{np.shape(t)}, found {np.asarray(f).dtype}{np.shape(f)}"
+           for (p, t), f in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree_util.tree_leaves(params),
+                                strict=True)
+           if np.shape(t) != np.shape(f) or np.asarray(f).dtype != np.float32]
+    if bad:
+        raise ValueError(f"{path}: architecture mismatch: " + "; ".join(bad))
+    return jax.tree_util.tree_map(jnp.asarray, params), config
+
+
+def box_cue_of(config: Mapping) -> str:
+    """What the checkpoint's ``s`` means, from its record: "apparent" (:func:`box_size` of the detected corners) or
+    "per_gate_size" (that over the target opening's ``sqrt(width * height)`` in metres: pass it as
+    :func:`initial_pixel_state`'s ``gate_size``). Records without the field are "apparent"."""
+    return str((config.get("train_config") or {}).get("box_cue", "apparent"))
+
+
+PACKAGED_VDOF = Path(__file__).resolve().parent.parent / "data" / "vdof_weights.msgpack"
+
+
+def load_packaged_vdof() -> VDOFParams:
+    """The vdof weights shipped inside the package (``data/vdof_weights.msgpack``), when they are there."""
+    if not PACKAGED_VDOF.exists():
+        raise FileNotFoundError(f"{PACKAGED_VDOF}: the package ships no vdof weights; train them with `python -m "
+                                f"pixelmpc_jax.learn.vdof_train` and copy vdof_weights.msgpack there")
+    return load_vdof(PACKAGED_VDOF)[0]
