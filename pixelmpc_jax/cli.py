@@ -123,7 +123,7 @@ def _race_spec(args):
                         **{name: value for name, value in fields.items() if value is not None})
     dof_params = None
     if spec.dof_weights is not None and spec.dof_weights not in _packaged_variants():
-        dof_params = _race_dof(spec.dof_weights)
+        dof_params = _race_dof(spec.dof_weights, spec.config.pixel_model)
         spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
     return spec, dof_params
 
@@ -145,8 +145,13 @@ def _check_race(args) -> None:
         spec.replace(controller=controller).policy()
 
 
-def _race_dof(weights: str):
-    """The DOF weights in the weights file ``--dof-weights`` names."""
+def _race_dof(weights: str, pixel_model: str):
+    """The pixel model's weights in the weights file ``--dof-weights`` names (a DOF or, for "vdof", a vdof
+    checkpoint)."""
+    if pixel_model == "vdof":
+        from pixelmpc_jax.dynamics import vdof
+
+        return vdof.load_vdof(Path(weights))[0]
     from pixelmpc_jax.dynamics import dof
 
     return dof.load_checkpoint(Path(weights))[0]
@@ -423,8 +428,9 @@ def _add_race(sub) -> None:
                    help="fly one controller alone: pixelmpc or mppi, the paper's nominal baseline (default: both, "
                         "at the same target and seeds)")
     p.add_argument("--dof-weights", default=None, metavar="|".join(PACKAGED_VARIANTS) + "|FILE",
-                   help="the DOF's weights: a packaged variant (paper: command input; flown: the flown-rate "
-                        "weights; turned: trained with turned rows) or a weights file from `pixelmpc train` "
+                   help="the learned pixel model's weights: a packaged DOF variant (paper: command input; flown: "
+                        "the flown-rate weights; turned: trained with turned rows) or a weights file from `pixelmpc "
+                        "train` (a vdof file with --pixel-model vdof, whose default is the packaged vdof weights) "
                         "(default: the preset's)")
     p.add_argument("--detector", choices=DETECTORS, default=None,
                    help="target detection: geometry, the projection of the true gate, or image, OpenCV on "

@@ -178,8 +178,8 @@ def test_pixel_cost_ranking_is_one_for_a_model_ranking_as_the_projection(laps, s
     assert res["states"] == 0 and res["skipped_constant"] > 0 and res["median"] is None
     pair = R._pixel_cost_pair_fn  # the projection's cost in both places: identical rankings
 
-    def projection_twice(config, velocity_fn=None):
-        fn = pair(config, velocity_fn)
+    def projection_twice(config, velocity_fn=None, pixel_model="dof"):
+        fn = pair(config, velocity_fn, pixel_model)
 
         def both(*args):
             _, exact = fn(*args)

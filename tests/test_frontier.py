@@ -5,6 +5,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pixelmpc_jax.apps import frontier as F
@@ -186,3 +187,15 @@ def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
     capsys.readouterr()
     F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=True, max_time_s=0.2)
     assert capsys.readouterr().out.count("kept from") == 2  # resumed: nothing flown again
+
+
+def test_the_gain_interval_resamples_the_laps_of_the_cell_and_of_every_nominal_point():
+    nominal = [np.asarray([[30.0, 8.0]] * 5), np.asarray([[40.0, 2.0]] * 5)]
+    cell = np.asarray([[35.0, 1.0]] * 5)  # the frontier gives 5.0 s at 35 s: a gain of 5
+    low, high = F.gain_interval(cell, nominal)
+    assert low == pytest.approx(5.0) and high == pytest.approx(5.0)  # identical laps: no spread
+    spread = np.asarray([[34.0, 0.5], [36.0, 1.5], [35.0, 1.0], [35.0, 0.8], [35.0, 1.2]])
+    low, high = F.gain_interval(spread, nominal)
+    assert low < 5.0 < high and high - low > 1.0
+    assert F.gain_interval(np.asarray([[50.0, 1.0]]), nominal) is None  # never bracketed
+    assert F.gain_interval(cell, nominal[:1]) is None  # one nominal point is no frontier

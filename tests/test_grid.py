@@ -229,3 +229,16 @@ def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
                             mppi=dataclasses.replace(paper_mppi_config(), noise_exponent=1.0))
     flown = grid.recorded_race({"config": flat, "laps": [{}] * 2, "seed": 3})
     assert flown.key() == RaceSpec("pixelmpc", config, speed=8.0, laps=2, seed=3).key()
+
+
+def test_a_vdof_race_names_the_packaged_vdof_weights_and_drops_the_dofs_names():
+    from pixelmpc_jax.dynamics import vdof
+
+    spec = RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="vdof"), dof_weights="flown")  # a DOF name
+    assert spec.dof_weights is None and spec.uses_dof
+    assert spec.dof_fingerprint() == dof_weights_hash(vdof.load_packaged_vdof())
+    assert spec.key() != RaceSpec("pixelmpc").key()
+    spec.check_weights(vdof.load_packaged_vdof())
+    with pytest.raises(ValueError, match="fingerprint"):
+        spec.check_weights(dof.load_packaged_dof())
+    assert dof_weights_hash(spec.packaged_dof()) == spec.dof_fingerprint()

@@ -225,6 +225,18 @@ def test_bad_u_init_and_x0_are_rejected_before_tracing():
         ctrl.step(state, jnp.zeros(3), jnp.zeros(2))
 
 
+def test_an_integer_state_steps_as_the_float_state():
+    cfg = MPPIConfig(num_samples=8, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    x = jnp.asarray([1, 0, -2, 1])
+    u_int, _, info_int = ctrl.step(state, x.astype(jnp.int32), jnp.zeros(2))
+    u_float, _, info_float = ctrl.step(state, x.astype(jnp.float32), jnp.zeros(2))
+    assert u_int.dtype == jnp.float32 and ctrl.num_compilations() == 1  # converted before the jit: one signature
+    np.testing.assert_array_equal(u_int, u_float)
+    np.testing.assert_array_equal(info_int.costs, info_float.costs)
+
+
 def test_prefix_equals_one_time_varying_rollout():
     # A costly extra state (x[4]) that only matters over the first 5 steps: running it only in the prefix
     # must give exactly what one full-horizon rollout with a time switch gives.

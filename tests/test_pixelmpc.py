@@ -208,3 +208,28 @@ def test_racing_constants_computed_once_give_the_same_params(setup):
     other = costs.racing_constants(track, dataclasses.replace(cfg, path_stride=2))
     with pytest.raises(ValueError, match="racing_constants"):
         costs.racing_params(track, progress, 12.0, cfg, other)
+
+
+def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(setup):
+    """PixelMPC over [x; u, v, s]: the step is finite and predicts the 13-state; with the box size past
+    ``box_size_limit`` (a hovering drone: s stays put) the pixel cost adds nothing to any sample."""
+    from pixelmpc_jax.dynamics import vdof
+
+    track, _ = setup
+    params_vdof = vdof.load_packaged_vdof()
+    x = track.start
+    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=3e7, pixel_cost="border", pixel_model="vdof",
+                               box_size_limit=0.5)
+    costs_of = {}
+    controllers = {c_pixel: PM.make_pixelmpc(dataclasses.replace(config, c_pixel=c_pixel)) for c_pixel in (3e7, 0.0)}
+    params = make_params(track, params_vdof, config)
+    for name, c_pixel, s in (("near", 3e7, 5.0), ("near_free", 0.0, 5.0), ("far", 3e7, 0.2), ("far_free", 0.0, 0.2)):
+        ctrl = controllers[c_pixel]
+        X0 = jnp.concatenate([x, jnp.asarray([0.95, 0.05, s])])  # the gate at the image's corner: costly
+        u, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams())), X0, params)
+        assert np.all(np.isfinite(np.asarray(u))) and info.nominal_trajectory.shape == (SMALL.horizon + 1, 13)
+        costs_of[name] = np.asarray(info.costs)
+    np.testing.assert_allclose(costs_of["near"], costs_of["near_free"], rtol=1e-6)  # past the limit: no pixel cost
+    assert np.all(costs_of["far"] > costs_of["far_free"])  # below it the corner pixel costs every sample
+    with pytest.raises(ValueError, match="box_size_limit needs pixel_model 'vdof'"):
+        PM.PixelMPCConfig(box_size_limit=0.5)

@@ -142,6 +142,44 @@ def suggest_speed(nominal: list[dict], lap_time: float) -> float | None:
     return math.ceil(2 * points[0][1] * points[0][0] / lap_time) / 2
 
 
+BOOTSTRAP_DRAWS = 2000
+BOOTSTRAP_LEVEL = 0.90
+
+
+def _lap_pairs(result: dict) -> np.ndarray:
+    """(L, 2) lap time and avoidable low-visibility time of each completed lap of one cell's results."""
+    return np.asarray([(lap["lap_time_s"], lap["time_vis_below_50_s"] - lap["time_vis_below_50_unavoidable_s"])
+                       for lap in result.get("laps", []) if lap.get("success") and lap.get("lap_time_s") is not None
+                       and lap.get("time_vis_below_50_unavoidable_s") is not None], np.float64).reshape(-1, 2)
+
+
+def gain_interval(cell: np.ndarray, nominal: list[np.ndarray], draws: int = BOOTSTRAP_DRAWS,
+                  level: float = BOOTSTRAP_LEVEL, seed: int = 0) -> tuple[float, float] | None:
+    """A percentile bootstrap interval of the frontier gain: every draw resamples, with replacement, the cell's
+    completed laps and each nominal point's completed laps (``(L, 2)`` lap time, avoidable s), takes their
+    means, interpolates the nominal frontier at the cell's mean lap time and divides; draws where the frontier
+    does not bracket the cell are dropped. None when fewer than half the draws bracket it."""
+    if len(cell) == 0 or any(len(point) == 0 for point in nominal) or len(nominal) < 2:
+        return None
+    rng = np.random.default_rng(seed)
+
+    def resampled_means(laps: np.ndarray) -> np.ndarray:  # (draws, 2)
+        return laps[rng.integers(0, len(laps), (draws, len(laps)))].mean(axis=1)
+
+    cell_means = resampled_means(cell)
+    points = np.stack([resampled_means(point) for point in nominal], axis=1)  # (draws, P, 2)
+    gains = []
+    for (lap_time, avoidable), frontier in zip(cell_means, points):
+        order = np.argsort(frontier[:, 0])
+        xs, ys = frontier[order, 0], frontier[order, 1]
+        if xs[0] <= lap_time <= xs[-1]:
+            gains.append(float(np.interp(lap_time, xs, ys)) / max(avoidable, AVOIDABLE_FLOOR_S))
+    if len(gains) < draws / 2:
+        return None
+    tail = 100 * (1 - level) / 2
+    return float(np.percentile(gains, tail)), float(np.percentile(gains, 100 - tail))
+
+
 def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = 60.0) -> dict:
     """The frontier from the grid's results (``{cell name: race results}``); cells not run yet are listed
     under ``missing``."""
@@ -169,6 +207,9 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         row["frontier_gain"] = None
         if frontier is not None and row["avoidable_s"] is not None:
             row["frontier_gain"] = frontier / max(row["avoidable_s"], AVOIDABLE_FLOOR_S)
+        row["frontier_gain_interval"] = gain_interval(
+            _lap_pairs(results[cell.name]), [_lap_pairs(results[nominal_cell(v, max_time_s).name])
+                                             for v in nominal_speeds if nominal_cell(v, max_time_s).name in results])
         row["suggested_nominal_speed"] = (None if row["bracketed"] or row["lap_time_s"] is None
                                           else suggest_speed(nominal, row["lap_time_s"]))
         rows.append(row)
@@ -178,7 +219,9 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
             "paper_pace": interpolate(nominal, PAPER_LAP_TIME_S, "speed"), "missing": missing,
             "measured": {"laps": laps, "seeds": [seed, seed + laps - 1], "device": device_description(),
                          "written": datetime.datetime.now().isoformat(timespec="seconds"),
-                         "avoidable_floor_s": AVOIDABLE_FLOOR_S}}
+                         "avoidable_floor_s": AVOIDABLE_FLOOR_S,
+                         "gain_interval": f"{BOOTSTRAP_LEVEL:.0%} percentile bootstrap over the cell's and each "
+                                          f"nominal point's completed laps, {BOOTSTRAP_DRAWS} draws"}}
 
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
@@ -250,6 +293,8 @@ def report(frontier: dict) -> str:
     for c in frontier["cells"]:
         options = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "-"
         gain = _f(c["frontier_gain"]) if c["bracketed"] else "not bracketed"
+        if c["bracketed"] and c.get("frontier_gain_interval"):
+            gain += " [{:.2f}, {:.2f}]".format(*c["frontier_gain_interval"])
         if c["frontier_gain"] is not None and c["avoidable_s"] < AVOIDABLE_FLOOR_S:
             gain += " (no avoidable time: over the floor)"
         if c["frontier_gain"] is not None and not c["all_laps_completed"]:
@@ -279,7 +324,8 @@ def report(frontier: dict) -> str:
               f"{m['laps']} laps per point (seeds {m['seeds'][0]}-{m['seeds'][1]}), "
               f"{' and '.join(states)} state, on "
               f"{d['platform']} ({d['device_kind']}; CPU {d['cpu_model']}, {d['cpu_count']} cores; jax {d['jax']}), "
-              f"written {m['written']}. A cell with no avoidable time is divided by {m['avoidable_floor_s']:g} s.",
+              f"written {m['written']}. A cell with no avoidable time is divided by {m['avoidable_floor_s']:g} s. "
+              f"The gain's interval: {m.get('gain_interval', 'none')}.",
               "", "![avoidable low-visibility time against lap time](frontier.png)"]
     if frontier["missing"]:
         lines += ["", f"Not yet run (the experiment resumes with them): {', '.join(frontier['missing'])}."]

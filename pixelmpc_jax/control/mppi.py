@@ -564,6 +564,8 @@ def _validated_jit(step_pure: Callable, dynamics: Callable, s: _Sampling, option
         if tuple(state.plan.shape) != (T, m):
             raise ValueError(f"state.plan must have shape ({T}, {m}) (horizon, control_dim), got {state.plan.shape}")
         x0 = jnp.asarray(x0)
+        if not jnp.issubdtype(x0.dtype, jnp.floating):  # an integer or bool state rolls out in the plan's float
+            x0 = x0.astype(state.plan.dtype)
         signature = (x0.shape, str(x0.dtype))
         if signature not in checked_state_shapes:
             _validate_x0(dynamics, x0, m, params)

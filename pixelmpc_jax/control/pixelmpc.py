@@ -97,6 +97,10 @@ class PixelMPCConfig:
             centre, so it brakes only where the view is at stake. Either model (DOF or projection)
             drives it.
         border_margin: m of the "border" cost, as a fraction of the image width / height.
+        box_size_limit: "vdof" only: the pixel cost counts only while the predicted box size s (the gate's
+            apparent size, :func:`~pixelmpc_jax.dynamics.vdof.box_size`) is below this. A gate close enough to
+            fill the view cannot be kept whole in it by any attitude; its pixel then only pulls the drone off the
+            gate's centre line. None: counted until the gate is passed, as the other models.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -109,6 +113,7 @@ class PixelMPCConfig:
     pixel_deadzone: float = 0.0
     pixel_cost: str = "l1"
     border_margin: float = 0.15
+    box_size_limit: float | None = None
 
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
@@ -129,6 +134,11 @@ class PixelMPCConfig:
             raise ValueError(f"border_margin must lie in (0, 0.5], got {self.border_margin!r}")
         if self.pixel_error_clip is not None and not (self.pixel_error_clip > 0.0):
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
+        if self.box_size_limit is not None and not (0.0 < self.box_size_limit < math.inf):
+            raise ValueError(f"box_size_limit must be a positive finite number or None, got {self.box_size_limit!r}")
+        if self.box_size_limit is not None and self.pixel_model != "vdof":
+            raise ValueError(f"box_size_limit needs pixel_model 'vdof' (the model that predicts the box size), "
+                             f"got {self.pixel_model!r}")
 
     @property
     def pixel_steps(self) -> int:
@@ -259,6 +269,8 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
         offset = [X[..., i] - p.target_centre[i] for i in range(3)]  # elementwise, as in racing_costs
         ahead = offset[0] * p.target_normal[0] + offset[1] * p.target_normal[1] + offset[2] * p.target_normal[2] < 0.0
         counted = (steps < n_f)[:, None] & p.target_active & ahead
+        if config.box_size_limit is not None:  # vdof: not once the gate fills the view
+            counted = counted & (X[..., quadrotor.STATE_DIM + 2] < config.box_size_limit)
         uv = X[..., quadrotor.STATE_DIM:quadrotor.STATE_DIM + 2]  # a pixel state may carry more than the pixel
         return total + counted.astype(X.dtype) * pixel_cost(uv, config)
 

@@ -13,7 +13,10 @@ interaction matrix), and ``Z_dot / Z`` is linear in ``v / Z`` and ``w`` too, so 
 ``v_b = R(q)^T v`` the body-frame velocity, ``w = u[:3]`` the body rates, and ``g(uv) -> (A (2, 3), B (2, 3),
 a (3,), b (3,))`` a small MLP of the pixel alone (:func:`interaction`). The learned scale of ``s`` absorbs the
 gate's size and the focal length: the model never sees the gate's 3-D position or the camera intrinsics.
-At zero velocity and zero rate the pixel state does not move, by construction.
+At zero velocity and zero rate the pixel state does not move, by construction. One scale fits gates of one
+size; the AlphaPilot openings are 1.8 m and 3.0 m wide, so weights may be trained with ``s`` divided by the
+target opening's ``sqrt(width * height)`` (a course fact, not a position): :func:`box_cue_of` reads which from
+a checkpoint's record, and :func:`initial_pixel_state` takes the divisor as ``gate_size``.
 
 Every quantity enters normalised (``VDOFParams``'s constants, set from the training rows); the box size is
 saturated at ``box_max`` (the largest seen in training) before it multiplies, so a rollout that drives ``s``
@@ -43,7 +46,7 @@ from pixelmpc_jax.dynamics import quadrotor
 
 PIXEL_STATE_NAMES = ("u", "v", "s")
 PIXEL_STATE_DIM = 3
-HIDDEN_SIZES = (64, 64)
+HIDDEN_SIZES = (32, 32)  # [64, 64] and [128, 128] fit the train rows better and the held-out laps worse
 ACTIVATION = "tanh"
 # g(uv) -> [A (2x3, row-major), B (2x3), a (3,), b (3,)]
 OUTPUT_NAMES = ("A", "B", "a", "b")

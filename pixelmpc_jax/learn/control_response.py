@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
+from typing import NamedTuple
 
 import chex
 import jax
@@ -34,7 +36,7 @@ import numpy as np
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import BatchCost, coloured_noise_filter, rollout_costs
-from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.dynamics import dof, quadrotor, vdof
 from pixelmpc_jax.learn.dataset import Lap, lap_input
 from pixelmpc_jax.learn.rotation_augment import rotation_homography
 from pixelmpc_jax.perception import detector as detector_lib
@@ -44,6 +46,7 @@ IMAGE_CENTRE_UV = (0.5, 0.5)
 RANK_SAMPLES = 512
 RANK_T_F = 1.0
 RANK_STRIDE = 5
+PIXEL_MODELS = ("dof", "vdof")  # the learned pixel models the ranking and the multi-step prediction take
 
 
 # --------------------------------------------------------------------------------------------------
@@ -88,7 +91,7 @@ _rotation_jacobian_jit = jax.jit(_rotation_jacobian, static_argnums=0)
 
 
 def rotation_response(dof_params, q: np.ndarray, u: np.ndarray, camera, dt: float = timing.CONTROL_DT,
-                      velocity_fn=None, uv=IMAGE_CENTRE_UV, chunk: int = 1024) -> dict:
+                      velocity_fn=None, uv=IMAGE_CENTRE_UV, chunk: int = 1024, name: str = "dof") -> dict:
     """The DOF's mean Jacobian at the image centre against the exact rotational flow, px/frame per rad/s.
 
     Args:
@@ -96,12 +99,13 @@ def rotation_response(dof_params, q: np.ndarray, u: np.ndarray, camera, dt: floa
         q, u: (F, 4) the frames' orientation and the control input the network is given (its variant's).
         camera: the camera (its size sets the pixels; its intrinsics the exact response).
         velocity_fn: ``(dof_params, q, uv, u) -> uv_dot`` in normalised image units per second (default
-            ``dof.pixel_velocity``; a stub with a known response in tests).
+            ``dof.pixel_velocity``; a stub with a known response in tests; another pixel model's image motion).
+        name: what the model's figures are called in the result ("dof"; "vdof" for the velocity-and-depth DOF).
 
     Returns:
-        ``yaw_to_u`` and ``pitch_to_v``: ``{"dof", "exact", "ratio"}`` (ratio = dof / exact); ``jacobian_dof``
-        and ``jacobian_exact``: (2, 3) rows (du, dv), columns (wx, wy, wz); ``jacobian_dof_std``: the spread of
-        the DOF's Jacobian over the frames; ``frames``; ``uv``.
+        ``yaw_to_u`` and ``pitch_to_v``: ``{name, "exact", "ratio"}`` (ratio = model / exact); ``jacobian_<name>``
+        and ``jacobian_exact``: (2, 3) rows (du, dv), columns (wx, wy, wz); ``jacobian_<name>_std``: the spread of
+        the model's Jacobian over the frames; ``frames``; ``uv``.
     """
     velocity_fn = dof.pixel_velocity if velocity_fn is None else velocity_fn
     q, u = np.asarray(q, np.float32), np.asarray(u, np.float32)
@@ -123,12 +127,12 @@ def rotation_response(dof_params, q: np.ndarray, u: np.ndarray, camera, dt: floa
 
     def entry(axis: int, rate: int) -> dict:
         d, e = float(mean[axis, rate]), float(exact[axis, rate])
-        return {"dof": d, "exact": e, "ratio": d / e if abs(e) > 1e-12 else None}
+        return {name: d, "exact": e, "ratio": d / e if abs(e) > 1e-12 else None}
 
-    return {"yaw_to_u": entry(0, 2), "pitch_to_v": entry(1, 1), "jacobian_dof": mean.tolist(),
-            "jacobian_dof_std": jac.std(axis=0).tolist(), "jacobian_exact": exact.tolist(),
+    return {"yaw_to_u": entry(0, 2), "pitch_to_v": entry(1, 1), f"jacobian_{name}": mean.tolist(),
+            f"jacobian_{name}_std": jac.std(axis=0).tolist(), "jacobian_exact": exact.tolist(),
             "frames": int(q.shape[0]), "uv": list(uv),
-            "units": "px/frame per rad/s of the rate given to the DOF, at the image size"}
+            "units": f"px/frame per rad/s of the rate given to the {'DOF' if name == 'dof' else name}, at the image size"}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -160,21 +164,34 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float | None:
     return float(np.sum(ra * rb) / denominator) if denominator > 0 else None
 
 
-@functools.lru_cache(maxsize=4)
-def _pixel_cost_pair_fn(config: pixelmpc_lib.PixelMPCConfig, velocity_fn=None):
-    """The jitted ``(dof_params, x0, uv0, controls (N, n_f, 4), target_centre, target_normal, camera) ->
-    (cost_dof (N,), cost_projection (N,))``: the pixel cost of Eq. (18) over the first ``n_f`` steps with the
-    pixel from the DOF dynamics and from the exact projection, both as :func:`pixelmpc.make_pixelmpc` models
-    and costs them (robot model ``quadrotor.step``, the pixel cost only while the target is ahead)."""
-    velocity_fn = dof.pixel_velocity if velocity_fn is None else velocity_fn
+def _pixel_state_velocity_fn(pixel_model: str, velocity_fn=None) -> Callable:
+    """``(params, x (10,), p (d,), u (4,)) -> p_dot (d,)``: the pixel model's dynamics as PixelMPC integrates them,
+    "dof" (``velocity_fn(params, q, uv, u)``, default ``dof.pixel_velocity``, d = 2) or "vdof"
+    (``velocity_fn(params, x, p, u)``, default ``vdof.pixel_state_velocity``, d = 3)."""
+    if pixel_model not in PIXEL_MODELS:
+        raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {pixel_model!r}")
+    if pixel_model == "vdof":
+        return vdof.pixel_state_velocity if velocity_fn is None else velocity_fn
+    dof_velocity = dof.pixel_velocity if velocity_fn is None else velocity_fn
+    return lambda params, x, uv, u: dof_velocity(params, x[quadrotor.QUAT], uv, u)
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_cost_pair_fn(config: pixelmpc_lib.PixelMPCConfig, velocity_fn=None, pixel_model: str = "dof"):
+    """The jitted ``(params, x0, p0, controls (N, n_f, 4), target_centre, target_normal, camera) ->
+    (cost_model (N,), cost_projection (N,))``: the pixel cost of Eq. (18) over the first ``n_f`` steps with the
+    pixel from the learned pixel model's dynamics (``pixel_model`` "dof": p0 the pixel (2,); "vdof": the pixel
+    state [u, v, s] (3,), costed on its pixel) and from the exact projection (from ``p0[:2]``), both as
+    :func:`pixelmpc.make_pixelmpc` models and costs them (robot model ``quadrotor.step``, the pixel cost only
+    while the target is ahead)."""
+    velocity = _pixel_state_velocity_fn(pixel_model, velocity_fn)
     dt = config.mppi.dt
     quad_params = quadrotor.QuadParams()
     n = quadrotor.STATE_DIM
 
-    def dof_dynamics(X, u, p):
-        x, uv = X[:n], X[n:]
-        uv_dot = velocity_fn(p["dof"], x[quadrotor.QUAT], uv, u)
-        return jnp.concatenate([quadrotor.step(x, u, dt, quad_params), uv + dt * uv_dot])
+    def model_dynamics(X, u, p):
+        x, pixel = X[:n], X[n:]
+        return jnp.concatenate([quadrotor.step(x, u, dt, quad_params), pixel + dt * velocity(p["dof"], x, pixel, u)])
 
     def projection_dynamics(X, u, p):
         x_next = quadrotor.step(X[:n], u, dt, quad_params)
@@ -184,17 +201,17 @@ def _pixel_cost_pair_fn(config: pixelmpc_lib.PixelMPCConfig, velocity_fn=None):
 
     def pixel_term(X, p):
         ahead = jnp.dot(X[quadrotor.POS] - p["centre"], p["normal"]) < 0.0
-        return ahead.astype(X.dtype) * pixelmpc_lib.pixel_cost(X[n:], config)
+        return ahead.astype(X.dtype) * pixelmpc_lib.pixel_cost(X[n:n + 2], config)  # a pixel state may hold more
 
     cost = BatchCost(lambda X, U, t, p: jax.vmap(pixel_term, in_axes=(0, None))(X, p))
 
     @jax.jit
-    def pair(dof_params, x0, uv0, controls, centre, normal, camera):
-        chex.assert_shape([x0, uv0, controls], [(n,), (2,), (None, None, 4)])
-        p = {"dof": dof_params, "centre": centre, "normal": normal, "camera": camera}
-        X0 = jnp.concatenate([x0, uv0.astype(x0.dtype)])
-        return (rollout_costs(dof_dynamics, cost, None, X0, controls, p),
-                rollout_costs(projection_dynamics, cost, None, X0, controls, p))
+    def pair(params, x0, p0, controls, centre, normal, camera):
+        chex.assert_shape([x0, p0, controls], [(n,), (2 if pixel_model == "dof" else 3,), (None, None, 4)])
+        p = {"dof": params, "centre": centre, "normal": normal, "camera": camera}
+        return (rollout_costs(model_dynamics, cost, None, jnp.concatenate([x0, p0.astype(x0.dtype)]), controls, p),
+                rollout_costs(projection_dynamics, cost, None, jnp.concatenate([x0, p0[:2].astype(x0.dtype)]),
+                              controls, p))
 
     return pair
 
@@ -218,19 +235,35 @@ def sample_control_sequences(key: jax.Array, plan: jax.Array, mppi_config) -> ja
     return controls
 
 
+def _ranking_starts(laps: list[Lap], track, camera, stride: int, initial) -> list[tuple[Lap, int, jax.Array]]:
+    """``(lap, tick, p0)`` of every ``stride``-th tick whose target is detected with its centre in the image; p0
+    the pixel model's state of the detection (``initial(detection, gate)``)."""
+    starts = []
+    for lap in laps:
+        for s in range(0, lap.u.shape[0], int(stride)):
+            gate = track.gate(int(lap.target[s]))
+            det = detector_lib.detect_from_geometry(gate, jnp.asarray(lap.states[s]), camera)
+            if bool(det.found) and bool(camera_lib.in_image(det.centre)):
+                starts.append((lap, s, initial(det, gate)))
+    return starts
+
+
 def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
                                 num_samples: int = RANK_SAMPLES, t_f: float = RANK_T_F, stride: int = RANK_STRIDE,
                                 seed: int = 0, velocity_fn=None, config: pixelmpc_lib.PixelMPCConfig | None = None,
-                                progress: bool = False) -> dict:
-    """Spearman correlation between the DOF's and the exact projection's pixel cost of sampled sequences.
+                                progress: bool = False, pixel_model: str = "dof", box_cue: str = "apparent") -> dict:
+    """Spearman correlation between a learned pixel model's and the exact projection's pixel cost of sampled
+    sequences.
 
     At every ``stride``-th logged state of ``laps`` where the target gate is detected (geometric detector,
     no noise) with its centre in the image, ``num_samples`` control sequences of ``t_f / dt`` steps are
     sampled as PixelMPC's MPPI samples them (:func:`sample_control_sequences`, PixelMPC's MPPI config) around
     the logged commands from that tick on (the plan MPPI was flying), rolled out with the MPC's robot model
     from the logged state, and costed with PixelMPC's pixel cost (``PixelMPCConfig``, the l1 cost by default)
-    with the DOF's pixel and with the target's exact projection. The DOF is given the sampled controls, as
-    PixelMPC gives them.
+    with the model's pixel and with the target's exact projection. The model is given the sampled controls, as
+    PixelMPC gives them. ``pixel_model`` "dof" (``dof_params`` a DOF, from the detected centre) or "vdof"
+    (``dof_params`` vdof weights, from the detected ``[centre, box size]``, ``box_cue`` as its weights were
+    trained, :func:`vdof_detected_state`); the same states and samples for either.
 
     Returns:
         ``median``, ``q25``, ``q75``, ``mean`` of the per-state correlations; ``states`` counted;
@@ -239,31 +272,24 @@ def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
     base = config or pixelmpc_lib.PixelMPCConfig()
     config = dataclasses.replace(base, t_f=float(t_f), mppi=dataclasses.replace(base.mppi, num_samples=num_samples))
     steps = config.pixel_steps
-    pair = _pixel_cost_pair_fn(config, velocity_fn)
+    pair = _pixel_cost_pair_fn(config, velocity_fn, pixel_model)
+    starts = _ranking_starts(laps, track, camera, stride, pixel_state_model(pixel_model, box_cue).initial)
     key = jax.random.key(seed)
     correlations, skipped = [], 0
-    starts = []
-    for lap in laps:
-        F = lap.u.shape[0]
-        for s in range(0, F, int(stride)):
-            det = detector_lib.detect_from_geometry(track.gate(int(lap.target[s])), jnp.asarray(lap.states[s]),
-                                                    camera)
-            if bool(det.found) and bool(camera_lib.in_image(det.centre)):
-                starts.append((lap, s, det.centre))
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=len(starts), desc="pixel-cost ranking", unit="state", leave=False)
-    for lap, s, uv0 in starts:
+    for lap, s, p0 in starts:
         idx = np.minimum(np.arange(s, s + steps), lap.u.shape[0] - 1)
         plan = jnp.asarray(lap.u[idx], jnp.float32)
         key, key_sample = jax.random.split(key)
         controls = sample_control_sequences(key_sample, plan, config.mppi)
         gate = int(lap.target[s])
-        cost_dof, cost_exact = pair(dof_params, jnp.asarray(lap.states[s], jnp.float32), uv0, controls,
-                                    track.gates.centre[gate], track.gates.normal[gate], camera)
-        rho = spearman(np.asarray(cost_dof), np.asarray(cost_exact))
+        cost_model, cost_exact = pair(dof_params, jnp.asarray(lap.states[s], jnp.float32), p0, controls,
+                                      track.gates.centre[gate], track.gates.normal[gate], camera)
+        rho = spearman(np.asarray(cost_model), np.asarray(cost_exact))
         if rho is None:
             skipped += 1
         else:
@@ -317,12 +343,63 @@ PIXEL_MODEL_PARTS = {
 }
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "dt", "part"))
-def _multistep_lap(dof_params, track, camera, states, controls, target, horizon: int, dt: float, part: str = "dof"):
-    """Per start tick s (F,): predicted and true gate-centre pixel for k = 0..K, the pixel model
-    ``PIXEL_MODEL_PARTS[part]``. Returns err (F, K+1) px, err_zero (F, K+1) px (the pixel held still),
-    valid (F, K+1) bool."""
-    velocity = PIXEL_MODEL_PARTS[part]
+class PixelStateModel(NamedTuple):
+    """A pixel model as the multi-step prediction rolls it along a logged lap (static: hashable functions).
+
+    Attributes:
+        initial: ``(detection, gate) -> p (d,)``: the model's pixel state of one detection, ``p[:2]`` the pixel.
+        velocity: ``(params, camera, dt, x (10,), p (d,), u (4,)) -> p_dot (d,)`` per second.
+    """
+
+    initial: Callable
+    velocity: Callable
+
+
+def detected_centre(detection, gate) -> jax.Array:
+    """The DOF's pixel state of a detection: its centre (2,)."""
+    return detection.centre
+
+
+def vdof_detected_state(box_cue: str, detection, gate) -> jax.Array:
+    """The vdof's pixel state ``[u, v, s]`` (3,) of a detection of ``gate``: ``s`` the box size of its corners,
+    over the opening's ``sqrt(width * height)`` for weights trained with ``box_cue`` "per_gate_size"."""
+    gate_size = jnp.sqrt(gate.width * gate.height) if box_cue == "per_gate_size" else 1.0
+    return vdof.initial_pixel_state(detection.centre, detection.corners, gate_size)
+
+
+def _part_velocity(part: str, params, camera, dt: float, x, uv, u) -> jax.Array:
+    return PIXEL_MODEL_PARTS[part](params, camera, dt, x[quadrotor.QUAT], uv, u)
+
+
+def _vdof_velocity(params, camera, dt: float, x, p, u) -> jax.Array:
+    return vdof.pixel_state_velocity(params, x, p, u)
+
+
+DOF_PART_MODELS = {part: PixelStateModel(detected_centre, functools.partial(_part_velocity, part))
+                   for part in PIXEL_MODEL_PARTS}
+VDOF_BOX_CUES = ("apparent", "per_gate_size")
+VDOF_MODELS = {cue: PixelStateModel(functools.partial(vdof_detected_state, cue), _vdof_velocity)
+               for cue in VDOF_BOX_CUES}
+
+
+def pixel_state_model(pixel_model: str = "dof", box_cue: str = "apparent") -> PixelStateModel:
+    """The DOF (``pixel_model`` "dof") or the vdof with its weights' ``box_cue`` ("vdof") as a
+    :class:`PixelStateModel`."""
+    if pixel_model not in PIXEL_MODELS:
+        raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {pixel_model!r}")
+    if box_cue not in VDOF_BOX_CUES:
+        raise ValueError(f"box_cue must be one of {VDOF_BOX_CUES}, got {box_cue!r}")
+    return DOF_PART_MODELS["dof"] if pixel_model == "dof" else VDOF_MODELS[box_cue]
+
+
+@functools.partial(jax.jit, static_argnames=("model", "horizon", "dt"))
+def _multistep_lap(model: PixelStateModel, params, track, camera, states, controls, target, horizon: int, dt: float):
+    """Per start tick s (F,) and step k = 0..K: the model's pixel state rolled k steps from the detection at s
+    along the logged states and ``controls``, against the detection at s + k, both of the start's target gate.
+
+    Returns err (F, K+1) px of the pixel, err_zero (F, K+1) px (the pixel held still), valid (F, K+1) bool (the
+    gate detected with its centre in the image on every tick up to k), pred (F, K+1, d) and truth (F, K+1, d)
+    the rolled and the detected pixel states."""
     F = controls.shape[0]
     chex.assert_shape([states, controls, target], [(F + 1, quadrotor.STATE_DIM), (F, 4), (F + 1,)])
     scale = jnp.asarray([camera.width, camera.height], jnp.float32)
@@ -334,45 +411,39 @@ def _multistep_lap(dof_params, track, camera, states, controls, target, horizon:
         det = jax.vmap(lambda x: detector_lib.detect_from_geometry(gate, x, camera))(states[idx])
         seen = det.found & camera_lib.in_image(det.centre) & (s + ks <= F)
         tracked = jnp.cumprod(seen.astype(jnp.int32)).astype(bool)  # seen on every tick up to k
+        truth = jax.vmap(model.initial, in_axes=(0, None))(det, gate)  # (K+1, d)
 
-        def step(uv, k):
+        def step(p, k):
             j = jnp.minimum(s + k, F - 1)
-            uv_next = uv + dt * velocity(dof_params, camera, dt, states[j, 3:7], uv, controls[j])
-            return uv_next, uv_next
+            p_next = p + dt * model.velocity(params, camera, dt, states[j], p, controls[j])
+            return p_next, p_next
 
-        uv0 = det.centre[0]
-        _, rollout = jax.lax.scan(step, uv0, ks[:-1])
-        pred = jnp.concatenate([uv0[None], rollout])  # (K+1, 2)
-        err = jnp.linalg.norm((pred - det.centre) * scale, axis=-1)
-        err_zero = jnp.linalg.norm((uv0 - det.centre) * scale, axis=-1)
-        return err, err_zero, tracked
+        _, rollout = jax.lax.scan(step, truth[0], ks[:-1])
+        pred = jnp.concatenate([truth[:1], rollout])  # (K+1, d)
+        err = jnp.linalg.norm((pred[:, :2] - truth[:, :2]) * scale, axis=-1)
+        err_zero = jnp.linalg.norm((truth[0, :2] - truth[:, :2]) * scale, axis=-1)
+        return err, err_zero, tracked, pred, truth
 
     return jax.vmap(one_start)(jnp.arange(F))
 
 
-def multistep_error(dof_params: dof.DOFParams, laps: list[Lap], track, camera,
-                    horizon: int = 80, dt: float = timing.CONTROL_DT, input: str = "command",
-                    part: str = "dof") -> dict:
-    """Mean and std of the pixel error of the gate centre predicted ``k = 1..horizon`` steps ahead (Fig. 7),
-    the DOF given the logged control input ``input`` ("command", or "flown": the rates flown over each frame);
-    ``part`` swaps the pixel model for one of :data:`PIXEL_MODEL_PARTS` (default the DOF).
-
-    Returns lists of length ``horizon`` (``None`` where no prediction reaches that step): ``mean_px``,
-    ``std_px``, ``count``, and ``zero_motion_mean_px`` (the error of assuming the pixel does not move).
-    """
+def multistep_windows(model: PixelStateModel, params, laps: list[Lap], track, camera, horizon: int = 80,
+                      dt: float = timing.CONTROL_DT, input: str = "command") -> dict:
+    """The multi-step prediction of every start tick of ``laps`` (rows, laps concatenated), steps k = 1..horizon
+    (columns), the model given the logged control input ``input``: ``err``, ``err_zero`` (px), ``valid`` (bool),
+    ``pred`` and ``truth`` (..., d) (:func:`_multistep_lap`). Which windows count does not depend on the model."""
     if int(horizon) < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
-    if part not in PIXEL_MODEL_PARTS:
-        raise ValueError(f"part must be one of {tuple(PIXEL_MODEL_PARTS)}, got {part!r}")
-    errs, zeros, valids = [], [], []
-    for lap in laps:
-        err, err_zero, valid = _multistep_lap(dof_params, track, camera, jnp.asarray(lap.states),
-                                              jnp.asarray(lap_input(lap, input)),
-                                              jnp.asarray(lap.target), int(horizon), float(dt), part)
-        errs.append(np.asarray(err)[:, 1:])
-        zeros.append(np.asarray(err_zero)[:, 1:])
-        valids.append(np.asarray(valid)[:, 1:])
-    err, err_zero, valid = (np.concatenate(a) for a in (errs, zeros, valids))
+    parts = [_multistep_lap(model, params, track, camera, jnp.asarray(lap.states), jnp.asarray(lap_input(lap, input)),
+                            jnp.asarray(lap.target), int(horizon), float(dt)) for lap in laps]
+    names = ("err", "err_zero", "valid", "pred", "truth")
+    return {name: np.concatenate([np.asarray(part[i])[:, 1:] for part in parts]) for i, name in enumerate(names)}
+
+
+def multistep_summary(err: np.ndarray, err_zero: np.ndarray, valid: np.ndarray, dt: float) -> dict:
+    """Per step k = 1..K (columns of the (S, K) arrays), over the valid windows: ``mean_px``, ``std_px``,
+    ``count``, ``zero_motion_mean_px`` (``None`` where no window reaches k); ``steps``, ``dt_s``, ``starts``."""
+    horizon = err.shape[1]
 
     def column_stat(values, fn):
         return [float(fn(values[valid[:, k], k])) if valid[:, k].any() else None for k in range(horizon)]
@@ -385,6 +456,21 @@ def multistep_error(dof_params: dof.DOFParams, laps: list[Lap], track, camera,
         "count": [int(c) for c in valid.sum(0)],
         "zero_motion_mean_px": column_stat(err_zero, np.mean),
         "starts": int(valid[:, 0].sum()),
-        "input": input,
-        "part": part,
     }
+
+
+def multistep_error(dof_params: dof.DOFParams, laps: list[Lap], track, camera,
+                    horizon: int = 80, dt: float = timing.CONTROL_DT, input: str = "command",
+                    part: str = "dof") -> dict:
+    """Mean and std of the pixel error of the gate centre predicted ``k = 1..horizon`` steps ahead (Fig. 7),
+    the DOF given the logged control input ``input`` ("command", or "flown": the rates flown over each frame);
+    ``part`` swaps the pixel model for one of :data:`PIXEL_MODEL_PARTS` (default the DOF).
+
+    Returns lists of length ``horizon`` (``None`` where no prediction reaches that step): ``mean_px``,
+    ``std_px``, ``count``, and ``zero_motion_mean_px`` (the error of assuming the pixel does not move).
+    """
+    if part not in PIXEL_MODEL_PARTS:
+        raise ValueError(f"part must be one of {tuple(PIXEL_MODEL_PARTS)}, got {part!r}")
+    windows = multistep_windows(DOF_PART_MODELS[part], dof_params, laps, track, camera, horizon, dt, input)
+    return {**multistep_summary(windows["err"], windows["err_zero"], windows["valid"], dt), "input": input,
+            "part": part}

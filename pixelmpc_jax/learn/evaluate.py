@@ -26,9 +26,10 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+from flax import serialization
 
 from pixelmpc_jax import strict_json, timing
-from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.dynamics import dof, vdof
 from pixelmpc_jax.learn import collect as collect_lib
 from pixelmpc_jax.learn import control_response
 from pixelmpc_jax.learn import dataset as dataset_lib
@@ -319,7 +320,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     train_data = dataset_lib.load_dataset(data_dir, "train")
     baseline = fit_orientation_bin_baseline(train_data.q, train_data.u, train_data.flow, bins_per_angle)
     del train_data
-    laps, world = _test_laps(data_dir, manifest)
+    laps, world = load_test_laps(data_dir, manifest)
     dt = float(manifest["frame_dt_s"])
     accuracy = flow_accuracy(dof_params, laps, baseline, dt, progress=progress, input=input)
     multistep = _multistep_results(dof_params, laps, world, horizon, dt, input)
@@ -340,7 +341,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         "image_size_wh": list(manifest["image_size_wh"]),
         "units": "pixels per frame (1/40 s) at the image size; multistep: pixels",
         **multistep,
-        "data": _data_record(data_dir, manifest),
+        "data": data_record(data_dir, manifest),
         "baseline_bins_per_angle": bins_per_angle,
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
     }
@@ -353,9 +354,11 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     return results
 
 
-def _test_laps(data_dir: Path, manifest: dict) -> tuple[list[dataset_lib.Lap], env_lib.World]:
-    """The dataset's test laps and the world they were flown in (its camera must render the images' size)."""
-    laps = dataset_lib.load_laps(data_dir, "test")
+def load_test_laps(data_dir: Path, manifest: dict, with_flow: bool = True) -> tuple[list[dataset_lib.Lap],
+                                                                                      env_lib.World]:
+    """The dataset's test laps (with their Farneback and exact flow unless ``with_flow`` is False) and the world
+    they were flown in (its camera must render the images' size)."""
+    laps = dataset_lib.load_laps(data_dir, "test", with_flow=with_flow, with_exact=with_flow)
     world = env_lib.make_world()
     W, H = manifest["image_size_wh"]
     if (world.camera.width, world.camera.height) != (W, H):
@@ -383,7 +386,7 @@ def _multistep_results(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap], w
     }
 
 
-def _data_record(data_dir: Path, manifest: dict) -> dict:
+def data_record(data_dir: Path, manifest: dict) -> dict:
     """Where the evaluated laps came from: the dataset, its test laps, the baseline's train laps."""
     return {
         "dir": str(data_dir),
@@ -458,13 +461,42 @@ def summarise(results: dict) -> str:
 # --------------------------------------------------------------------------------------------------
 
 
+def read_weights(path) -> tuple[str, dof.DOFParams | vdof.VDOFParams, dict]:
+    """``(kind, params, record)`` of a DOF (kind "dof", ``dof.load_checkpoint``) or vdof (kind "vdof",
+    ``vdof.load_vdof``) weights file, dispatched once on the file's format; ``ValueError`` (one line, the DOF
+    reader's) for a file that is neither."""
+    path = Path(path)
+    if _checkpoint_format(path) == vdof.CHECKPOINT_FORMAT:
+        return ("vdof", *vdof.load_vdof(path))
+    return ("dof", *dof.load_checkpoint(path))
+
+
+def _checkpoint_format(path: Path) -> str | None:
+    """The ``format`` a msgpack checkpoint names, or None for a file that is not one."""
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except Exception:  # msgpack raises several unrelated types on bad bytes; the reader names what is wrong
+        return None
+    return payload.get("format") if isinstance(payload, dict) else None
+
+
 def run_evaluate(weights=None, data_dir=None, out_dir="runs/dof_eval", horizon: int = 80,
                  progress: bool = True) -> dict:
-    """Evaluate a weights file (default: the shipped one) and print a short summary; see :func:`evaluate`.
-    The network is given the input its record names (``dof.checkpoint_variant``: command or flown)."""
-    dof_params, record = dof.load_checkpoint(shipped_weights_path() if weights is None else weights)
-    variant = dof.checkpoint_variant(record)
-    results = evaluate(dof_params, data_dir, out_dir, horizon=horizon, progress=progress, input=variant["input"])
-    print(summarise(results))
+    """Evaluate a weights file (default: the shipped DOF) and print a short summary. A DOF file: see
+    :func:`evaluate`; the network is given the input its record names (``dof.checkpoint_variant``: command or
+    flown). A vdof file: :func:`vdof_eval.evaluate_vdof` (the same figures, beside the packaged "turned" DOF on
+    the same frames). Either writes ``out_dir/dof_eval.json``."""
+    kind, params, record = read_weights(shipped_weights_path() if weights is None else weights)
+    if kind == "vdof":
+        from pixelmpc_jax.learn import vdof_eval  # it builds on this module's data loading
+
+        if data_dir is None:
+            data_dir = heldout_dataset(progress=progress)
+        results = vdof_eval.evaluate_vdof(params, record, data_dir, out_dir, horizon=horizon, progress=progress)
+        print(vdof_eval.summarise(results))
+    else:
+        variant = dof.checkpoint_variant(record)
+        results = evaluate(params, data_dir, out_dir, horizon=horizon, progress=progress, input=variant["input"])
+        print(summarise(results))
     print(f"wrote {Path(out_dir) / 'dof_eval.json'}")
     return results

@@ -50,8 +50,7 @@ from pixelmpc_jax.world import course as course_lib
 
 EVAL_HORIZONS = (10, 20, 40, 80)
 BOX_LOSSES = ("absolute", "relative")
-BOX_CUES = ("apparent", "per_gate_size")
-PIXEL_SCALE = (camera_lib.PAPER_WIDTH, camera_lib.PAPER_HEIGHT)  # px per normalised unit (204 x 153)
+BOX_CUES = control_response.VDOF_BOX_CUES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,9 +119,7 @@ def lap_detections(track, camera, states: jax.Array, target: jax.Array, box_cue:
     def one(x, gate_id):
         gate = track.gate(gate_id)
         det = detector_lib.detect_from_geometry(gate, x, camera)
-        gate_size = jnp.sqrt(gate.width * gate.height) if box_cue == "per_gate_size" else 1.0
-        p = vdof.initial_pixel_state(det.centre, det.corners, gate_size)
-        return p, det.found, camera_lib.in_image(det.centre)
+        return control_response.vdof_detected_state(box_cue, det, gate), det.found, camera_lib.in_image(det.centre)
 
     return jax.vmap(one)(states, target)
 
@@ -141,14 +138,11 @@ def lap_rows(track, camera, states, w_flown, target, dt: float = timing.CONTROL_
     return Rows(x=states[keep], p=p[keep], w=w_flown[keep], p_dot=((p[keep + 1] - p[keep]) / dt).astype(np.float32))
 
 
-def concat_rows(rows: list[Rows]) -> Rows:
-    return Rows(*(np.concatenate(parts) for parts in zip(*rows, strict=True)))
-
-
 def load_rows(laps: list[dataset_lib.Lap], track, camera, dt: float = timing.CONTROL_DT,
               box_cue: str = "apparent") -> Rows:
     """:func:`lap_rows` of every lap, concatenated."""
-    return concat_rows([lap_rows(track, camera, lap.states, lap.w_flown, lap.target, dt, box_cue) for lap in laps])
+    parts = [lap_rows(track, camera, lap.states, lap.w_flown, lap.target, dt, box_cue) for lap in laps]
+    return Rows(*(np.concatenate(a) for a in zip(*parts, strict=True)))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -363,69 +357,45 @@ def train(config: VDOFTrainConfig, rows: Rows, test_rows: Rows | None = None, wi
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "dt", "box_cue"))
-def _multistep_lap(vdof_params, dof_params, track, camera, states, w_flown, u, target, horizon: int, dt: float,
-                   box_cue: str):
-    """Per start frame s (F,) and step k = 0..K: gate-centre error (px) of vdof, the DOF and a still pixel, the
-    box size's relative error of vdof, and whether the window counts (the target the same and detected with its
-    centre in the image on every frame up to k)."""
-    F = w_flown.shape[0]
-    p_det, found, inside = lap_detections(track, camera, states, target, box_cue)  # (F+1, 3), (F+1,), (F+1,)
-    scale = jnp.asarray(PIXEL_SCALE, jnp.float32)
-    ks = jnp.arange(horizon + 1)
-    controls = jnp.concatenate([w_flown, u[:, 3:4]], axis=1)  # (F, 4): flown rates, commanded thrust
-
-    def one_start(s):
-        idx = jnp.minimum(s + ks, F)
-        seen = found[idx] & inside[idx] & (target[idx] == target[s]) & (s + ks <= F)
-        valid = jnp.cumprod(seen.astype(jnp.int32)).astype(bool)
-
-        def step(carry, k):
-            p, uv = carry
-            j = jnp.minimum(s + k, F - 1)
-            p_next = p + dt * vdof.pixel_state_velocity(vdof_params, states[j], p, controls[j])
-            uv_next = uv + dt * dof.pixel_velocity(dof_params, states[j, 3:7], uv, controls[j])
-            return (p_next, uv_next), (p_next, uv_next)
-
-        p0 = p_det[s]
-        _, (p_roll, uv_roll) = jax.lax.scan(step, (p0, p0[:2]), ks[:-1])
-        p_pred = jnp.concatenate([p0[None], p_roll])  # (K+1, 3)
-        uv_pred = jnp.concatenate([p0[None, :2], uv_roll])
-        truth = p_det[idx]
-        err_vdof = jnp.linalg.norm((p_pred[:, :2] - truth[:, :2]) * scale, axis=-1)
-        err_dof = jnp.linalg.norm((uv_pred - truth[:, :2]) * scale, axis=-1)
-        err_zero = jnp.linalg.norm((p0[:2] - truth[:, :2]) * scale, axis=-1)
-        box_rel = jnp.abs(p_pred[:, 2] - truth[:, 2]) / jnp.maximum(truth[:, 2], 1e-6)
-        return err_vdof, err_dof, err_zero, box_rel, valid
-
-    return jax.vmap(one_start)(jnp.arange(F))
+def multistep_window_errors(vdof_params, dof_params, laps: list[dataset_lib.Lap], track, camera, horizon: int,
+                            dt: float = timing.CONTROL_DT, box_cue: str = "apparent", dof_input: str = "flown") -> dict:
+    """The multi-step prediction of vdof and the DOF on the same windows, defined as the DOF evaluation defines
+    them (:func:`control_response.multistep_windows`: every start tick whose target gate is detected with its
+    centre in the image, counted up to k while it stays so): vdof rolled from the detected ``[centre, s]`` with
+    the flown rates, the DOF from the centre with its input ``dof_input``. Per start (rows) and k = 1..horizon:
+    ``vdof`` and ``dof`` (the windows' arrays), ``box_rel`` (vdof's box size relative error), ``valid``."""
+    model = control_response.pixel_state_model("vdof", box_cue)
+    w_vdof = control_response.multistep_windows(model, vdof_params, laps, track, camera, horizon, dt, "flown")
+    w_dof = control_response.multistep_windows(control_response.pixel_state_model("dof"), dof_params, laps, track,
+                                               camera, horizon, dt, dof_input)
+    pred, truth = w_vdof["pred"][..., 2], w_vdof["truth"][..., 2]
+    return {"vdof": w_vdof, "dof": w_dof, "valid": w_vdof["valid"],
+            "box_rel": np.abs(pred - truth) / np.maximum(truth, 1e-6)}
 
 
 def multistep_errors(vdof_params, dof_params, laps: list[dataset_lib.Lap], track, camera,
                      horizons=EVAL_HORIZONS, dt: float = timing.CONTROL_DT, box_cue: str = "apparent") -> dict:
-    """Mean gate-centre error (px at 204 x 153) k steps ahead for vdof and the DOF on the same windows, with the
-    error of a still pixel and vdof's box-size relative error; per horizon in ``horizons`` and as full curves."""
+    """Mean gate-centre error (px at the camera's size) k steps ahead for vdof and the DOF (flown input) on the
+    same windows (:func:`multistep_window_errors`), with the error of a still pixel and vdof's box-size relative
+    error; per horizon in ``horizons`` and as full curves."""
     horizon = int(max(horizons))
-    parts = [[np.asarray(a) for a in _multistep_lap(vdof_params, dof_params, track, camera, jnp.asarray(lap.states),
-                                                    jnp.asarray(lap.w_flown), jnp.asarray(lap.u),
-                                                    jnp.asarray(lap.target), horizon, float(dt), box_cue)]
-             for lap in laps]
-    err_vdof, err_dof, err_zero, box_rel, valid = (np.concatenate(a) for a in zip(*parts, strict=True))
+    windows = multistep_window_errors(vdof_params, dof_params, laps, track, camera, horizon, dt, box_cue)
+    valid = windows["valid"]
+    err_vdof, err_dof, err_zero = windows["vdof"]["err"], windows["dof"]["err"], windows["vdof"]["err_zero"]
 
-    def mean_at(values, k):
-        return float(values[valid[:, k], k].mean()) if valid[:, k].any() else None
+    def at(values, k, fn=np.mean):
+        return float(fn(values[valid[:, k - 1], k - 1])) if valid[:, k - 1].any() else None
 
-    table = {str(k): {"vdof_px": mean_at(err_vdof, k), "dof_px": mean_at(err_dof, k),
-                      "still_px": mean_at(err_zero, k), "vdof_box_rel_err": mean_at(box_rel, k),
-                      "vdof_median_px": (float(np.median(err_vdof[valid[:, k], k])) if valid[:, k].any() else None),
-                      "dof_median_px": (float(np.median(err_dof[valid[:, k], k])) if valid[:, k].any() else None),
-                      "windows": int(valid[:, k].sum())} for k in horizons}
+    table = {str(k): {"vdof_px": at(err_vdof, k), "dof_px": at(err_dof, k), "still_px": at(err_zero, k),
+                      "vdof_box_rel_err": at(windows["box_rel"], k), "vdof_median_px": at(err_vdof, k, np.median),
+                      "dof_median_px": at(err_dof, k, np.median), "windows": int(valid[:, k - 1].sum())}
+             for k in horizons}
     curves = {"steps": list(range(1, horizon + 1)),
-              "vdof_px": [mean_at(err_vdof, k) for k in range(1, horizon + 1)],
-              "dof_px": [mean_at(err_dof, k) for k in range(1, horizon + 1)],
-              "windows": [int(valid[:, k].sum()) for k in range(1, horizon + 1)]}
+              "vdof_px": [at(err_vdof, k) for k in range(1, horizon + 1)],
+              "dof_px": [at(err_dof, k) for k in range(1, horizon + 1)],
+              "windows": [int(valid[:, k - 1].sum()) for k in range(1, horizon + 1)]}
     return {"by_horizon": table, "curves": curves, "starts": int(valid[:, 0].sum()),
-            "windows": "start frames whose target stays the same and detected (centre in the image) up to k"}
+            "windows": "start ticks whose target gate is detected with its centre in the image on every tick up to k"}
 
 
 @jax.jit
@@ -491,7 +461,7 @@ def plot_learning_curve(history: dict, path) -> None:
     ax.set_ylabel("loss of the stage")
     ax.set_title("vdof learning curve")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper center")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -550,7 +520,7 @@ def run(data_dir, out_dir, config: VDOFTrainConfig = VDOFTrainConfig(), dof_vari
 
 def summary(evaluation: dict) -> str:
     """A few lines: losses, the multi-step table, the rate response."""
-    rec, ms, rr = evaluation["record"], evaluation["multistep"]["by_horizon"], evaluation["rate_response"]
+    rec, ms = evaluation["record"], evaluation["multistep"]["by_horizon"]
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     losses = ", ".join(f"{stage} loss train {fmt(v['train_loss'])} held-out {fmt(v['test_loss'])}"
                        for stage, v in sorted(rec["final_loss"].items()))
@@ -558,10 +528,12 @@ def summary(evaluation: dict) -> str:
              f"steps in {rec['train_wall_s']:.0f} s; {losses}", "steps  vdof_px  dof_px  still_px  windows"]
     lines += [f"{k:>5}  {fmt(v['vdof_px']):>7}  {fmt(v['dof_px']):>6}  {fmt(v['still_px']):>8}  {v['windows']:>7}"
               for k, v in ms.items()]
-    for name in ("yaw_to_u", "pitch_to_v"):
-        e = rr[name]
-        lines.append(f"{name}: exact {e['exact']:.3f}  vdof ratio {e['vdof_ratio']:.3f}  dof ratio "
-                     f"{fmt(e['dof_ratio'])} (px/frame per rad/s)")
+    for key in ("rate_response", "rate_response_at_median_pixel"):
+        uv = evaluation[key]["uv"]
+        for name in ("yaw_to_u", "pitch_to_v"):
+            e = evaluation[key][name]
+            lines.append(f"{name} at uv ({uv[0]:.2f}, {uv[1]:.2f}): exact {e['exact']:.3f} px/frame per rad/s, "
+                         f"ratio vdof {e['vdof_ratio']:.3f}, dof {fmt(e['dof_ratio'])}")
     return "\n".join(lines)
 
 

@@ -41,13 +41,15 @@ def devices_name(name: str, sample_devices: int, auto: int) -> str:
 
 
 def pixelmpc_row(num_samples: int, horizon: int, t_f: float = 1.0, repeats: int = 30, group: str = GROUP,
-                 track=None, dof_params=None, sample_devices: int | None = None) -> dict:
+                 track=None, dof_params=None, sample_devices: int | None = None, pixel_model: str = "dof") -> dict:
     auto = usable_sample_devices(num_samples)
     devices = auto if sample_devices is None else sample_devices
     problem = problems.pixelmpc_problem(num_samples, horizon, t_f, track=track, dof_params=dof_params,
-                                        sample_devices=devices)
+                                        sample_devices=devices, pixel_model=pixel_model)
     stats = measure(problems.control_loop_call(problem), repeats=repeats)
     name = PIXELMPC_NAME if t_f > 0 else "PixelMPC step without pixel model (t_f=0)"
+    if pixel_model != "dof":
+        name = name.replace("(DOF,", f"({pixel_model},")
     row = make_row(group, devices_name(name, devices, auto), num_samples, horizon, stats,
                    t_f=t_f, pixel_steps=problem.config.pixel_steps, sample_devices=devices)
     row.update(_rates(row))
@@ -95,7 +97,8 @@ def paper_size_rows(repeats: int = 30, smoke: bool = False) -> list[dict]:
     without = pixelmpc_row(n, t, 0.0, repeats, track=track, dof_params=dof_params)
     nominal = nominal_row(n, t, repeats, track=track)
     dof_alone = dof_part_row(n, full["pixel_steps"], dof_params, repeats)
-    rows = [full, without, nominal, dof_alone]
+    vdof = pixelmpc_row(n, t, t_f, repeats, track=track, pixel_model="vdof")
+    rows = [full, without, nominal, dof_alone, vdof]
     if full["sample_devices"] > 1:  # the same steps on one device, measured in the same run
         rows += [pixelmpc_row(n, t, t_f, repeats, track=track, dof_params=dof_params, sample_devices=1),
                  nominal_row(n, t, repeats, track=track, sample_devices=1)]

@@ -18,12 +18,14 @@ from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import Controller, MPPIConfig, MPPIState, make_mppi
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.dynamics import vdof as vdof_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
 TARGET_SPEED = 14.0  # m/s, the paper's Table II speed
 START_SPEED = 5.0  # m/s along the path tangent at x0, so the rollouts fly (not hover)
 START_PIXEL = (0.55, 0.45)  # the detector's target pixel at x0, normalised
+START_BOX_SIZE = 0.1  # the detected gate's apparent size at x0 (vdof), normalised
 
 
 def bench_dof_params() -> dof_lib.DOFParams:
@@ -66,25 +68,31 @@ _racing_params = jax.jit(costs.racing_params, static_argnames=("config",))
 
 
 def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0, track=None,
-                     dof_params=None, seed: int = 0, sample_devices: int = 1) -> ControllerProblem:
-    """The full PixelMPC step (DOF pixel model over t_f, racing + pixel cost) at the given sizes.
+                     dof_params=None, seed: int = 0, sample_devices: int = 1,
+                     pixel_model: str = "dof") -> ControllerProblem:
+    """The full PixelMPC step (a learned pixel model over t_f, racing + pixel cost) at the given sizes.
 
     ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline);
     ``sample_devices`` is ``MPPIConfig.sample_devices`` (x0 and the params are then placed on every device
-    once, as a control loop keeps them).
+    once, as a control loop keeps them); ``pixel_model`` "vdof" flies the packaged vdof weights (the pixel state
+    then carries the box size too).
     """
     track = track or course_lib.load_course()
-    dof_params = bench_dof_params() if dof_params is None else dof_params
+    if pixel_model == "vdof":
+        dof_params = vdof_lib.load_packaged_vdof() if dof_params is None else dof_params
+    else:
+        dof_params = bench_dof_params() if dof_params is None else dof_params
     mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
                                       sample_devices=sample_devices)
-    config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f)
+    config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f, pixel_model=pixel_model)
     ctrl = pixelmpc_lib.make_pixelmpc(config)
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
     params = pixelmpc_lib.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(True),
                                          target_centre=track.gates.centre[0], target_normal=track.gates.normal[0],
                                          camera=camera_lib.default_camera())
     x = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
-    x0 = jnp.concatenate([x, jnp.asarray(START_PIXEL, jnp.float32)])
+    pixel = START_PIXEL + ((START_BOX_SIZE,) if pixel_model == "vdof" else ())
+    x0 = jnp.concatenate([x, jnp.asarray(pixel, jnp.float32)])
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quadrotor.QuadParams()))
     return _placed(ControllerProblem(ctrl, state, x0, params, config))
 

@@ -40,7 +40,8 @@ REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "
 # loop's tick; and the DOF's share of the matmul rate (the harness's first target)
 TARGETS = {"pixelmpc_step_ms": 12.0, "pixelmpc_step_p95_ms": 25.0, "nominal_step_ms": 5.0,
            "ratio_vs_pytorch_mppi": {512: 0.1, 2048: 0.15}, "step_2048_over_512": 4.5, "step_8192_over_512": 16.0,
-           "dof_fraction_of_matmul_rate": 0.70, "loop_tick_ms": closed_loop.TICK_TARGET_MS}
+           "dof_fraction_of_matmul_rate": 0.70, "loop_tick_ms": closed_loop.TICK_TARGET_MS,
+           "vdof_over_dof_step": 1.10}  # the vdof pixel model's step at most 10 % slower than the DOF's
 
 
 def _scaling_growth(rows: list[dict], small: int = 512, large: int = 2048, horizon: int = 80) -> float | None:
@@ -161,6 +162,8 @@ def summarize(rows: list[dict]) -> dict:
     loop_nominal = _first(rows, group="loop", controller="mppi", runner="single") or {}
     roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate") or {}
     ratios = {r["num_samples"]: r["ratio"] for r in rows if r["group"] == "peer" and r.get("best_peer")}
+    vdof = _first(rows, group="controller", name=controller.PIXELMPC_NAME.replace("(DOF,", "(vdof,"),
+                  sample_devices=step.get("sample_devices"))
     summary = {
         "pixelmpc_step_median_ms": step["median_ms"],
         "pixelmpc_step_min_ms": step["min_ms"],
@@ -169,6 +172,8 @@ def summarize(rows: list[dict]) -> dict:
         "samples_per_s": step.get("samples_per_s"),
         "sample_steps_per_s": step.get("sample_steps_per_s"),
         "nominal_mppi_median_ms": nominal and nominal["median_ms"],
+        "vdof_step_median_ms": vdof and vdof["median_ms"],
+        "vdof_over_dof_step": vdof and vdof["median_ms"] / step["median_ms"],
         "loop_tick_median_ms": loop.get("median_ms"),
         "loop_tick_p95_ms": loop.get("p95_ms"),
         "loop_ticks": loop.get("ticks"),
@@ -199,6 +204,8 @@ def summarize(rows: list[dict]) -> dict:
         "step_8192_over_512 <= 16 (linear)": (summary["step_8192_over_512"] is not None
                                               and summary["step_8192_over_512"] <= TARGETS["step_8192_over_512"]),
         "dof_fraction >= 0.70": (roof.get("dof_alone_fraction") or 0.0) >= TARGETS["dof_fraction_of_matmul_rate"],
+        "vdof_over_dof_step <= 1.10": (summary["vdof_over_dof_step"] is not None
+                                       and summary["vdof_over_dof_step"] <= TARGETS["vdof_over_dof_step"]),
         "loop_tick_ms <= 25": (loop.get("num_samples") == 512 and loop.get("horizon") == 80
                                and loop.get("median_ms") is not None and loop["median_ms"] <= TARGETS["loop_tick_ms"]),
     }
