@@ -218,9 +218,9 @@ def _cmd_train(args) -> int:
 def _check_weights(args) -> None:
     """Read the weights file before anything is written (a ValueError names what is wrong with it)."""
     if args.weights is not None:
-        from pixelmpc_jax.dynamics import dof
+        from pixelmpc_jax.learn.evaluate import read_weights
 
-        dof.read_checkpoint(args.weights)
+        read_weights(args.weights)
 
 
 def _cmd_evaluate(args) -> int:

@@ -10,8 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import serialization
 
-from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.dynamics import dof, vdof
 from pixelmpc_jax.learn import aee
 from pixelmpc_jax.learn import collect as C
 from pixelmpc_jax.learn import dataset as D
@@ -127,3 +128,44 @@ def test_run_evaluate_gives_the_network_the_input_its_weights_were_trained_on(tm
     assert seen["input"] == "flown"
     E.run_evaluate(None, tmp_path, tmp_path)
     assert seen["input"] == "command"  # the shipped weights: the paper's variant
+
+
+def test_read_weights_dispatches_on_the_files_format(tmp_path, shipped):
+    kind, params, record = E.read_weights(vdof.PACKAGED_VDOF)
+    assert kind == "vdof" and isinstance(params, vdof.VDOFParams) and vdof.box_cue_of(record) == "apparent"
+    kind, params, record = E.read_weights(E.shipped_weights_path())
+    assert kind == "dof" and dof.num_trainable_params(params) == dof.num_trainable_params(shipped)
+    assert dof.checkpoint_variant(record)["input"] == "command"
+    garbage = tmp_path / "garbage.msgpack"
+    garbage.write_bytes(b"\x00not msgpack at all")
+    with pytest.raises(ValueError, match="DOF checkpoint"):  # neither: the DOF reader's one-line error
+        E.read_weights(garbage)
+    foreign = tmp_path / "foreign.msgpack"
+    foreign.write_bytes(serialization.msgpack_serialize({"format": "something.else"}))
+    with pytest.raises(ValueError, match="something.else"):
+        E.read_weights(foreign)
+
+
+def test_run_evaluate_of_a_vdof_file_writes_the_dof_evaluations_figures(tiny_dir, tmp_path, results):
+    """A vdof file: the DOF evaluation's figures for vdof, and the turned DOF's on the same frames beside them."""
+    res = E.run_evaluate(vdof.PACKAGED_VDOF, tiny_dir, tmp_path, horizon=HORIZON, progress=False)
+    assert json.loads((tmp_path / "dof_eval.json").read_text()) == res
+    assert (tmp_path / "vdof_multistep.png").stat().st_size > 10_000
+    _, dof_res = results  # the shipped DOF's evaluation of the same laps
+    assert res["model"] == "vdof" and res["num_parameters"] == vdof.num_trainable_params(vdof.load_packaged_vdof())
+    turned = res["comparison_dof"]
+    assert turned["variant"] == "turned" and turned["dof_input"] == "flown"
+    for figures, name in ((res, "vdof"), (turned, "dof")):
+        assert set(figures["multistep"]) == set(dof_res["multistep"]) - {"part"} | {"model"}
+        assert figures["multistep"]["count"] == dof_res["multistep"]["count"]  # the same windows
+        assert set(figures["multistep_at"]) == set(dof_res["multistep_at"])
+        assert set(figures["rotation_response"]["yaw_to_u"]) == {name, "exact", "ratio"}
+        assert figures["rotation_response"]["frames"] == dof_res["rotation_response"]["frames"] == 40
+        rank = figures["pixel_cost_rank_correlation"]
+        assert set(rank) == set(dof_res["pixel_cost_rank_correlation"])
+        dof_rank = dof_res["pixel_cost_rank_correlation"]  # the same states
+        assert rank["states"] + rank["skipped_constant"] == dof_rank["states"] + dof_rank["skipped_constant"] > 0
+        assert rank["samples"] == 512 and rank["steps"] == 40
+        assert math.isfinite(figures["target_aee_px"])
+    assert res["target_one_step"]["rows"] > 0 and set(res["box_size_rel_err_at"]) == {"1", "10"}
+    assert res["data"] == dof_res["data"]

@@ -283,6 +283,7 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
     _, saved = dof.load_checkpoint(out / "dof_weights.msgpack")
     assert saved == json.loads((out / "dof_weights.json").read_text()) == json.loads(json.dumps(record))
     assert json.loads((out / "history.json").read_text())["step"][-1] == 3
+    assert (out / "learning_curve.png").stat().st_size > 0  # the curve drawn beside the checkpoints
     assert dof.read_checkpoint(out / "checkpoint.msgpack").extra["train"]  # resumable
     for call in record["calls"]:  # the calls it records name functions that exist
         module, name = call.split("(")[0].rsplit(".", 1)

@@ -124,6 +124,7 @@ def rotation_response(dof_params, q: np.ndarray, u: np.ndarray, camera, dt: floa
     jac = np.concatenate(jacs)  # (F, 2, 3)
     mean = jac.mean(axis=0)
     exact = exact_rotation_response(camera, dt, uv)
+    model = "DOF" if name == "dof" else name
 
     def entry(axis: int, rate: int) -> dict:
         d, e = float(mean[axis, rate]), float(exact[axis, rate])
@@ -132,7 +133,7 @@ def rotation_response(dof_params, q: np.ndarray, u: np.ndarray, camera, dt: floa
     return {"yaw_to_u": entry(0, 2), "pitch_to_v": entry(1, 1), f"jacobian_{name}": mean.tolist(),
             f"jacobian_{name}_std": jac.std(axis=0).tolist(), "jacobian_exact": exact.tolist(),
             "frames": int(q.shape[0]), "uv": list(uv),
-            "units": f"px/frame per rad/s of the rate given to the {'DOF' if name == 'dof' else name}, at the image size"}
+            "units": f"px/frame per rad/s of the rate given to the {model}, at the image size"}
 
 
 # --------------------------------------------------------------------------------------------------

@@ -28,9 +28,8 @@ the squared endpoint error instead, ``L = mean |PolarToEuler(l_hat, theta_hat) -
 The two differ where the flow at a given (q, uv, u) is uncertain, which is most of the flow here: the DOF
 does not see the velocity or the depth that make up the translational flow. The polar loss is minimised by
 the mean flow LENGTH along the l^2-weighted mean direction; the endpoint loss by the mean flow VECTOR, which
-is what the pixel dynamics uv_{t+1} = uv_t + dt * uv_dot integrates. Measured (docs/choices.md, "The DOF's
-loss"): the same AEE, a much smaller multi-step pixel error, the same response to the controls.
-A further loss is one function in :data:`LOSS_FUNCTIONS`.
+is what the pixel dynamics uv_{t+1} = uv_t + dt * uv_dot integrates (measured: docs/choices.md). A further
+loss is one function in :data:`LOSS_FUNCTIONS`.
 """
 
 from __future__ import annotations
@@ -57,8 +56,8 @@ from tqdm.auto import tqdm
 
 from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.learn import curves, rotation_augment
 from pixelmpc_jax.learn import dataset as dataset_lib
-from pixelmpc_jax.learn import rotation_augment
 from pixelmpc_jax.learn.aee import evaluate_aee, zero_flow_aee
 from pixelmpc_jax.learn.dataset import INPUTS, FlowData, as_flow_data, pixel_uv
 from pixelmpc_jax.perception.flow import flow_to_polar
@@ -523,9 +522,9 @@ def export_weights(path, dof_params: dof.DOFParams, record: dict) -> None:
 def run_train(data_dir, out_dir="runs/dof_train", config: TrainConfig = TrainConfig(), resume: bool = False,
               ship: bool = False) -> dict:
     """Train the DOF on ``data_dir``'s train laps (:func:`train`, Algorithm 1), report the test-lap AEE, and
-    write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack``
-    (weights only, with the provenance record) and ``out_dir/history.json``. ``ship=True`` also copies
-    the weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
+    write ``out_dir/checkpoint.msgpack`` (resumable: Adam state), ``out_dir/dof_weights.msgpack`` (weights only,
+    with the provenance record), ``history.json`` and ``learning_curve.png``. ``ship=True`` also copies the
+    weights into the package (``pixelmpc_jax/data``). Prints a short summary; returns the record.
     ``config``: every training setting (:class:`TrainConfig`); its ``width``, ``height``, ``dt`` and
     ``checkpoint_path`` are set from the dataset and ``out_dir``. The variant (input, loss) is recorded in the
     weights' record (``variant``, read back by ``dof.checkpoint_variant``)."""
@@ -544,6 +543,7 @@ def run_train(data_dir, out_dir="runs/dof_train", config: TrainConfig = TrainCon
                                 resume_from=checkpoint if (resume and checkpoint.exists()) else None)
     wall = time.perf_counter() - t0
     strict_json.write_json_atomic(out / "history.json", history)
+    curves.plot_learning_curve(history, out / "learning_curve.png")
     record = _weights_record(config, data_dir, out, manifest, history, wall)
     weights = out / dof.PACKAGED_WEIGHTS.name  # dof_weights.msgpack, with its record dof_weights.json
     export_weights(weights, dof_params, record)

@@ -35,10 +35,9 @@ import numpy as np
 
 from pixelmpc_jax import strict_json
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
-from pixelmpc_jax.learn import control_response
+from pixelmpc_jax.learn import control_response, vdof_train
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.learn import evaluate as evaluate_lib
-from pixelmpc_jax.learn import vdof_train
 
 COMPARISON_DOF = "turned"
 MULTISTEP_AT = (1, 10, 20, 40, 80)
