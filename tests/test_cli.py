@@ -128,7 +128,8 @@ def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_
                            (["--c-pixel", "1e7", "--laps", "2"],
                             presets.preset("best").replace(laps=2, config=dataclasses.replace(
                                 presets.preset("best").config, c_pixel=1e7))),
-                           (["--dof-weights", "turned"], presets.preset("best").replace(dof_weights="turned")),
+                           (["--preset", "paper", "--dof-weights", "turned"],
+                            presets.preset("paper").replace(dof_weights="turned")),
                            (["--controller", "mppi"], presets.preset("best"))):
         cli.main(["race", "--out", str(tmp_path), *argv])
         assert seen["spec"] == expected and seen["spec"].key() == expected.key()
@@ -175,16 +176,19 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     seen = {}
     monkeypatch.setattr(race, "run_laps", lambda spec, **kwargs: seen.update(kwargs, spec=spec) or {
         "laps": [], "aggregate": {}, "interrupted": False, "trajectories": [], "visibility": []})
-    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", "flown"])
+    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+              "flown"])
     assert seen["dof_params"] is None and seen["spec"].dof_weights == "flown"  # the race loads packaged weights
     flown = dof.load_packaged_dof("flown")
     assert seen["spec"].dof_fingerprint() == dof_weights_hash(flown)
     file = tmp_path / "weights.msgpack"
     dof.save_checkpoint(file, flown, {"what": "test"})
-    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", str(file)])
+    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+              str(file)])
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda a, b: bool((a == b).all()), seen["dof_params"], flown))
     assert seen["spec"].dof_weights == dof_weights_hash(flown)  # the spec names the weights it flies
-    cli.main(["race", "--out", str(tmp_path), "--controller", "pixelmpc", "--dof-weights", "paper"])
+    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+              "paper"])
     assert seen["dof_params"] is None and seen["spec"].dof_weights is None
     code = cli.main(["race", "--out", str(tmp_path / "new"), "--dof-weights", str(tmp_path / "missing.msgpack")])
     assert code == 2 and "missing.msgpack" in capsys.readouterr().err

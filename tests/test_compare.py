@@ -63,7 +63,7 @@ def test_the_presets():
     assert paper.speed == 14.0 and paper.config.pixel_cost == "l1" and paper.config.c_pixel == 9e6
     assert paper.dof_weights is None  # the paper's own DOF weights
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
-    assert best.dof_weights == "flown" and best.key() != paper.key()
+    assert best.config.pixel_model == "vdof" and best.config.box_size_limit == 0.5 and best.key() != paper.key()
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         presets.preset("fast")
 

@@ -100,7 +100,8 @@ class PixelMPCConfig:
         box_size_limit: "vdof" only: the pixel cost counts only while the predicted box size s (the gate's
             apparent size, :func:`~pixelmpc_jax.dynamics.vdof.box_size`) is below this. A gate close enough to
             fill the view cannot be kept whole in it by any attitude; its pixel then only pulls the drone off the
-            gate's centre line. None: counted until the gate is passed, as the other models.
+            gate's centre line. None: counted until the gate is passed, as the other models (for which it is
+            always None: a preset's limit does not stop another model's pixel cost).
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -136,9 +137,8 @@ class PixelMPCConfig:
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
         if self.box_size_limit is not None and not (0.0 < self.box_size_limit < math.inf):
             raise ValueError(f"box_size_limit must be a positive finite number or None, got {self.box_size_limit!r}")
-        if self.box_size_limit is not None and self.pixel_model != "vdof":
-            raise ValueError(f"box_size_limit needs pixel_model 'vdof' (the model that predicts the box size), "
-                             f"got {self.pixel_model!r}")
+        if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
+            object.__setattr__(self, "box_size_limit", None)
 
     @property
     def pixel_steps(self) -> int:
