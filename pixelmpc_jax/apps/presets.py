@@ -22,7 +22,7 @@ WHY = {
             "c_pixel 9e6 with the vdof pixel model (velocity and the gate's apparent size; the pixel cost stops "
             "once the gate fills the view, box size 0.5), 10/10 laps and frontier gain 2.71 (90 % interval "
             "1.95-3.33) on seeds 100-109 it was not tuned on (experiments/results/vdof/, 2-core AMD EPYC, "
-            "2026-11-24); the flown-rate DOF weights at c_pixel 3e7 gave 1.69 on seeds 0-9",
+            "2026-11-24); the flown-rate DOF weights at c_pixel 3e7 gave 1.57 with 8/10 laps on the same seeds",
 }
 
 
