@@ -121,6 +121,10 @@ def _race_spec(args):
               "max_time_s": args.max_time, "dof_weights": args.dof_weights}
     spec = base.replace(config=_controller_config(args, base.config),
                         **{name: value for name, value in fields.items() if value is not None})
+    if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
+        if spec.config.pixel_model != "vdof":
+            raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
+        spec = spec.replace(dof_weights=None)
     dof_params = None
     if spec.dof_weights is not None and spec.dof_weights not in _packaged_variants():
         dof_params = _race_dof(spec.dof_weights, spec.config.pixel_model)
@@ -427,10 +431,10 @@ def _add_race(sub) -> None:
     p.add_argument("--controller", choices=CONTROLLERS, default=None,
                    help="fly one controller alone: pixelmpc or mppi, the paper's nominal baseline (default: both, "
                         "at the same target and seeds)")
-    p.add_argument("--dof-weights", default=None, metavar="|".join(PACKAGED_VARIANTS) + "|FILE",
+    p.add_argument("--dof-weights", default=None, metavar="|".join(PACKAGED_VARIANTS) + "|vdof|FILE",
                    help="the learned pixel model's weights: a packaged DOF variant (paper: command input; flown: "
                         "the flown-rate weights; turned: trained with turned rows) or a weights file from `pixelmpc "
-                        "train` (a vdof file with --pixel-model vdof, whose default is the packaged vdof weights) "
+                        "train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
                         "(default: the preset's)")
     p.add_argument("--detector", choices=DETECTORS, default=None,
                    help="target detection: geometry, the projection of the true gate, or image, OpenCV on "

@@ -224,7 +224,8 @@ def test_smoke_run_writes_the_schema(smoke_run):
     assert set(written["summary"]["targets"]) == {
         "pixelmpc_step_ms <= 12", "pixelmpc_step_p95_ms <= 25", "nominal_step_ms <= 5",
         "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)", "step_2048_over_512 <= 4.5",
-        "step_8192_over_512 <= 16 (linear)", "dof_fraction >= 0.70", "loop_tick_ms <= 25"}
+        "step_8192_over_512 <= 16 (linear)", "dof_fraction >= 0.70", "loop_tick_ms <= 25",
+        "vdof_over_dof_step <= 1.10"}
 
 
 def test_scaling_growth_reads_the_default_rollout_at_t_80():

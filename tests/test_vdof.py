@@ -221,6 +221,21 @@ def test_rows_are_finite_differences_of_the_detector(world):
     np.testing.assert_array_equal(rows.w, w_flown[keep])
 
 
+def test_rows_from_the_detections_a_lap_file_stores_equal_those_from_its_states(world):
+    """collect stores the detector's per-frame output; training reads it (older files: from the states)."""
+    from pixelmpc_jax.learn import collect
+    from pixelmpc_jax.sim import env as env_lib
+
+    track, camera = world
+    states, w_flown, target = _hand_made_lap(track)
+    stored = collect.lap_detections(env_lib.make_world(track, camera=camera), states, target)
+    assert stored["gate_corners"].shape == (len(states), 4, 2) and stored["gate_found"].dtype == bool
+    from_file = vdof_train.lap_rows(track, camera, states, w_flown, target, detections=stored)
+    from_states = vdof_train.lap_rows(track, camera, states, w_flown, target)
+    for a, b in zip(from_file, from_states, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+
+
 def _as_lap(states, w_flown, target) -> dataset_lib.Lap:
     return dataset_lib.Lap(None, states[:-1, 3:7], np.c_[w_flown, np.full(len(w_flown), 9.8)], states, target,
                            None, None, {}, w_flown)

@@ -41,6 +41,7 @@ import numpy as np
 from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.learn import dataset as dataset_lib
+from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.sim import controllers, policies
 from pixelmpc_jax.sim import env as env_lib
@@ -297,6 +298,25 @@ def render_lap(world: env_lib.World, states: np.ndarray, config: CollectConfig, 
 _exact_flow_batch = jax.jit(jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, None)))
 
 
+@jax.jit
+def _geometric_detections(track, camera, states: jax.Array, targets: jax.Array):
+    def one(x, gate_id):
+        det = detector_lib.detect_from_geometry(track.gate(gate_id), x, camera)
+        return det.found, det.centre, det.corners
+
+    return jax.vmap(one)(states, targets)
+
+
+def lap_detections(world: env_lib.World, states: np.ndarray, targets: np.ndarray) -> dict:
+    """The detector's view of each frame's target gate, as the closed loop's (geometric) detector gives it
+    without noise: ``gate_found`` (F + 1,), ``gate_centre`` (F + 1, 2), ``gate_corners`` (F + 1, 4, 2)
+    (``learn.dataset``): what a box-based pixel model (vdof) learns from."""
+    found, centre, corners = _geometric_detections(world.track, world.camera, jnp.asarray(states),
+                                                   jnp.asarray(targets, jnp.int32))
+    return {"gate_found": np.asarray(found, bool), "gate_centre": np.asarray(centre, np.float32),
+            "gate_corners": np.asarray(corners, np.float32)}
+
+
 def lap_arrays(world: env_lib.World, states: np.ndarray, controls: np.ndarray, targets: np.ndarray,
                config: CollectConfig, with_exact: bool, bar=None, rates: np.ndarray | None = None) -> dict:
     """Render a flown lap and compute its flows: the arrays of one lap file (their format: ``learn.dataset``).
@@ -308,7 +328,8 @@ def lap_arrays(world: env_lib.World, states: np.ndarray, controls: np.ndarray, t
     for t in range(frames):
         flow[t] = flow_lib.farneback(grey[t], grey[t + 1], shape=None)
     arrays = {"flow": flow, "q": states[:frames, 3:7].copy(), "u": controls, "states": states, "target": targets,
-              "w_flown": dataset_lib.flown_rates(states, timing.CONTROL_DT)}
+              "w_flown": dataset_lib.flown_rates(states, timing.CONTROL_DT),
+              **lap_detections(world, states, targets)}
     if rates is not None:
         arrays["rates"] = np.asarray(rates, np.float32)
     if with_exact:

@@ -12,6 +12,9 @@ A dataset (written by :mod:`pixelmpc_jax.learn.collect`) is one directory::
         target       (F + 1,) int32        target gate index at every rendered frame
         exact_flow   (F, H, W, 2) float16  exact flow from depth + poses (test laps only by default)
         exact_valid  (F, H, W) bool        where the exact flow is defined (in front, inside the image)
+        gate_found   (F + 1,) bool         the detector found the target gate at that frame (later files)
+        gate_centre  (F + 1, 2) float32    the detected gate's centre, normalised (later files)
+        gate_corners (F + 1, 4, 2) float32 the detected opening's corners TL, TR, BR, BL, normalised (later files)
 
 The command is not what the camera turns by: the plant's rate loop flies it with a slope of about 0.65 and
 a lag of about 0.11 s, so a frame's flow paired with its tick's command shows a diluted, delayed response.
@@ -53,6 +56,7 @@ FLOWN_KEYS = ("w_flown", "rates")
 FLOWN_RATES = ("w_flown[t] = 2 log(q_t^-1 q_{t+1}) / dt: the mean body rate flown over the frame interval "
                "(the noise-free gyro, preintegrated over the tick)")
 EXACT_KEYS = ("exact_flow", "exact_valid")
+DETECTION_KEYS = ("gate_found", "gate_centre", "gate_corners")  # the detector's output per frame (optional)
 # What the network's control input u (4,) is: "command", the paper's (the body rates and thrust commanded at
 # the frame's tick), or "flown" (the body rates flown over the frame interval, with the commanded thrust;
 # control_input). The MPC's robot model assumes the commanded rates are flown at once, so "flown"
@@ -120,6 +124,8 @@ class Lap(NamedTuple):
         info: the lap's manifest entry (index, split, speed, seed, frames, end, ...); ``w_flown_source`` is
             "stored" or "states" (a format-1 file: derived from the states).
         w_flown: (F, 3) float32, the mean body rates flown over each frame interval (rad/s).
+        detections: ``{name: array}`` of :data:`DETECTION_KEYS`, the detector's per-frame output where the file
+            stores it (None for files collected before it was stored; derive it from the states then).
     """
 
     flow: np.ndarray | None
@@ -131,6 +137,7 @@ class Lap(NamedTuple):
     exact_valid: np.ndarray | None
     info: dict
     w_flown: np.ndarray | None = None
+    detections: dict | None = None
 
 
 def flown_rates(states: np.ndarray, dt: float = timing.CONTROL_DT) -> np.ndarray:
@@ -302,6 +309,8 @@ def load_lap(path, with_flow: bool = True, with_exact: bool = True, info: dict |
                 exact_valid=data["exact_valid"] if (with_exact and has_exact) else None,
                 info={**_meta(data), **(info or {}), "w_flown_source": "stored" if stored else "states"},
                 w_flown=w_flown,
+                detections=({k: data[k] for k in DETECTION_KEYS} if all(k in data.files for k in DETECTION_KEYS)
+                            else None),
             )
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: lap file listed in the manifest is missing; run collect again to "
@@ -351,3 +360,28 @@ def load_dataset(data_dir, split: str = "train", input: str = "command") -> Flow
         q[start:start + n], u[start:start + n], flow[start:start + n] = lap.q, lap_input(lap, input), lap.flow
         start += n
     return FlowData(q, u, flow)
+
+
+def load_test_laps(data_dir: Path, manifest: dict, with_flow: bool = True) -> tuple[list[Lap], Any]:
+    """The dataset's test laps (with their Farneback and exact flow unless ``with_flow`` is False) and the
+    :class:`~pixelmpc_jax.sim.env.World` they were flown in (its camera must render the images' size)."""
+    from pixelmpc_jax.sim.env import make_world
+
+    laps = load_laps(data_dir, "test", with_flow=with_flow, with_exact=with_flow)
+    world = make_world()
+    W, H = manifest["image_size_wh"]
+    if (world.camera.width, world.camera.height) != (W, H):
+        raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
+                         f"{world.camera.height}")
+    return laps, world
+
+
+def data_record(data_dir: Path, manifest: dict) -> dict:
+    """Where the evaluated laps came from: the dataset, its test laps, the baseline's train laps."""
+    return {
+        "dir": str(data_dir),
+        "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
+                      manifest["laps"] if e["split"] == "test"],
+        "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
+        "collect_config": manifest["config"],
+    }

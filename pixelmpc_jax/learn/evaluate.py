@@ -320,7 +320,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     train_data = dataset_lib.load_dataset(data_dir, "train")
     baseline = fit_orientation_bin_baseline(train_data.q, train_data.u, train_data.flow, bins_per_angle)
     del train_data
-    laps, world = load_test_laps(data_dir, manifest)
+    laps, world = dataset_lib.load_test_laps(data_dir, manifest)
     dt = float(manifest["frame_dt_s"])
     accuracy = flow_accuracy(dof_params, laps, baseline, dt, progress=progress, input=input)
     multistep = _multistep_results(dof_params, laps, world, horizon, dt, input)
@@ -341,7 +341,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
         "image_size_wh": list(manifest["image_size_wh"]),
         "units": "pixels per frame (1/40 s) at the image size; multistep: pixels",
         **multistep,
-        "data": data_record(data_dir, manifest),
+        "data": dataset_lib.data_record(data_dir, manifest),
         "baseline_bins_per_angle": bins_per_angle,
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
     }
@@ -352,19 +352,6 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
     results = strict_json.json_safe(results)
     strict_json.write_json_atomic(out / "dof_eval.json", results)
     return results
-
-
-def load_test_laps(data_dir: Path, manifest: dict, with_flow: bool = True) -> tuple[list[dataset_lib.Lap],
-                                                                                      env_lib.World]:
-    """The dataset's test laps (with their Farneback and exact flow unless ``with_flow`` is False) and the world
-    they were flown in (its camera must render the images' size)."""
-    laps = dataset_lib.load_laps(data_dir, "test", with_flow=with_flow, with_exact=with_flow)
-    world = env_lib.make_world()
-    W, H = manifest["image_size_wh"]
-    if (world.camera.width, world.camera.height) != (W, H):
-        raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
-                         f"{world.camera.height}")
-    return laps, world
 
 
 def _multistep_results(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap], world: env_lib.World,
@@ -383,17 +370,6 @@ def _multistep_results(dof_params: dof.DOFParams, laps: list[dataset_lib.Lap], w
         "multistep_parts": {"mean_px": parts,
                             "at": {part: {str(k): v[k - 1] for k in (10, 20, 40, 80) if k <= horizon}
                                    for part, v in parts.items()}},
-    }
-
-
-def data_record(data_dir: Path, manifest: dict) -> dict:
-    """Where the evaluated laps came from: the dataset, its test laps, the baseline's train laps."""
-    return {
-        "dir": str(data_dir),
-        "test_laps": [{k: e[k] for k in ("lap", "speed", "seed", "frames", "end")} for e in
-                      manifest["laps"] if e["split"] == "test"],
-        "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
-        "collect_config": manifest["config"],
     }
 
 

@@ -37,7 +37,6 @@ from pixelmpc_jax import strict_json
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
 from pixelmpc_jax.learn import control_response, vdof_train
 from pixelmpc_jax.learn import dataset as dataset_lib
-from pixelmpc_jax.learn import evaluate as evaluate_lib
 
 COMPARISON_DOF = "turned"
 MULTISTEP_AT = (1, 10, 20, 40, 80)
@@ -146,7 +145,7 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
     data_dir, out = Path(data_dir), Path(out_dir)
     manifest = dataset_lib.read_manifest(data_dir)
     out.mkdir(parents=True, exist_ok=True)
-    laps, world = evaluate_lib.load_test_laps(data_dir, manifest, with_flow=False)
+    laps, world = dataset_lib.load_test_laps(data_dir, manifest, with_flow=False)
     track, camera, dt = world.track, world.camera, float(manifest["frame_dt_s"])
     box_cue = vdof.box_cue_of(record)
     dof_path = dof.PACKAGED_VARIANTS[dof_variant]
@@ -184,7 +183,7 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
         "not_reported": NOT_REPORTED,
         "image_size_wh": list(manifest["image_size_wh"]),
         "units": "pixels at the image size; target_aee_px: pixels per frame (1/40 s)",
-        "data": evaluate_lib.data_record(data_dir, manifest),
+        "data": dataset_lib.data_record(data_dir, manifest),
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
     }
     if figures:

@@ -125,15 +125,22 @@ def lap_detections(track, camera, states: jax.Array, target: jax.Array, box_cue:
 
 
 def lap_rows(track, camera, states, w_flown, target, dt: float = timing.CONTROL_DT,
-             box_cue: str = "apparent") -> Rows:
+             box_cue: str = "apparent", detections: dict | None = None) -> Rows:
     """The rows of one lap: every frame t whose target is detected at t and t+1 (same gate); the label is the
-    finite difference of the detector's pixel state. states: (F+1, 10); w_flown: (F, 3); target: (F+1,)."""
+    finite difference of the detector's pixel state. states: (F+1, 10); w_flown: (F, 3); target: (F+1,).
+    ``detections``: the detector's per-frame output as the lap file stores it (``Lap.detections``); without
+    it (older files) the geometric detector is run on the states, which gives the same."""
     states, w_flown, target = np.asarray(states, np.float32), np.asarray(w_flown, np.float32), np.asarray(target)
     if states.shape[0] != w_flown.shape[0] + 1 or target.shape != states.shape[:1]:
         raise ValueError(f"states (F+1, 10), w_flown (F, 3), target (F+1,) expected, got {states.shape}, "
                          f"{w_flown.shape}, {target.shape}")
-    p, found, _ = (np.asarray(a) for a in lap_detections(track, camera, jnp.asarray(states), jnp.asarray(target),
-                                                            box_cue))
+    if detections is not None and box_cue == "apparent":
+        corners = jnp.asarray(detections["gate_corners"])
+        p = np.concatenate([detections["gate_centre"], np.asarray(jax.vmap(vdof.box_size)(corners))[:, None]], 1)
+        found = np.asarray(detections["gate_found"], bool)
+    else:
+        p, found, _ = (np.asarray(a) for a in lap_detections(track, camera, jnp.asarray(states),
+                                                                jnp.asarray(target), box_cue))
     keep = np.nonzero(found[:-1] & found[1:] & (target[:-1] == target[1:]))[0]
     return Rows(x=states[keep], p=p[keep], w=w_flown[keep], p_dot=((p[keep + 1] - p[keep]) / dt).astype(np.float32))
 
@@ -141,7 +148,8 @@ def lap_rows(track, camera, states, w_flown, target, dt: float = timing.CONTROL_
 def load_rows(laps: list[dataset_lib.Lap], track, camera, dt: float = timing.CONTROL_DT,
               box_cue: str = "apparent") -> Rows:
     """:func:`lap_rows` of every lap, concatenated."""
-    parts = [lap_rows(track, camera, lap.states, lap.w_flown, lap.target, dt, box_cue) for lap in laps]
+    parts = [lap_rows(track, camera, lap.states, lap.w_flown, lap.target, dt, box_cue, lap.detections)
+             for lap in laps]
     return Rows(*(np.concatenate(a) for a in zip(*parts, strict=True)))
 
 
