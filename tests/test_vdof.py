@@ -232,8 +232,11 @@ def test_rows_from_the_detections_a_lap_file_stores_equal_those_from_its_states(
     assert stored["gate_corners"].shape == (len(states), 4, 2) and stored["gate_found"].dtype == bool
     from_file = vdof_train.lap_rows(track, camera, states, w_flown, target, detections=stored)
     from_states = vdof_train.lap_rows(track, camera, states, w_flown, target)
-    for a, b in zip(from_file, from_states, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(from_file.x, from_states.x)
+    # two compilations of the same detector: the box size's shoelace area cancels, so a few float32 ulps of the
+    # corners show in s at 1e-4 relative, and in its finite difference over 0.025 s
+    np.testing.assert_allclose(from_file.p, from_states.p, rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(from_file.p_dot, from_states.p_dot, rtol=1e-2, atol=1e-3)
 
 
 def _as_lap(states, w_flown, target) -> dataset_lib.Lap:
