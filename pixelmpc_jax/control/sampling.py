@@ -96,7 +96,7 @@ def sample_shardings(num_devices: int, num_samples: int) -> SampleShardings:
     if num_devices > len(devices):
         raise ValueError(f"sample_devices={num_devices} but only {len(devices)} {devices[0].platform} device(s) are "
                          f"present (on a CPU, split the host's cores into devices before JAX starts: "
-                         f"pixelmpc_jax.control.sampling.split_host_cpu, or the `pixelmpc` command does it)")
+                         f"pixelmpc_jax.host.split_host_cpu, or the `pixelmpc` command does it)")
     if num_samples % num_devices:
         raise ValueError(f"num_samples={num_samples} does not split evenly over sample_devices={num_devices}")
     mesh = Mesh(np.asarray(devices[:num_devices]), (SAMPLE_AXIS,))
