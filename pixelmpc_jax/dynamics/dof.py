@@ -243,7 +243,7 @@ def _architecture_of(dof_params: DOFParams) -> dict:
     return arch
 
 
-def _to_numpy_tree(tree):
+def to_numpy_tree(tree):
     """State dict with arrays as numpy (msgpack stores them as raw bytes); strings stay strings."""
 
     def leaf(x):
@@ -260,18 +260,24 @@ def save_checkpoint(path, dof_params: DOFParams, config: Mapping, *, extra: Mapp
     JSON-serialisable dict: the training config and command). ``extra`` holds pytrees a trainer needs
     to resume (optimizer state, step, key data); they are stored as flax state dicts of numpy arrays.
     """
+    write_checkpoint_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, _architecture_of(dof_params), config, {
+        "dof_params": to_numpy_tree(dof_params),
+        "extra": {str(k): to_numpy_tree(v) for k, v in (extra or {}).items()},
+    })
+
+
+def write_checkpoint_file(path, file_format: str, version: int, architecture: Mapping, config: Mapping,
+                          trees: Mapping) -> None:
+    """One msgpack file, written atomically (``strict_json.write_atomic``): the ``file_format``, its ``version``,
+    the ``architecture`` and ``config`` (JSON-serialisable dicts) as JSON, and ``trees`` (state dicts of numpy
+    arrays, :func:`to_numpy_tree`) as they are. Shared by the pixel models' checkpoints."""
     try:
         config_json = strict_json.dumps(dict(config), sort_keys=True)
     except (TypeError, ValueError) as err:
         raise TypeError(f"config must be a JSON-serialisable dict: {err}") from err
-    payload = {
-        "format": CHECKPOINT_FORMAT,
-        "format_version": CHECKPOINT_VERSION,
-        "architecture": strict_json.dumps(_architecture_of(dof_params), sort_keys=True),
-        "config": config_json,
-        "dof_params": _to_numpy_tree(dof_params),
-        "extra": {str(k): _to_numpy_tree(v) for k, v in (extra or {}).items()},
-    }
+    payload = {"format": file_format, "format_version": version,
+               "architecture": strict_json.dumps(dict(architecture), sort_keys=True), "config": config_json,
+               **trees}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = serialization.msgpack_serialize(payload)

@@ -41,8 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization, struct
 
-from pixelmpc_jax import strict_json
-from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.dynamics import dof, quadrotor
 
 PIXEL_STATE_NAMES = ("u", "v", "s")
 PIXEL_STATE_DIM = 3
@@ -222,28 +221,12 @@ def architecture(hidden_sizes: tuple[int, ...] = HIDDEN_SIZES) -> dict:
             "pixel_state": list(PIXEL_STATE_NAMES)}
 
 
-def _to_numpy_tree(tree):
-    return jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(tree))
-
-
 def save_vdof(path, params: VDOFParams, config: Mapping) -> None:
     """Write ``params`` and ``config`` (a JSON-serialisable record: how they were made) to one msgpack file,
     atomically (``strict_json.write_atomic``)."""
-    try:
-        config_json = strict_json.dumps(dict(config), sort_keys=True)
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"config must be a JSON-serialisable dict: {err}") from err
-    payload = {
-        "format": CHECKPOINT_FORMAT,
-        "format_version": CHECKPOINT_VERSION,
-        "architecture": strict_json.dumps(architecture(hidden_sizes_of(params.weights)), sort_keys=True),
-        "config": config_json,
-        "params": _to_numpy_tree(params),
-    }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = serialization.msgpack_serialize(payload)
-    strict_json.write_atomic(path, lambda f: f.write(data))
+    dof.write_checkpoint_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION,
+                              architecture(hidden_sizes_of(params.weights)), config,
+                              {"params": dof.to_numpy_tree(params)})
 
 
 def _read_payload(path: Path) -> dict:
