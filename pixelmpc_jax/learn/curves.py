@@ -1,4 +1,5 @@
-"""The DOF's learning curve (`pixelmpc train`): training and held-out loss against the Adam step, as a PNG.
+"""The learning curve of `pixelmpc train` (training and held-out loss against the Adam step, as a PNG), and the
+axes the multi-step prediction plots of the evaluations share (:func:`finish_multistep_plot`).
 
 Reads the history :func:`pixelmpc_jax.learn.train.train` returns (and ``run_train`` writes as ``history.json``):
 ``loss_window`` at ``step`` (the mean training loss over each log window), ``probe_loss`` at ``probe_step`` (the
@@ -64,4 +65,18 @@ def plot_learning_curve(history: dict, path, title: str = "DOF learning curve") 
         ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def finish_multistep_plot(fig, ax, dt_s: float, title: str, path) -> None:
+    """Label, grid and save a multi-step gate-centre error plot (error in px against the prediction step)."""
+    import matplotlib.pyplot as plt
+
+    ax.set(xlabel=f"prediction step (dt = {dt_s:g} s)", ylabel="gate-centre error [px]",
+           title=title or "multi-step pixel prediction error")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
     plt.close(fig)

@@ -31,7 +31,7 @@ from flax import serialization
 from pixelmpc_jax import strict_json, timing
 from pixelmpc_jax.dynamics import dof, vdof
 from pixelmpc_jax.learn import collect as collect_lib
-from pixelmpc_jax.learn import control_response
+from pixelmpc_jax.learn import control_response, curves
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.learn.aee import OrientationBinBaseline, fit_orientation_bin_baseline, predict_flow_fields
 from pixelmpc_jax.perception import flow as flow_lib
@@ -249,14 +249,7 @@ def plot_multistep(path, multistep: dict, title: str = "", parts: dict | None = 
     for colour, (part, values) in zip(("C1", "C2", "C4"), (parts or {}).items()):
         ax.plot(steps[:len(values)], [np.nan if v is None else v for v in values], f"{colour}-", lw=1,
                 label=PART_LABELS.get(part, part))
-    ax.set(xlabel=f"prediction step (dt = {multistep['dt_s']:g} s)", ylabel="gate-centre error [px]",
-           title=title or "multi-step pixel prediction error")
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    curves.finish_multistep_plot(fig, ax, multistep['dt_s'], title, path)
 
 
 # --------------------------------------------------------------------------------------------------

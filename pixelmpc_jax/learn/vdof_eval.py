@@ -35,7 +35,7 @@ import numpy as np
 
 from pixelmpc_jax import strict_json
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
-from pixelmpc_jax.learn import control_response, vdof_train
+from pixelmpc_jax.learn import control_response, curves, vdof_train
 from pixelmpc_jax.learn import dataset as dataset_lib
 
 COMPARISON_DOF = "turned"
@@ -213,14 +213,7 @@ def plot_multistep(path, vdof_multistep: dict, dof_multistep: dict, title: str =
     ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.25, label="+- 1 std")
     ax.plot(steps, arr(dof_multistep, "mean_px"), "C1-", label=f"DOF ({dof_multistep['input']} input)")
     ax.plot(steps, arr(vdof_multistep, "zero_motion_mean_px"), "C3--", lw=1, label="pixel held still")
-    ax.set(xlabel=f"prediction step (dt = {vdof_multistep['dt_s']:g} s)", ylabel="gate-centre error [px]",
-           title=title or "multi-step pixel prediction error")
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    curves.finish_multistep_plot(fig, ax, vdof_multistep['dt_s'], title, path)
 
 
 def summarise(results: dict) -> str:
