@@ -14,33 +14,50 @@ def _lap(success, lap_time, cov_max, error, crash=None):
             "flight_time_s": lap_time or 5.0}
 
 
-def test_cells_cover_the_paper_grid():
-    names = [c.name for c in E.race_cells()]
-    assert len(names) == 4 and len(set(names)) == 4
-    assert all(c.spec.estimator == "pf" and c.spec.config.t_f == 1.0 and c.spec.config.c_pixel == 9e6
-               for c in E.race_cells())
-    assert {(c.spec.controller, c.spec.speed) for c in E.race_cells()} == set(E.PAPER_TABLE_IV)
-    assert all(c.spec.course == "straight" and c.spec.speed == 20.0 for c in E.straight_cells())
+def test_cells_cover_the_paper_grid_at_the_labels_and_the_paces():
+    cells = E.race_cells()
+    names = [c.name for c in cells]
+    assert len(names) == 10 and len(set(names)) == 10
+    assert all(c.spec.estimator == "pf" and c.spec.course == "alphapilot" for c in cells)
+    at = {(E.who_of(c), c.spec.speed) for c in cells}
+    assert at == {("mppi", 14.0), ("paper", 14.0), ("mppi", 16.0), ("paper", 16.0),
+                  ("mppi", 8.5), ("paper", 8.5), ("best", 8.5), ("mppi", 9.1), ("paper", 9.1), ("best", 9.1)}
+    for cell in cells:
+        who = E.who_of(cell)
+        assert cell.spec.controller == ("mppi" if who == "mppi" else "pixelmpc")
+        if who == "paper":
+            assert cell.spec.config.t_f == 1.0 and cell.spec.config.c_pixel == 9e6
+            assert cell.spec.config.pixel_model == "dof" and cell.spec.config.pixel_cost == "l1"
+        if who == "best":
+            assert cell.spec.config.pixel_model == "vdof"
+    assert {E.label_of(c) for c in cells} == {14.0, 16.0}
+    lanes = E.straight_cells()
+    assert all(c.spec.course == "straight" for c in lanes)
+    assert {(E.who_of(c), c.spec.speed) for c in lanes} == {("mppi", 20.0), ("paper", 20.0), ("mppi", 10.3),
+                                                           ("paper", 10.3), ("best", 10.3)}
+    assert [c.spec.speed for c in E.race_cells(quick=True)] == [9.1] * 3
 
 
 def test_summary_counts_successes_failures_and_covariance_maxima():
-    cells = E.race_cells((16.0,)) + E.straight_cells()
+    cells = E.race_cells(quick=True) + E.straight_cells(quick=True)
     laps = [_lap(True, 30.0, 2.0, 0.3), _lap(False, None, 9.0, 1.2, "gate"), _lap(False, None, 4.0, 0.8, "gate"),
             _lap(True, 32.0, 1.0, 0.2)]
     results = {c.name: {"laps": laps, "aggregate": metrics.aggregate(laps), "wall_time_s": 60.0} for c in cells}
-    race_rows = E.summarise(results, cells[:2])
-    straight_rows = E.summarise(results, cells[2:])
+    race_rows = E.summarise(results, cells[:3])
+    straight_rows = E.summarise(results, cells[3:])
     row = race_rows[0]
     assert row["success_rate"] == 0.5 and row["failures"] == {"gate": 2}
+    assert row["label"] == 16.0 and row["point"] == "pace"
     assert abs(row["lap_time_s"]["mean"] - 31.0) < 1e-9
     maxima = np.asarray([2.0, 9.0, 4.0, 1.0])
     assert abs(row["sigma_max"]["mean"] - maxima.mean()) < 1e-9 and row["sigma_max"]["max"] == 9.0
     assert abs(row["mean_position_error_m"] - 0.625) < 1e-9
     report = E.markdown_report(race_rows, straight_rows, "cpu")
-    assert "| mppi | 16 m/s | 50% of 4 | 52% |" in report
-    assert "| pixelmpc | 16 m/s | 50% of 4 | 60% |" in report
+    assert "| nominal MPPI | 16 m/s | 9.1 m/s | 2/4 (50%) | 52% |" in report
+    assert "| PixelMPC, `paper` | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
+    assert "| PixelMPC, `best` | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
     assert "9.2" in report and "5.7" in report  # the paper's straight-lane figures beside ours
-    assert "Wall time of the cells run: 4.0 min" in report
+    assert "Wall time of the cells flown here: 6.0 min" in report
 
 
 def test_courses_by_name():

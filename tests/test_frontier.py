@@ -168,11 +168,20 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
 
 
-def test_reproduce_has_a_frontier_part():
+def test_reproduce_shares_the_frontier_cells_with_the_tables():
+    """The frontier part flies the nominal points at the paper's paces and the presets at its pace: the very races
+    of Tables II/III at the pace, so those tables copy them (by key) rather than fly them again."""
+    from pixelmpc_jax.apps import paper, presets
     from pixelmpc_jax.apps import reproduce as R
 
-    assert R.resolve_parts(["frontier"]) == ["frontier"]
-    assert "frontier" in R._runners(quick=True, progress=False) and "frontier" in R.TITLES
+    assert R.resolve_parts(["frontier"]) == ["frontier"] and "frontier" in R.RUNNERS and "frontier" in R.TITLES
+    assert set(presets.PAPER_PACE_SPEEDS.values()) - {10.3} <= set(F.DEFAULT_SPEEDS)
+    frontier_keys = {c.race(10, R.SEED, None).key() for c in
+                     [F.nominal_cell(v) for v in F.DEFAULT_SPEEDS] + list(F.preset_cells(presets.PAPER_PACE_SPEED))}
+    pace = [c for c in paper.table_cells() if c.spec.speed == presets.PAPER_PACE_SPEED]
+    shared = [c.name for c in pace if c.race(10, R.SEED, None).key() in frontier_keys]
+    assert sorted(shared) == sorted(["nominal_8.5", "pixelmpc_dof_tf1_c9e+06_v8.5", "best_v8.5"])
+    assert paper.preset_of(pace[-1].spec) == "best" and paper.preset_of(pace[3].spec) == "paper"
 
 
 def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):

@@ -242,3 +242,24 @@ def test_a_vdof_race_names_the_packaged_vdof_weights_and_drops_the_dofs_names():
     with pytest.raises(ValueError, match="fingerprint"):
         spec.check_weights(dof.load_packaged_dof())
     assert dof_weights_hash(spec.packaged_dof()) == spec.dof_fingerprint()
+
+
+def test_a_cell_another_grid_flew_is_copied_not_flown(flown, tmp_path, monkeypatch):
+    """run_grid's reuse: a race finished in another folder (any cell name) is copied with its trajectories."""
+    first = tmp_path / "first"
+    _run(flown, first)
+    renamed = [grid.Cell(f"again_{cell.name}", cell.spec) for cell in CELLS]
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("flown again")
+
+    monkeypatch.setattr(grid.race, "run_laps", refuse)
+    results = grid.run_grid(renamed, tmp_path / "second", laps=2, progress=False, reuse=[first])
+    assert sorted(results) == sorted(cell.name for cell in renamed)
+    for cell in CELLS:
+        copied = results[f"again_{cell.name}"]
+        assert copied["shared_from"] == f"first/{cell.name}" and copied["wall_time_s"] == 0.0
+        assert copied["laps"] == grid.load_results(first)[cell.name]["laps"]
+        assert (tmp_path / "second" / f"trajectories_again_{cell.name}.npz").exists()
+    with pytest.raises(AssertionError, match="flown again"):  # another seed is another race
+        grid.run_grid(renamed[:1], tmp_path / "third", laps=2, seed=1, progress=False, reuse=[first])

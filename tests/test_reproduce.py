@@ -8,9 +8,10 @@ from pixelmpc_jax.apps import reproduce as R
 
 
 def test_aliases_expand_in_canonical_order_without_repeats():
-    assert R.resolve_parts(["all"]) == list(R.PARTS)
-    assert R.resolve_parts(["all"], quick=True) == list(R.QUICK_PARTS)
-    assert R.resolve_parts(["fig9", "table1", "table3", "fig8"]) == ["bench", "table2", "table4"]
+    assert R.resolve_parts(["all"]) == ["frontier", "table2", "table4", "dof", "bench"]
+    assert R.resolve_parts(["all"], quick=True) == R.resolve_parts(["all"])
+    assert R.resolve_parts(["fig9", "table1", "table3", "fig6"]) == ["table2", "table4", "bench"]
+    assert R.resolve_parts(["projection", "all"])[-1] == "table2_projection"  # not in all, runs last
     with pytest.raises(ValueError, match="unknown part 'table9'"):
         R.resolve_parts(["table9"])
 
@@ -18,9 +19,9 @@ def test_aliases_expand_in_canonical_order_without_repeats():
 def test_finished_parts_are_kept_and_an_interrupted_part_is_rerun(tmp_path, monkeypatch):
     calls = []
 
-    def fake_runners(quick, progress):
+    def fake_runners():
         def make(part, fail=False):
-            def run(folder):
+            def run(folder, quick, progress):
                 calls.append(part)
                 if fail:
                     raise KeyboardInterrupt
@@ -28,15 +29,16 @@ def test_finished_parts_are_kept_and_an_interrupted_part_is_rerun(tmp_path, monk
                 return "REPORT.md"
             return run
         return {"bench": make("bench"), "dof": make("dof"), "table2": make("table2"),
-                "table2_projection": make("table2_projection"), "table4": make("table4", fail=fail_table4[0])}
+                "table2_projection": make("table2_projection"),
+                "table4": lambda folder, quick, progress: make("table4", fail_table4[0])(folder, quick, progress)}
 
     fail_table4 = [True]
-    monkeypatch.setattr(R, "_runners", fake_runners)
+    monkeypatch.setattr(R, "RUNNERS", fake_runners())
     with pytest.raises(KeyboardInterrupt):
         R.reproduce(["table1", "table2", "table4"], tmp_path, quick=True, progress=False)
     state = json.loads((tmp_path / "reproduce.json").read_text())
-    assert set(state) == {"bench", "table2"}  # table4 was interrupted: not recorded
-    assert calls == ["bench", "table2", "table4"]
+    assert set(state) == {"table2"}  # table4 was interrupted: not recorded, and the run stopped there
+    assert calls == ["table2", "table4"]
     # an interrupted part that left a report of its finished cells appears, marked unfinished
     (tmp_path / "table4" / "REPORT.md").write_text("# table4 so far\n")
     R.write_report(tmp_path, state)
@@ -44,7 +46,7 @@ def test_finished_parts_are_kept_and_an_interrupted_part_is_rerun(tmp_path, monk
 
     fail_table4[0] = False
     R.reproduce(["table1", "table2", "table4"], tmp_path, quick=True, progress=False)
-    assert calls == ["bench", "table2", "table4", "table4"]  # the finished parts were not recomputed
+    assert calls == ["table2", "table4", "table4", "bench"]  # the finished part was not recomputed
     report = (tmp_path / "REPORT.md").read_text()
     for part in ("bench", "table2", "table4"):
         assert f"## {R.TITLES[part]}" in report

@@ -1,11 +1,17 @@
-"""The paper's state-estimation experiments (Section V-D): Table IV, the straight-lane test, Fig. 9.
+"""The paper's state-estimation experiments (Section V-D): Table IV, the straight-lane test, Fig. 6 and Fig. 9.
 
 With the particle filter in the loop (``estimator="pf"``: the controllers act on its mean, fed by the IMU
-and the detections of the target gate), nominal MPPI and PixelMPC (t_f = 1 s, c_pixel = 9e6):
+and the detections of the target gate), nominal MPPI against PixelMPC, at two operating points:
 
-- Table IV: success rate and lap time of the successful laps over 25 laps at 14 and 16 m/s;
-- the straight lane at 20 m/s: the maximum trace of the filter's position covariance over 25 runs;
-- Fig. 9: the trajectories, coloured by that covariance.
+- the paper's labels (14 and 16 m/s): nominal MPPI and the ``paper`` preset (t_f = 1 s, c_pixel = 9e6);
+- the paper's pace (the targets at which our nominal lap matches the paper's, ``presets.PAPER_PACE_SPEEDS``):
+  nominal MPPI and both presets;
+
+and measures
+
+- Table IV: success rate, lap time of the successful laps and the failure modes over 25 laps;
+- the straight lane at 20 m/s and its pace: the maximum trace of the filter's position covariance over 25 runs;
+- Fig. 6 with the filter: the total variation of the attitude; Fig. 9: the trajectories, coloured by that covariance.
 
 Each part writes ``results.json`` (every lap, resumable cell by cell), ``summary.json``, ``REPORT.md`` (ours
 beside the paper's figures) and PNG figures into its output directory.
@@ -18,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
-from pixelmpc_jax.apps.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.apps.presets import PAPER_LABEL_SPEEDS, pace_speed, preset
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -27,27 +32,65 @@ from pixelmpc_jax.strict_json import write_json_atomic
 PAPER_TABLE_IV = {("mppi", 14.0): (0.80, 31.8, 0.7), ("pixelmpc", 14.0): (0.80, 33.0, 0.8),
                   ("mppi", 16.0): (0.52, 29.6, 0.8), ("pixelmpc", 16.0): (0.60, 30.6, 0.7)}
 PAPER_SIGMA_MAX = {"mppi": 9.2, "pixelmpc": 5.7}  # straight lane, 20 m/s
-CONTROLLERS = ("mppi", "pixelmpc")
-RACE_SPEEDS = (14.0, 16.0)
-PAPER_BEST_CELL = PixelMPCConfig(t_f=1.0, c_pixel=9e6)  # the paper's PixelMPC of Table IV
-STRAIGHT_SPEED = 20.0
+RACE_LABELS = PAPER_LABEL_SPEEDS[:2]  # 14 and 16 m/s
+STRAIGHT_LABEL = PAPER_LABEL_SPEEDS[2]  # 20 m/s
+WHO = ("mppi", "paper", "best")  # nominal MPPI and the two presets
 
 
-def race_cells(speeds=RACE_SPEEDS) -> list[Cell]:
-    """Nominal MPPI and PixelMPC (the paper's t_f = 1, c_pixel = 9e6) with the filter, per speed."""
-    return [Cell(f"{controller}_{speed:g}ms_pf", RaceSpec(controller=controller, config=PAPER_BEST_CELL, speed=speed,
-                                                          estimator="pf"))
-            for speed in speeds for controller in CONTROLLERS]
+def _race(who: str, speed: float, **changes):
+    """Nominal MPPI (at the ``paper`` preset's MPPI settings) or a preset, at ``speed``, on the filter."""
+    spec = preset("paper" if who == "mppi" else who).replace(speed=speed, estimator="pf", **changes)
+    return spec.replace(controller="mppi") if who == "mppi" else spec
 
 
-def straight_cells(speed: float = STRAIGHT_SPEED) -> list[Cell]:
-    """Both controllers with the filter on the straight lane (five gates 20 m apart)."""
-    return [Cell(f"{controller}_straight_{speed:g}ms_pf",
-                 RaceSpec(controller=controller, config=PAPER_BEST_CELL, speed=speed, estimator="pf",
-                          course="straight", max_time_s=20.0)) for controller in CONTROLLERS]
+def _points(labels, quick: bool) -> list[tuple[float, float, tuple]]:
+    """(label, our target, who flies it): each label as the paper named it (nominal and ``paper``), then its pace
+    (all three); ``quick``: the pace of the last label only."""
+    if quick:
+        return [(labels[-1], pace_speed(labels[-1]), WHO)]
+    return [(label, label, WHO[:2]) for label in labels] + [(label, pace_speed(label), WHO) for label in labels]
+
+
+def race_cells(labels=RACE_LABELS, quick: bool = False) -> list[Cell]:
+    """Table IV's cells with the filter, per operating point."""
+    return [Cell(f"{who}_{speed:g}ms_pf", _race(who, speed)) for label, speed, whos in _points(labels, quick)
+            for who in whos]
+
+
+def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False) -> list[Cell]:
+    """The straight lane (five gates 20 m apart) with the filter, at the label and its pace."""
+    return [Cell(f"{who}_straight_{speed:g}ms_pf", _race(who, speed, course="straight", max_time_s=20.0))
+            for _, speed, whos in _points((label,), quick) for who in whos]
+
+
+def label_of(cell: Cell) -> float:
+    """The paper's label a cell answers: its own target, or the label whose pace it flies."""
+    from pixelmpc_jax.apps.presets import PAPER_PACE_SPEEDS
+
+    return next((label for label, pace in PAPER_PACE_SPEEDS.items() if pace == cell.spec.speed), cell.spec.speed)
+
+
+def who_of(cell: Cell) -> str:
+    return cell.name.split("_", 1)[0]
+
+
+def _failures(laps: list[dict]) -> dict:
+    crashes: dict = {}
+    for lap in laps:
+        if not lap["success"]:
+            crashes[lap["crash"]] = crashes.get(lap["crash"], 0) + 1
+    return crashes
+
+
+def _view(agg: dict) -> dict:
+    keys = ("share_target_in_view", "mean_target_angle_deg", "time_vis_below_50_s", "time_vis_zero_s",
+            "total_variation_roll", "total_variation_pitch", "total_variation_yaw")
+    return {key: agg.get(key) for key in keys}
 
 
 def summarise(results: dict, cells: list[Cell]) -> list[dict]:
+    """One row per finished cell: success, lap time, failure modes, covariance maxima, the view; the paper's
+    figures at the cell's label (``paper`` preset against the paper's PixelMPC)."""
     rows = []
     for cell in cells:
         res = results.get(cell.name)
@@ -58,54 +101,86 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
                              is not None])
         errors = np.asarray([lap["mean_position_error_m"] for lap in laps if lap.get("mean_position_error_m")
                              is not None])
-        crashes: dict = {}
-        for lap in laps:
-            if not lap["success"]:
-                crashes[lap["crash"]] = crashes.get(lap["crash"], 0) + 1
-        paper = PAPER_TABLE_IV.get((cell.spec.controller, cell.spec.speed))
+        who, label = who_of(cell), label_of(cell)
+        paper = PAPER_TABLE_IV.get(("mppi" if who == "mppi" else "pixelmpc", label))  # the paper's PixelMPC for both
         rows.append({
-            "cell": cell.name, "controller": cell.spec.controller, "speed": cell.spec.speed, "course": cell.spec.course,
+            "cell": cell.name, "who": who, "controller": cell.spec.controller, "speed": cell.spec.speed,
+            "label": label, "point": "label" if label == cell.spec.speed else "pace", "course": cell.spec.course,
             "success_rate": res["aggregate"]["success_rate"], "num_laps": len(laps),
             "lap_time_s": res["aggregate"]["lap_time_s"], "gates_passed": res["aggregate"]["gates_passed"],
-            "failures": crashes,
+            "failures": _failures(laps), **_view(res["aggregate"]),
             "sigma_max": {"mean": float(maxima.mean()), "two_sigma": float(2 * maxima.std()),
                           "max": float(maxima.max()), "n": int(maxima.size)} if maxima.size else None,
             "mean_position_error_m": float(errors.mean()) if errors.size else None,
             "wall_time_s": res.get("wall_time_s"),
             "paper": {"success_rate": paper[0], "lap_time_s": paper[1:]} if paper else
-            {"sigma_max": PAPER_SIGMA_MAX.get(cell.spec.controller)},
+            {"sigma_max": PAPER_SIGMA_MAX.get("mppi" if who == "mppi" else "pixelmpc")
+             if cell.spec.course == "straight" else None},
         })
     return rows
 
 
+NAMES = {"mppi": "nominal MPPI", "paper": "PixelMPC, `paper`", "best": "PixelMPC, `best`"}
+
+
+def _race_line(r: dict) -> str:
+    paper = r["paper"]
+    failures = ", ".join(f"{k}: {v}" for k, v in sorted(r["failures"].items(), key=lambda kv: str(kv[0]))) or "-"
+    error = f"{r['mean_position_error_m']:.2f}" if r["mean_position_error_m"] is not None else "-"
+    view = r["share_target_in_view"] or {}
+    in_view = f"{100 * view['mean']:.1f}" if view.get("mean") is not None else "-"
+    theirs = (f"{paper['success_rate'] * 100:.0f}% | {paper['lap_time_s'][0]:.1f} ± {paper['lap_time_s'][1]:.1f}"
+              if paper.get("success_rate") is not None else "- | -")
+    succeeded = round(r["success_rate"] * r["num_laps"])
+    return (f"| {NAMES[r['who']]} | {r['label']:g} m/s | {r['speed']:g} m/s | {succeeded}/{r['num_laps']} "
+            f"({r['success_rate'] * 100:.0f}%) | {theirs.split(' | ')[0]} | {fmt(r['lap_time_s'])} | "
+            f"{theirs.split(' | ')[1]} | {failures} | {fmt(r['time_vis_below_50_s'])} | {in_view} | "
+            f"{fmt(r['mean_target_angle_deg'])} | {error} |")
+
+
+def _straight_lines(rows: list[dict]) -> list[str]:
+    lines = ["", "## Straight lane: maximum position covariance (trace, m²) per run", "",
+             "| controller | label | target | Σ_max ours, mean ± 2σ of the runs' maxima | largest of all runs | "
+             "paper Σ_max (20 m/s) | runs completed |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        sm = r["sigma_max"] or {}
+        theirs = r["paper"].get("sigma_max")
+        lines.append(f"| {NAMES[r['who']]} | {r['label']:g} m/s | {r['speed']:g} m/s | "
+                     f"{sm.get('mean', float('nan')):.2f} ± {sm.get('two_sigma', float('nan')):.2f} | "
+                     f"{sm.get('max', float('nan')):.2f} | {theirs if theirs is not None else '-'} | "
+                     f"{round(r['success_rate'] * r['num_laps'])}/{r['num_laps']} |")
+    return lines
+
+
+def _smoothness_lines(rows: list[dict]) -> list[str]:
+    lines = ["", "## Fig. 6 with the particle filter: total variation of the attitude per lap", "",
+             "| controller | target | TV roll [rad] | TV pitch [rad] | TV yaw [rad] |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {NAMES[r['who']]} | {r['speed']:g} m/s | {fmt(r['total_variation_roll'])} | "
+                     f"{fmt(r['total_variation_pitch'])} | {fmt(r['total_variation_yaw'])} |")
+    return lines + ["", "The same figures with ground truth are in the Tables II-III part."]
+
+
 def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: str) -> str:
-    lines = ["# Table IV, the straight lane and Fig. 9: racing on the particle filter's estimate", "",
+    lines = ["# Table IV, the straight lane, Fig. 6 and Fig. 9: racing on the particle filter's estimate", "",
              f"Device: {device}. Controllers act on the filter's mean (6,400 particles, IMU motion update, "
-             "gate-corner sensor update); PixelMPC with t_f = 1 s, c_pixel = 9e6. Lap times are over the "
-             "successful laps, mean ± 2σ. The paper's figures (FlightGoggles, 25 laps) beside ours.", "",
-             "| controller | target speed | success ours | paper | lap time [s] ours | paper | failures | "
-             "mean position error [m] |", "|---|---|---|---|---|---|---|---|"]
-    for r in race_rows:
-        paper = r["paper"]
-        failures = ", ".join(f"{k}: {v}" for k, v in sorted(r["failures"].items(), key=lambda kv: str(kv[0]))) or "-"
-        error = f"{r['mean_position_error_m']:.2f}" if r["mean_position_error_m"] is not None else "-"
-        lines.append(f"| {r['controller']} | {r['speed']:g} m/s | {r['success_rate'] * 100:.0f}% of {r['num_laps']} | "
-                     f"{paper['success_rate'] * 100:.0f}% | {fmt(r['lap_time_s'])} | "
-                     f"{paper['lap_time_s'][0]:.1f} ± {paper['lap_time_s'][1]:.1f} | {failures} | {error} |")
+             "gate-corner sensor update). At each paper label (14, 16 m/s) nominal MPPI and the `paper` preset fly "
+             "the label itself and, with the `best` preset, its pace (the target at which our nominal lap matches "
+             "the paper's). Lap times are over the successful laps, mean ± 2σ; vis < 50 %, in view (share of flight "
+             "time with the target in the image) and the angle to the target over all laps. The paper's figures "
+             "(FlightGoggles, 25 laps, its PixelMPC t_f = 1 s, c_pixel = 9e6) beside ours at the label they answer.",
+             "", "| controller | label | target | success ours | paper | lap time [s] ours | paper | failures | "
+             "vis < 50 % [s] | in view [%] | angle to target [deg] | mean position error [m] |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [_race_line(r) for r in race_rows]
     if straight_rows:
-        lines += ["", "## Straight lane, 20 m/s: maximum position covariance (trace, m²) per run", "",
-                  "| controller | Σ_max ours, mean ± 2σ of the runs' maxima | largest of all runs | paper Σ_max | "
-                  "runs completed |", "|---|---|---|---|---|"]
-        for r in straight_rows:
-            sm = r["sigma_max"] or {}
-            lines.append(f"| {r['controller']} | {sm.get('mean', float('nan')):.2f} ± "
-                         f"{sm.get('two_sigma', float('nan')):.2f} | {sm.get('max', float('nan')):.2f} | "
-                         f"{PAPER_SIGMA_MAX[r['controller']]:.1f} | {r['success_rate'] * 100:.0f}% of "
-                         f"{r['num_laps']} |")
+        lines += _straight_lines(straight_rows)
+    if race_rows:
+        lines += _smoothness_lines(race_rows)
     lines += ["", "Fig. 9: `fig9_<cell>.png`, the trajectories of each cell coloured by the trace of the filter's "
               "position covariance."]
     wall = sum(r["wall_time_s"] or 0.0 for r in race_rows + straight_rows)
-    lines += ["", f"Wall time of the cells run: {wall / 60:.1f} min."]
+    lines += ["", f"Wall time of the cells flown here: {wall / 60:.1f} min."]
     return "\n".join(lines) + "\n"
 
 
@@ -133,16 +208,21 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
 
 
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
-                          dof_params=None, straight: bool = True, run: bool = True) -> dict:
-    """Table IV (14 and 16 m/s; ``quick``: 16 m/s only), the straight lane and Fig. 9 into ``out``; with
-    ``run=False`` only the report of the cells already finished in ``out`` is written."""
+                          dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
+                          reuse=()) -> dict:
+    """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
+    into ``out``, laps from ``seed``; cells a folder in ``reuse`` holds are copied, not flown. With ``run=False``
+    only the report of the cells already finished in ``out`` is written."""
+    from pixelmpc_jax.apps.paper import plot_smoothness
+
     out = Path(out)
-    cells = race_cells((16.0,) if quick else RACE_SPEEDS)
-    lanes = straight_cells() if straight else []
+    cells = race_cells(quick=quick)
+    lanes = straight_cells(quick=quick) if straight else []
     interrupted = False
     if run:
         try:
-            results = run_grid(cells + lanes, out, laps=laps, progress=progress, dof_params=dof_params)
+            results = run_grid(cells + lanes, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params,
+                               reuse=reuse)
         except KeyboardInterrupt:
             results = load_results(out)  # write the finished cells' report, then stop
             interrupted = True
@@ -153,6 +233,11 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
     report = markdown_report(race_rows, straight_rows, device_line())
     if missing:
         report += f"\nNot yet run (the experiment resumes with them): {', '.join(missing)}.\n"
+    if race_rows:
+        plot_smoothness([{**r, "label": f"{NAMES[r['who']].replace('`', '')} {r['speed']:g} m/s"} for r in race_rows],
+                        out / "fig6_pf.png", "Fig. 6 with the particle filter: total variation of the attitude per "
+                        "lap (mean ± 2σ)")
+        report += "\n![Fig. 6 with the particle filter](fig6_pf.png)\n"
     figures = plot_fig9(out, cells + lanes)
     report += "".join(f"\n![{path.stem}]({path.name})\n" for path in figures)
     write_json_atomic(out / "summary.json", {"table_iv": race_rows, "straight_lane": straight_rows})

@@ -32,8 +32,10 @@ from pixelmpc_jax.timing import CONTROL_DT
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
 AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
-DEFAULT_SPEEDS = (5.0, 6.0, 7.0, 8.0, 10.0, 14.0)
-QUICK_SPEEDS = (6.0, 8.0, 10.0)  # 40.7 s .. about 27 s: brackets the paper's pace and slowed cells to ~40 s
+# 42.5 s .. 21.9 s laps: brackets the cells slowed to ~40 s at the pace and the 14 m/s label's cells (22-26 s); 8.5
+# and 9.1 m/s are the paper's 14 and 16 m/s paces (presets.PAPER_PACE_SPEEDS), so the tables' nominal cells are here
+DEFAULT_SPEEDS = (6.0, 7.0, 8.0, 8.5, 9.1, 10.0, 12.0, 14.0)
+QUICK_SPEEDS = (6.0, 8.0, 8.5, 10.0)  # 42.5 s .. 27 s: brackets the paper's pace and slowed cells to ~40 s
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +72,16 @@ BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the best weights of the 4-la
 def best_cells() -> tuple:
     """The border cost at each pixel model's best weight (projection 9e6, DOF 3e7), 8 m/s, t_f 1."""
     return tuple(pixel_cell(model, "border", BORDER_C_PIXEL[model]) for model in ("projection", "dof"))
+
+
+def preset_cells(speed: float) -> tuple:
+    """The ``paper`` and ``best`` presets at ``speed``, and the border cost with the exact projection pixel model
+    (the reference: a pixel model that knows where the gate is)."""
+    from pixelmpc_jax.apps.presets import preset
+
+    return (grid.Cell(f"paper_v{speed:g}", preset("paper").replace(speed=speed)),
+            grid.Cell(f"best_v{speed:g}", preset("best").replace(speed=speed)),
+            pixel_cell("projection", "border", 9e6, speed=speed))
 
 
 def default_cells() -> tuple:
@@ -222,6 +234,17 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
                          "avoidable_floor_s": AVOIDABLE_FLOOR_S,
                          "gain_interval": f"{BOOTSTRAP_LEVEL:.0%} percentile bootstrap over the cell's and each "
                                           f"nominal point's completed laps, {BOOTSTRAP_DRAWS} draws"}}
+
+
+def gains_against(results: dict, cells, frontier_dir: Path, nominal_speeds, laps: int, seed: int = 0) -> dict:
+    """``{cell name: frontier row}`` (:func:`build`'s: avoidable time, frontier gain, its interval) of the PixelMPC
+    ``cells`` in ``results`` against the nominal points at ``nominal_speeds`` finished in ``frontier_dir`` with the
+    same ``laps`` and ``seed`` (the points not flown there are left out)."""
+    nominal = grid.current_results([nominal_cell(v) for v in nominal_speeds], frontier_dir, laps, seed)
+    speeds = [v for v in nominal_speeds if nominal_cell(v).name in nominal]
+    pixel = [cell for cell in cells if cell.spec.controller == "pixelmpc" and cell.name in results]
+    built = build({**results, **nominal}, speeds, pixel, laps, seed)
+    return {row["name"]: row for row in built["cells"]}
 
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,

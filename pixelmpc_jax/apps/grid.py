@@ -133,8 +133,31 @@ def current_results(cells: list[Cell], out: Path, laps: int, seed: int = 0, dof_
             if is_current(results.get(cell.name), cell.race(laps, seed, weights))}
 
 
+def find_shared(spec: RaceSpec, folders) -> tuple[Path, str, dict] | None:
+    """``(folder, cell name, results)`` of a finished cell in one of ``folders`` (each a grid's output folder)
+    that answers the race ``spec`` (:func:`is_current`, whatever its name); None when none does."""
+    for folder in folders:
+        for name, done in load_results(folder).items():
+            if isinstance(done, dict) and is_current(done, spec):
+                return Path(folder), name, done
+    return None
+
+
+def _copy_shared(shared: tuple[Path, str, dict], out: Path, name: str) -> dict:
+    """The shared cell's results under ``name``, its trajectory files copied into ``out``."""
+    import shutil
+
+    folder, shared_name, done = shared
+    for kind in ("trajectories", "covariances"):
+        source = folder / f"{kind}_{shared_name}.npz"
+        if source.exists():
+            shutil.copyfile(source, out / f"{kind}_{name}.npz")
+    # the wall time was spent where it was flown; here it cost nothing
+    return {**done, "shared_from": f"{folder.name}/{shared_name}", "wall_time_s": 0.0}
+
+
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
-             progress: bool = True, dof_params=None) -> dict:
+             progress: bool = True, dof_params=None, reuse=()) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
 
     Each cell flies its race with ``laps``, ``seed`` and the DOF weights ``dof_params`` (None: the packaged
@@ -146,7 +169,9 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     not depend on it (lap i always uses seed ``seed + i``).
 
     Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap) and, with the
-    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). Interrupted (Ctrl-C),
+    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). A cell whose race a
+    finished cell in one of the ``reuse`` folders already answers (:func:`find_shared`) is copied from there, not
+    flown again (its results name it in ``shared_from``). Interrupted (Ctrl-C),
     the finished cells stay in ``results.json`` and the KeyboardInterrupt is raised again: a grid never returns
     as if it were complete."""
     out = Path(out)
@@ -161,6 +186,13 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         if is_current(done, spec):
             if progress:
                 print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
+            continue
+        shared = find_shared(spec, [folder for folder in reuse if Path(folder).resolve() != out.resolve()])
+        if shared is not None:
+            results[cell.name] = _copy_shared(shared, out, cell.name)
+            write_json_atomic(path, results)
+            if progress:
+                print(f"[{cell.name}] shared from {results[cell.name]['shared_from']}")
             continue
         start = time.perf_counter()
         res = race.run_laps(spec, batch_size=batch_size, progress=progress, dof_params=dof_params)

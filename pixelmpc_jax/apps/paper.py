@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.apps.frontier import nominal_cell
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.apps.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, PRESETS, preset
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.platform_info import device_line
@@ -39,18 +41,35 @@ CALIBRATION_NOTE = (
 
 T_F_VALUES = (1.0, 2.0)
 C_PIXEL_VALUES = (3e6, 6e6, 9e6)
+LABEL_SPEED = 14.0  # the paper's Tables II and III were flown at this target
+OPERATING_POINTS = {"label": LABEL_SPEED, "pace": PAPER_PACE_SPEEDS[LABEL_SPEED]}  # name -> our target speed
 
 
-def visibility_cells(pixel_model: str = "dof", speed: float = 14.0, t_f_values=T_F_VALUES,
-                     c_pixel_values=C_PIXEL_VALUES) -> list[Cell]:
-    """Nominal MPPI, then PixelMPC over the t_f x c_pixel grid."""
-    cells = [Cell("mppi", RaceSpec(controller="mppi", speed=speed))]
+def grid_cell_name(pixel_model: str, t_f: float, c_pixel: float, speed: float) -> str:
+    return f"pixelmpc_{pixel_model}_tf{t_f:g}_c{c_pixel:.0e}_v{speed:g}"
+
+
+def visibility_cells(pixel_model: str = "dof", speed: float = LABEL_SPEED, t_f_values=T_F_VALUES,
+                     c_pixel_values=C_PIXEL_VALUES, best: bool = True) -> list[Cell]:
+    """Nominal MPPI, PixelMPC over the t_f x c_pixel grid (the ``paper`` preset is its t_f 1, c_pixel 9e6 cell with
+    the DOF) and, with ``best``, the ``best`` preset, all at the target ``speed``."""
+    cells = [nominal_cell(speed)]
     for t_f in t_f_values:
         for c_pixel in c_pixel_values:
             config = PixelMPCConfig(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
-            cells.append(Cell(f"pixelmpc_{pixel_model}_tf{t_f:g}_c{c_pixel:.0e}",
+            cells.append(Cell(grid_cell_name(pixel_model, t_f, c_pixel, speed),
                               RaceSpec(controller="pixelmpc", config=config, speed=speed)))
+    if best:
+        cells.append(Cell(f"best_v{speed:g}", preset("best").replace(speed=speed)))
     return cells
+
+
+def preset_of(spec: RaceSpec) -> str | None:
+    """The preset ("paper" or "best") whose race ``spec`` is, at any target speed; None for other cells."""
+    for name in PRESETS:
+        if spec.replace(speed=LABEL_SPEED).key() == preset(name).replace(speed=LABEL_SPEED).key():
+            return name
+    return None
 
 
 def pixel_settings(spec: RaceSpec) -> dict:
@@ -71,22 +90,28 @@ def _paper(table: dict, t_f: float, c_pixel: float) -> str:
     return f"{value[0]:.1f} ± {value[1]:.1f}" if value else "-"
 
 
-def summarise(results: dict, cells: list[Cell]) -> list[dict]:
-    """One row per cell: our aggregates and the paper's figures."""
+def _aggregates(agg: dict) -> dict:
+    keys = ("time_vis_below_50_s", "time_vis_zero_s", "lap_time_s", "mean_linear_acc", "mean_angular_acc",
+            "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "share_target_in_view",
+            "mean_target_angle_deg")
+    return {key: agg.get(key) for key in keys}
+
+
+def summarise(results: dict, cells: list[Cell], gains: dict | None = None) -> list[dict]:
+    """One row per cell: its target speed, preset, our aggregates, its frontier row from ``gains`` (``{cell name:
+    frontier.build's row}``: avoidable time, frontier gain and its interval) and the paper's figures."""
     rows = []
     for cell in cells:
         res = results.get(cell.name)
         if res is None:
             continue
         agg, spec = res["aggregate"], cell.spec
+        gain = (gains or {}).get(cell.name) or {}
         rows.append({
-            "cell": cell.name, **pixel_settings(spec),
-            "success_rate": agg["success_rate"], "num_laps": agg["num_laps"],
-            "time_vis_below_50_s": agg["time_vis_below_50_s"], "time_vis_zero_s": agg["time_vis_zero_s"],
-            "lap_time_s": agg["lap_time_s"], "mean_linear_acc": agg["mean_linear_acc"],
-            "mean_angular_acc": agg["mean_angular_acc"], "total_variation_roll": agg["total_variation_roll"],
-            "total_variation_pitch": agg["total_variation_pitch"], "total_variation_yaw": agg["total_variation_yaw"],
-            "wall_time_s": res.get("wall_time_s"),
+            "cell": cell.name, "speed": spec.speed, "preset": preset_of(spec), **pixel_settings(spec),
+            "success_rate": agg["success_rate"], "num_laps": agg["num_laps"], **_aggregates(agg),
+            "avoidable_s": gain.get("avoidable_s"), "frontier_gain": gain.get("frontier_gain"),
+            "frontier_gain_interval": gain.get("frontier_gain_interval"), "wall_time_s": res.get("wall_time_s"),
             "paper": {"time_vis_below_50_s": PAPER_VIS_BELOW_50.get(_table_key(spec)),
                       "time_vis_zero_s": PAPER_VIS_ZERO.get(_table_key(spec)),
                       "lap_time_s": PAPER_LAP_TIME.get(_table_key(spec))},
@@ -94,46 +119,96 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
     return rows
 
 
-def markdown_report(rows: list[dict], title: str, device: str, notes: str = "") -> str:
-    lines = [f"# {title}", "", f"Device: {device}. Mean ± 2σ over the laps of each cell; the paper's figures "
-             "(FlightGoggles, 10 races per cell at 14 m/s) beside ours.", ""]
-    if notes:
-        lines += [notes, ""]
-    lines += ["| t_f [s] | c_pixel | vis < 50 % [s] ours | paper | vis = 0 % [s] ours | paper | lap time [s] ours "
-              "| paper | success |",
-              "|---|---|---|---|---|---|---|---|---|"]
+def _gain(row: dict) -> str:
+    if row["frontier_gain"] is None:
+        return "-" if row["c_pixel"] == 0 else "not bracketed"
+    interval = row.get("frontier_gain_interval")
+    return f"{row['frontier_gain']:.2f}" + (" [{:.2f}, {:.2f}]".format(*interval) if interval else "")
+
+
+def _name(row: dict) -> str:
+    if row["c_pixel"] == 0:
+        return "nominal MPPI"
+    return f"**{row['preset']}**" if row["preset"] else row["cell"].rsplit("_v", 1)[0].replace("pixelmpc_", "")
+
+
+def _point_table(rows: list[dict]) -> list[str]:
+    """One operating point's Tables II/III rows: ours beside the paper's, the view metrics and the frontier gain."""
+    lines = ["| cell | t_f [s] | c_pixel | vis < 50 % [s] ours | paper | vis = 0 % [s] ours | paper | lap time [s] "
+             "ours | paper | lap vs nominal | in view [%] | angle to target [deg] | avoidable [s] | frontier gain "
+             "[90 %] | laps done |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    nominal = next((r for r in rows if r["c_pixel"] == 0.0), None)
     for r in rows:
+        change = "-"
+        if nominal and r["lap_time_s"]["mean"] is not None and nominal["lap_time_s"]["mean"]:
+            change = f"{r['lap_time_s']['mean'] / nominal['lap_time_s']['mean'] - 1:+.1%}"
+        view = r["share_target_in_view"] or {}
+        in_view = f"{100 * view['mean']:.1f}" if view.get("mean") is not None else "-"
+        avoidable = f"{r['avoidable_s']:.2f}" if r["avoidable_s"] is not None else "-"
         lines.append(
-            f"| {r['t_f']:g} | {r['c_pixel']:.0e} | {fmt(r['time_vis_below_50_s'])} | "
+            f"| {_name(r)} | {r['t_f']:g} | {r['c_pixel']:.0e} | {fmt(r['time_vis_below_50_s'])} | "
             f"{_paper(PAPER_VIS_BELOW_50, r['t_f'], r['c_pixel'])} | {fmt(r['time_vis_zero_s'])} | "
             f"{_paper(PAPER_VIS_ZERO, r['t_f'], r['c_pixel'])} | {fmt(r['lap_time_s'])} | "
-            f"{_paper(PAPER_LAP_TIME, r['t_f'], r['c_pixel'])} | {r['success_rate'] * 100:.0f}% of {r['num_laps']} |")
-    nominal = next((r for r in rows if r["c_pixel"] == 0.0), None)
-    if nominal:
-        lines += ["", "## Fig. 8: smoothness (total variation of the attitude, mean accelerations)", "",
-                  "| cell | TV roll [rad] | TV pitch [rad] | TV yaw [rad] | mean lin. acc [m/s²] | change | "
-                  "mean ang. acc [rad/s²] | change |", "|---|---|---|---|---|---|---|---|"]
-        for r in rows:
-            lin = r["mean_linear_acc"]["mean"] / nominal["mean_linear_acc"]["mean"] - 1.0
-            ang = r["mean_angular_acc"]["mean"] / nominal["mean_angular_acc"]["mean"] - 1.0
-            lines.append(f"| {r['cell']} | {fmt(r['total_variation_roll'])} | {fmt(r['total_variation_pitch'])} | "
-                         f"{fmt(r['total_variation_yaw'])} | {fmt(r['mean_linear_acc'], 2)} | {lin:+.0%} | "
-                         f"{fmt(r['mean_angular_acc'], 2)} | {ang:+.0%} |")
-        lines += ["", f"The paper reports a {PAPER_ACCELERATION_CHANGE:+.0%} change in mean linear and angular "
-                  "acceleration for PixelMPC against nominal MPPI."]
+            f"{_paper(PAPER_LAP_TIME, r['t_f'], r['c_pixel'])} | {change} | {in_view} | "
+            f"{fmt(r['mean_target_angle_deg'])} | {avoidable} | {_gain(r)} | "
+            f"{round(r['success_rate'] * r['num_laps'])}/{r['num_laps']} |")
+    return lines
+
+
+def _smoothness_table(rows: list[dict]) -> list[str]:
+    """Fig. 6's figures per cell; the accelerations' change is against nominal MPPI at the same target."""
+    nominal = {r["speed"]: r for r in rows if r["c_pixel"] == 0.0}
+    lines = ["| cell | target [m/s] | TV roll [rad] | TV pitch [rad] | TV yaw [rad] | mean lin. acc [m/s²] | change | "
+             "mean ang. acc [rad/s²] | change |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        base = nominal.get(r["speed"])
+        lin = f"{r['mean_linear_acc']['mean'] / base['mean_linear_acc']['mean'] - 1.0:+.0%}" if base else "-"
+        ang = f"{r['mean_angular_acc']['mean'] / base['mean_angular_acc']['mean'] - 1.0:+.0%}" if base else "-"
+        lines.append(f"| {_name(r)} | {r['speed']:g} | {fmt(r['total_variation_roll'])} | "
+                     f"{fmt(r['total_variation_pitch'])} | {fmt(r['total_variation_yaw'])} | "
+                     f"{fmt(r['mean_linear_acc'], 2)} | {lin} | {fmt(r['mean_angular_acc'], 2)} | {ang} |")
+    return lines
+
+
+def markdown_report(rows: list[dict], title: str, device: str, notes: str = "") -> str:
+    """Tables II/III at each operating point (the paper's label, then its pace), then Fig. 6's smoothness."""
+    lines = [f"# {title}", "", f"Device: {device}. Mean ± 2σ over the laps of each cell; the paper's figures "
+             "(FlightGoggles, 10 races per cell at its 14 m/s label) beside ours at both operating points. "
+             "**paper** is the `paper` preset (the paper's L1 cost, DOF and weights), **best** the `best` preset. "
+             "In view: the share of flight time with the target gate in the image; angle to target: the mean angle "
+             "between the optical axis and the gate's centre. Avoidable: time below 50 % visibility less the part no "
+             "attitude avoids; frontier gain: nominal MPPI flown slower at the cell's lap time over the cell's "
+             "avoidable time, with its 90 % bootstrap interval (`frontier.gain_interval`).", ""]
+    if notes:
+        lines += [notes, ""]
+    for point, speed in OPERATING_POINTS.items():
+        point_rows = [r for r in rows if r["speed"] == speed]
+        if not point_rows:
+            continue
+        what = ("the paper's label" if point == "label" else
+                f"the paper's pace (our nominal lap matches the paper's {PAPER_NOMINAL_LAP_S[LABEL_SPEED]:g} s)")
+        lines += [f"## At {speed:g} m/s: {what}", "", *_point_table(point_rows), ""]
+    if rows:
+        lines += ["## Fig. 6 with ground truth: total variation of the attitude, mean accelerations", "",
+                  *_smoothness_table(rows), "",
+                  f"The paper reports a {PAPER_ACCELERATION_CHANGE:+.0%} change in mean linear and angular "
+                  "acceleration for PixelMPC against nominal MPPI (change: against nominal MPPI at the same target)."]
     wall = sum(r["wall_time_s"] or 0.0 for r in rows)
-    lines += ["", f"Wall time of the cells run: {wall / 60:.1f} min."]
+    lines += ["", f"Wall time of the cells flown here (cells shared with another part count there): {wall / 60:.1f} "
+              "min."]
     return "\n".join(lines) + "\n"
 
 
 def plot_visibility(rows: list[dict], path: Path, title: str) -> None:
+    """Tables II/III as bars, ours beside the paper's, one group per operating point."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    labels = ["MPPI" if r["c_pixel"] == 0 else f"tf={r['t_f']:g}\nc={r['c_pixel']:.0e}" for r in rows]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    labels = [f"{_name(r).strip('*')}\n{r['speed']:g} m/s" if r["preset"] or r["c_pixel"] == 0 else
+              f"tf={r['t_f']:g} c={r['c_pixel']:.0e}\n{r['speed']:g} m/s" for r in rows]
     x = np.arange(len(rows))
     for ax, key, paper, name in zip(axes, ("time_vis_below_50_s", "time_vis_zero_s", "lap_time_s"),
                                     (PAPER_VIS_BELOW_50, PAPER_VIS_ZERO, PAPER_LAP_TIME),
@@ -141,11 +216,12 @@ def plot_visibility(rows: list[dict], path: Path, title: str) -> None:
                                      "lap time [s]")):
         ours = [r[key]["mean"] or 0.0 for r in rows]
         err = [r[key]["two_sigma"] or 0.0 for r in rows]
-        theirs = [(paper.get((r["t_f"], r["c_pixel"])) or (np.nan, 0.0)) for r in rows]
+        theirs = [(paper.get((r["t_f"], r["c_pixel"])) if r["preset"] != "best" else None) or (np.nan, 0.0)
+                  for r in rows]
         ax.bar(x - 0.2, ours, 0.4, yerr=err, label="ours", capsize=3)
-        ax.bar(x + 0.2, [t[0] for t in theirs], 0.4, yerr=[t[1] for t in theirs], label="paper", capsize=3,
+        ax.bar(x + 0.2, [t[0] for t in theirs], 0.4, yerr=[t[1] for t in theirs], label="paper (14 m/s)", capsize=3,
                alpha=0.6)
-        ax.set_xticks(x, labels, fontsize=7)
+        ax.set_xticks(x, labels, fontsize=6, rotation=90)
         ax.set_title(name, fontsize=10)
     axes[0].legend()
     fig.suptitle(title)
@@ -154,34 +230,45 @@ def plot_visibility(rows: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def plot_smoothness(rows: list[dict], path: Path) -> None:
+def plot_smoothness(rows: list[dict], path: Path, title: str = "Fig. 6: total variation of the attitude per lap "
+                    "(mean ± 2σ)") -> None:
+    """Fig. 6: the total variation of roll, pitch and yaw per lap, one bar per cell."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 3.8))
+    fig, ax = plt.subplots(figsize=(9, 4))
     width = 0.8 / max(len(rows), 1)
     for i, r in enumerate(rows):
         means = [r[f"total_variation_{a}"]["mean"] for a in ("roll", "pitch", "yaw")]
         errs = [r[f"total_variation_{a}"]["two_sigma"] for a in ("roll", "pitch", "yaw")]
-        label = "MPPI" if r["c_pixel"] == 0 else f"PixelMPC tf={r['t_f']:g} c={r['c_pixel']:.0e}"
+        label = r.get("label") or f"{_name(r).strip('*')} {r['speed']:g} m/s"
         ax.bar(np.arange(3) + i * width, means, width, yerr=errs, capsize=2, label=label)
     ax.set_xticks(np.arange(3) + 0.4 - width / 2, ["roll", "pitch", "yaw"])
     ax.set_ylabel("total variation [rad]")
-    ax.set_title("Fig. 8: total variation of the attitude per lap (mean ± 2σ)")
-    ax.legend(fontsize=7)
+    ax.set_title(title)
+    ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: str = "dof") -> list[dict]:
+def table_cells(pixel_model: str = "dof", quick: bool = False) -> list[Cell]:
+    """The cells of Tables II/III at both operating points (``quick``: nominal, ``paper`` and ``best`` at the pace)."""
+    if quick:
+        pace = OPERATING_POINTS["pace"]
+        return visibility_cells(pixel_model, pace, t_f_values=(1.0,), c_pixel_values=(9e6,))
+    return [cell for speed in OPERATING_POINTS.values() for cell in visibility_cells(pixel_model, speed)]
+
+
+def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: str = "dof",
+                      gains: dict | None = None) -> list[dict]:
     """Write summary.json, REPORT.md and the figures from the cells finished so far in ``results``."""
     out = Path(out)
-    rows = summarise(results, cells)
+    rows = summarise(results, cells, gains)
     missing = [cell.name for cell in cells if cell.name not in results]
-    title = f"Tables II-III and Fig. 8: visibility and lap time, PixelMPC ({pixel_model} pixel model)"
+    title = f"Tables II-III and Fig. 6: visibility and lap time, PixelMPC ({pixel_model} pixel model)"
     notes = CALIBRATION_NOTE
     if missing:
         notes += f"\n\nNot yet run (the grid resumes with them): {', '.join(missing)}."
@@ -191,24 +278,30 @@ def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: 
         plot_visibility(rows, out / "visibility.png", title)
         plot_smoothness(rows, out / "smoothness.png")
         with open(out / "REPORT.md", "a") as report:
-            report.write("\n![visibility and lap time](visibility.png)\n\n![Fig. 8](smoothness.png)\n")
+            report.write("\n![visibility and lap time](visibility.png)\n\n![Fig. 6](smoothness.png)\n")
     return rows
 
 
 def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", quick: bool = False,
-                          progress: bool = True, dof_params=None, run: bool = True) -> list[dict]:
-    """Tables II/III and Fig. 8 (``pixel_model="projection"`` for the PAMPC-style comparison); with
-    ``run=False`` only the report of the cells already finished in ``out`` is written."""
+                          progress: bool = True, dof_params=None, run: bool = True, seed: int = 0, reuse=(),
+                          frontier_dir: Path | None = None, frontier_speeds=()) -> list[dict]:
+    """Tables II/III and Fig. 6 at the paper's label and its pace (``pixel_model="projection"`` for the PAMPC-style
+    comparison), laps from ``seed``. Cells a folder in ``reuse`` already holds are copied, not flown. The frontier
+    gains are read against nominal MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with the same laps and
+    seed; none without it). With ``run=False`` only the report of the cells already finished in ``out`` is
+    written."""
+    from pixelmpc_jax.apps.frontier import gains_against
+
     out = Path(out)
-    cells = visibility_cells(pixel_model)
-    if quick:
-        cells = [cells[0], cells[3]]  # nominal and the paper's best setting (t_f = 1, c_pixel = 9e6)
+    cells = table_cells(pixel_model, quick)
     if run:
         try:
-            results = run_grid(cells, out, laps=laps, progress=progress, dof_params=dof_params)
+            results = run_grid(cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params,
+                               reuse=reuse)
         except KeyboardInterrupt:
             visibility_report(out, cells, load_results(out), pixel_model)  # the finished cells' report
             raise
     else:
         results = load_results(out)
-    return visibility_report(out, cells, results, pixel_model)
+    gains = gains_against(results, cells, frontier_dir, frontier_speeds, laps, seed) if frontier_dir else None
+    return visibility_report(out, cells, results, pixel_model, gains)
