@@ -1,4 +1,4 @@
-"""The paper's visibility experiments (Tables II and III, Fig. 8): grid, report, figures.
+"""The paper's visibility experiments (Tables II and III, Fig. 6 with ground truth): grid, report, figures.
 
 Each report writes ``results.json`` (every lap), ``summary.json`` (the tables' cells), ``REPORT.md``
 (ours beside the paper's figures) and PNG figures into its output directory.
