@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 from pathlib import Path
@@ -26,7 +27,7 @@ FLOAT32_MAX = 3.4028234663852886e38
 RACE_T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer t_f acts as 2 s)
 RACE_SPEED_MAX = 50.0  # m/s; the vehicle's top speed is about 19 m/s (thrust 36.98 N against drag 0.1 |v| v)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
-SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce")  # the commands that split the CPU into devices by default
+SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce", "tune")  # the commands that split the CPU into devices by default
 SETTING = "setting:"  # the dest of a race flag that sets a controller setting: SETTING + its field (see _setting)
 
 
@@ -113,9 +114,9 @@ def _race_spec(args):
     setting the library refuses), and the DOF weights of a weights file (None for packaged weights, which the
     spec names), which enter the spec as their fingerprint."""
     from pixelmpc_jax.apps.presets import preset
-    from pixelmpc_jax.apps.spec import dof_weights_hash
+    from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
 
-    base = preset(args.preset)
+    base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
     fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
               "course": args.course, "detector": args.detector, "estimator": args.estimator,
               "max_time_s": args.max_time, "dof_weights": args.dof_weights}
@@ -170,11 +171,12 @@ def _cmd_race(args) -> int:
     spec, dof_params = _race_spec(args)
     controllers = (args.controller,) if args.controller else ("pixelmpc", "mppi")
     course = {"alphapilot": "the AlphaPilot course", "straight": "the straight lane"}.get(spec.course, spec.course)
-    print(f"preset {args.preset}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course} at "
+    source = f"config {args.config}" if args.config else f"preset {args.preset}"
+    print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course} at "
           f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
           f"output {args.out}")
-    record = compare.run_compare(spec, controllers, out=args.out, preset=args.preset, batch_size=args.batch,
-                                 video=args.video, dof_params=dof_params)
+    record = compare.run_compare(spec, controllers, out=args.out, preset=str(args.config or args.preset),
+                                 batch_size=args.batch, video=args.video, dof_params=dof_params)
     if any(results["laps"] for results in record["controllers"].values()):
         print(compare.side_by_side(record))
         written = [p for p in ("metrics.json", "trajectories.png", "visibility.png") if (args.out / p).exists()]
@@ -272,12 +274,14 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 done; 1 the run completed but failed (no lap succeeded, the demo missed its "
                "waypoint); 2 bad input (one line names it); 130 interrupted (what finished is saved).",
     )
+    from pixelmpc_jax.apps.tune_cli import add_tune
+
     _add_process_flags(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     p = sub.add_parser("version", help="print the package, JAX version and devices")
     p.set_defaults(func=_cmd_version)
     for add in (_add_demo, _add_render, _add_collect, _add_train, _add_evaluate, _add_bench, _add_reproduce,
-                _add_race, _add_course):
+                _add_race, _add_course, add_tune):
         add(sub)
     return parser
 
@@ -424,10 +428,14 @@ def _add_race(sub) -> None:
     from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
 
     p = sub.add_parser("race", help="PixelMPC beside nominal MPPI on the AlphaPilot course, in the closed loop")
-    p.add_argument("--preset", choices=PRESETS, default=DEFAULT_PRESET,
-                   help="the race to start from: best (default), the best configuration measured on the speed "
-                        "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target. Every "
-                        "other flag overrides one field of it")
+    start = p.add_mutually_exclusive_group()
+    start.add_argument("--preset", choices=PRESETS, default=DEFAULT_PRESET,
+                       help="the race to start from: best (default), the best configuration measured on the speed "
+                            "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target. Every "
+                            "other flag overrides one field of it")
+    start.add_argument("--config", type=Path, default=None, metavar="FILE",
+                       help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
+                            "tune` writes its best.json; every other flag overrides one field of it")
     p.add_argument("--controller", choices=CONTROLLERS, default=None,
                    help="fly one controller alone: pixelmpc or mppi, the paper's nominal baseline (default: both, "
                         "at the same target and seeds)")

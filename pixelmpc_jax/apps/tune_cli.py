@@ -1,0 +1,82 @@
+"""The ``pixelmpc tune`` command: its arguments and its handler, thin (the search is :mod:`pixelmpc_jax.apps.tune`).
+It lives beside the search, not in ``cli.py``, which keeps the other commands."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pixelmpc_jax import arguments as arg
+from pixelmpc_jax.apps import tune
+from pixelmpc_jax.apps.presets import PRESETS
+from pixelmpc_jax.apps.tune_space import SPACES
+
+NOMINAL_SPEED_MAX = 50.0  # m/s, as a race's target (the vehicle's top speed is about 19 m/s)
+
+
+def add_tune(sub) -> None:
+    """``pixelmpc tune``: controller settings by search against the speed frontier (docs/tune.md)."""
+    p = sub.add_parser("tune", help="search controller settings against the speed frontier (Optuna, resumable)")
+    p.add_argument("--space", required=True, metavar="|".join(SPACES) + "|FILE",
+                   help="the settings searched: a space's name or a JSON file of {dotted setting: {low, high[, log]} "
+                        "or {choices}} (docs/tune.md)")
+    p.add_argument("--out", type=arg.writable_dir, required=True, help="the study's folder (resumable)")
+    p.add_argument("--trials", type=arg.positive_int, default=30,
+                   help="completed trials the study must hold; finished ones are never flown again (default 30)")
+    p.add_argument("--minutes", type=arg.float_in(0.0, 1e6, lo_open=True), default=None,
+                   help="stop starting trials after this many minutes (default: no limit)")
+    p.add_argument("--preset", choices=PRESETS, default="best", help="the race whose settings are searched")
+    p.add_argument("--seed", type=arg.seed, default=0, help="first training seed (default 0); lap i flies seed + i")
+    p.add_argument("--laps", type=arg.positive_int, default=4, help="training laps per trial (default 4)")
+    p.add_argument("--nominal-speeds", type=arg.float_in(0.0, NOMINAL_SPEED_MAX, lo_open=True, unit="m/s"),
+                   nargs="+", default=list(tune.NOMINAL_SPEEDS), metavar="V",
+                   help="nominal MPPI's target speeds for the frontier (default 7 8 8.5 10; the preset's is added)")
+    p.add_argument("--bound", type=arg.float_in(0.0, 10.0, lo_open=True), default=tune.LAP_TIME_BOUND,
+                   help="a feasible trial's lap time is at most (1 + BOUND) x nominal MPPI's at the same target "
+                        "(default 0.1)")
+    p.add_argument("--storage", default=None, metavar="URL",
+                   help="the study's database (default sqlite:///OUT/study.db); a server URL such as "
+                        "postgresql://user@host/db lets several processes or machines share the study")
+    p.add_argument("--study", default="tune", help="the study's name in the storage (default tune)")
+    p.add_argument("--sampler-seed", type=arg.seed, default=0,
+                   help="the TPE sampler's seed (default 0); give each worker of a shared study its own")
+    p.add_argument("--reuse", type=Path, nargs="+", default=[], metavar="DIR",
+                   help="grid folders (a results.json) whose cells are copied, not flown, where they are the race "
+                        "asked (same settings, seeds and laps)")
+    p.add_argument("--validate-seed", type=arg.seed, default=None,
+                   help="then fly the best trial, the preset and nominal MPPI on held-out seeds from this one")
+    p.add_argument("--validate-laps", type=arg.positive_int, default=10, help="held-out laps (default 10)")
+
+    def check(args) -> None:
+        """The search space, checked before anything runs: one line per bad entry, exit code 2."""
+        from pixelmpc_jax.apps.tune_space import SpaceError
+
+        try:
+            _setup(args)
+        except SpaceError as err:
+            p.error("\n".join(err.problems))
+
+    p.set_defaults(func=_command, precheck=check)
+
+
+def _setup(args) -> tune.TuneSetup:
+    from pixelmpc_jax.apps.presets import preset
+    from pixelmpc_jax.apps.tune_space import load_space
+
+    space = load_space(args.space, preset(args.preset))
+    return tune.TuneSetup(args.preset, tuple(space.values()), tuple(args.nominal_speeds), args.laps, args.seed,
+                          args.bound)
+
+
+def _command(args) -> int:
+    from pixelmpc_jax import host
+    from pixelmpc_jax.apps import tune_report
+
+    host.use_compilation_cache()
+    setup = _setup(args)
+    study = tune.run_tune(setup, args.out, args.trials, args.minutes, args.storage, args.study, args.sampler_seed,
+                          reuse=args.reuse)
+    print(tune_report.summary(study, args.out))
+    if args.validate_seed is not None:
+        record = tune.validate(study, setup, args.out, args.validate_seed, args.validate_laps, reuse=args.reuse)
+        print(tune_report.validation_markdown(record))
+    return 0
