@@ -24,7 +24,9 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.sim import faults as faults_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
@@ -105,6 +107,9 @@ class EnvConfig:
             gate's detection; the controller sees its mean).
         pf: the particle filter's settings; pf_initial_spread: its initial spread (position m, attitude
             rad, velocity m/s) around the true start.
+        guards: the particle filter's guards against a lying detector and its own divergence
+            (:mod:`pixelmpc_jax.perception.filter_guards`; off by default).
+        faults: what the world does beyond the nominal model (:mod:`pixelmpc_jax.sim.faults`; none by default).
     """
 
     max_time_s: float = 60.0
@@ -114,6 +119,8 @@ class EnvConfig:
     estimator: str = "truth"
     pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
     pf_initial_spread: tuple = (0.3, 0.03, 0.2)
+    guards: guards_lib.GuardConfig = dataclasses.field(default_factory=guards_lib.GuardConfig)
+    faults: faults_lib.Faults = dataclasses.field(default_factory=faults_lib.Faults)
 
     def __post_init__(self):
         if self.detector not in DETECTORS:
@@ -162,6 +169,8 @@ class SimState(NamedTuple):
         imu: the last tick's IMU samples, preintegrated (the filter's next input).
         end_cause: () int32, 0 while flying or once finished, else a key of ``END_NAMES``.
         done: () bool, the episode has ended (finished, crashed, missed a gate or timed out).
+        faults: what the faults carry from tick to tick (:class:`~pixelmpc_jax.sim.faults.FaultState`; no leaves
+            without faults).
     """
 
     tick: jax.Array
@@ -173,6 +182,7 @@ class SimState(NamedTuple):
     imu: plant_lib.TickIMU
     end_cause: jax.Array
     done: jax.Array
+    faults: faults_lib.FaultState = faults_lib.FaultState()
 
 
 class Env(NamedTuple):
@@ -186,8 +196,9 @@ class Env(NamedTuple):
 
 def target_visibility(world: World, state: SimState) -> jax.Array:
     """() fraction of the target gate's outline in view from the true pose; 1 once every gate is passed."""
-    num_gates = world.track.num_gates
-    visibility = camera_lib.gate_visibility(world.track.gate(jnp.minimum(state.target, num_gates - 1)),
+    track = faults_lib.true_track(world.track, state.faults)
+    num_gates = track.num_gates
+    visibility = camera_lib.gate_visibility(track.gate(jnp.minimum(state.target, num_gates - 1)),
                                             state.plant.x, world.camera)
     return jnp.where(state.target >= num_gates, 1.0, visibility)
 
@@ -227,54 +238,104 @@ def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array
     return track_lib.path_query(track, position, window).progress_s
 
 
+def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, state: SimState,
+                      detection: detector_lib.Detection, key: jax.Array):
+    """The detector's report with the configured detector faults (noise, misses, false detections: another gate's
+    image, from ``track``, the true course) and its delay. -> (detection, the faults' state)."""
+    faults, fault_state = config.faults, state.faults
+    if faults.has_detector_noise:
+        other = track.gate((state.target + 1) % track.num_gates)
+        wrong_gate = detector_lib.detect_from_geometry(other, state.plant.x, world.camera)
+        detection = faults_lib.corrupt_detection(detection, wrong_gate, faults, key, world.camera)
+    if faults.detection_delay_ticks:
+        detection, queue = faults_lib.fifo(fault_state.detections, detection)
+        fault_state = fault_state._replace(detections=queue)
+    return detection, fault_state
+
+
+def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
+    """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
+    covariance trace, progress of the estimate, the detection as the loop uses it)``. With the filter's detection
+    gate (``config.guards``), a detection the filter rejects reaches the controller as none."""
+    x = state.plant.x
+    if config.estimator != "pf":
+        return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
+    if config.guards.active:
+        filter_state, estimate, filter_info, guard = guards_lib.guarded_pf_step(
+            state.filter, state.imu, detection, world.track, world.camera, config.pf, config.guards)
+        detection = detection.replace(found=detection.found & guard.accepted,
+                                      corners_visible=detection.corners_visible & guard.accepted)
+    else:
+        filter_state, estimate, filter_info = pf_lib.pf_step(state.filter, state.imu, detection, world.track,
+                                                             world.camera, config.pf)
+    x_est = estimate.mean.astype(x.dtype)
+    progress_est = _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
+    return filter_state, x_est, filter_info.position_cov_trace, progress_est, detection
+
+
 def make_env(config: EnvConfig = EnvConfig()) -> Env:
-    """The environment's ``reset``, ``observe`` and ``step`` for ``config`` (pure; jit and vmap them)."""
+    """The environment's ``reset``, ``observe`` and ``step`` for ``config`` (pure; jit and vmap them). The
+    configured faults (``config.faults``) act in the world only: the estimator and the controller are given the
+    map (``world.track``) and the nominal vehicle."""
+    faults = config.faults
 
     def reset(world: World, key: jax.Array) -> SimState:
         """The vehicle at rest at the course's start, level, with the motors at hover speed; ``key`` draws
-        the particle filter's initial cloud."""
+        the particle filter's initial cloud (and, folded, the faults' first draws)."""
         x0 = world.track.start
+        hover = jnp.asarray([0.0, 0.0, 0.0, 1.0], x0.dtype) * world.plant_params.hover_thrust
         return SimState(
-            tick=jnp.asarray(0, jnp.int32), plant=plant_lib.init_plant(x0, world.plant_params),
+            tick=jnp.asarray(0, jnp.int32),
+            plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
             filter=(pf_lib.pf_init(key, x0, config.pf, config.pf_initial_spread)
                     if config.estimator == "pf" else jnp.zeros(())),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
+            faults=faults_lib.init_fault_state(faults, key, world.track.gates, hover),
         )
 
     def observe(world: World, state: SimState, key: jax.Array) -> tuple[SimState, Observation]:
-        """Detect the target gate from the true pose (``key``: the geometric detector's noise and dropout)
-        and update the estimator with the last tick's IMU and the detection."""
-        track, x = world.track, state.plant.x
+        """Detect the target gate from the true pose (``key``: the geometric detector's noise and dropout, and
+        the detector's faults) and update the estimator with the last tick's IMU and the detection."""
+        track, x = faults_lib.true_track(world.track, state.faults), state.plant.x
         if config.detector == "image":
             detection = _image_detection(track, x, world.camera, state.target)
         else:
             detection = detector_lib.detect_from_geometry(
                 track.gate(state.target), x, world.camera, key, world.detector_noise_px, world.detector_dropout,
                 state.target)
-        if config.estimator == "pf":
-            filter_state, estimate, filter_info = pf_lib.pf_step(
-                state.filter, state.imu, detection, track, world.camera, config.pf)
-            x_est, cov_trace = estimate.mean.astype(x.dtype), filter_info.position_cov_trace
-            progress_est = _progress(track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
-        else:
-            filter_state, x_est, cov_trace, progress_est = state.filter, x, jnp.asarray(0.0), state.progress_s
+        detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
+        filter_state, x_est, cov_trace, progress_est, detection = _estimate(config, world, state, detection)
         observation = Observation(
             x_est=x_est, target_gate=state.target, progress_s=progress_est,
             target_visibility=target_visibility(world, state), detection=detection,
             position_cov_trace=cov_trace.astype(jnp.float32),
         )
-        return state._replace(filter=filter_state, progress_est_s=progress_est), observation
+        return state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state), observation
+
+    def fly(world: World, state: SimState, u: jax.Array, key: jax.Array):
+        """The plant over one tick under the configured latency, model error and wind, and the IMU the filter
+        reads (with its faults). -> (plant state, TickIMU, the faults' state)."""
+        fault_state = state.faults
+        if faults.latency_ticks:
+            u, queue = faults_lib.fifo(fault_state.commands, u)
+            fault_state = fault_state._replace(commands=queue)
+        plant_state, _, imu = plant_lib.plant_tick(state.plant, u, key, faults_lib.plant_params(world.plant_params,
+                                                                                                 faults),
+                                                   SUBSTEPS, wind=faults_lib.wind_velocity(faults, fault_state))
+        if faults.gust > 0:
+            fault_state = fault_state._replace(gust=faults_lib.gust_step(fault_state.gust, key, faults))
+        return plant_state, faults_lib.corrupt_imu(imu, faults, key), fault_state
 
     def step(world: World, state: SimState, u: jax.Array, key: jax.Array) -> SimState:
         """Fly command ``u`` (4,) for one tick (``key``: the plant's noise), then check the flown segment for
         gate passage and collisions, track the progress, and end the episode on a finish, a crash, a gate
         missed by more than ``missed_gate_margin_m``, or the time limit."""
-        track = world.track
+        track = faults_lib.true_track(world.track, state.faults)
         num_gates = track.num_gates
-        plant_state, _, imu = plant_lib.plant_tick(state.plant, u, key, world.plant_params, SUBSTEPS)
+        plant_state, imu, fault_state = fly(world, state, u, key)
         p0, p1 = state.plant.x[quadrotor.POS], plant_state.x[quadrotor.POS]
         passed = track_lib.gate_passed(track.gate(state.target), p0, p1)
         target = state.target + passed.astype(jnp.int32)
@@ -288,6 +349,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         end_cause = jnp.where(hit, cause, jnp.where(missed, CRASH_MISSED_GATE,
                                                     jnp.where(timeout & ~finished, CRASH_TIMEOUT, 0)))
         return state._replace(tick=tick, plant=plant_state, target=target, progress_s=progress, imu=imu,
-                              end_cause=end_cause.astype(jnp.int32), done=finished | hit | missed | timeout)
+                              end_cause=end_cause.astype(jnp.int32), done=finished | hit | missed | timeout,
+                              faults=fault_state)
 
     return Env(reset=reset, observe=observe, step=step, config=config)

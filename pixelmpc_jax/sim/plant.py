@@ -92,6 +92,10 @@ class PlantParams:
         lowpass_cutoff_hz, lowpass_damping: the gyro filter ``f'' = w_c^2 (gyro - f) - 2 zeta w_c f'``.
         rate_gain_p, rate_gain_i, rate_gain_d: rate PID gains (1/s, 1/s^2, 1), same on all axes.
         integrator_bound: bound on each PID integrator state (rad).
+        mixer_thrust_coefficient: the ``k_f`` the rate loop's mixer assumes when it turns torque and thrust
+            into motor speeds; None: the motors' own ``thrust_coefficient`` (a mixer that knows its motors). Set
+            apart from it, the motors make ``thrust_coefficient / mixer_thrust_coefficient`` times the commanded
+            thrust (a thrust-constant model error, :mod:`pixelmpc_jax.sim.faults`).
     """
 
     mass: float | jax.Array = 1.0
@@ -113,6 +117,7 @@ class PlantParams:
     rate_gain_i: float | jax.Array = 3.0
     rate_gain_d: float | jax.Array = 0.3
     integrator_bound: float | jax.Array = 1000.0
+    mixer_thrust_coefficient: float | jax.Array | None = None
 
     @classmethod
     def from_reference(cls, vehicle: dict) -> PlantParams:
@@ -290,10 +295,11 @@ def mix(torque: jax.Array, thrust: jax.Array, params: PlantParams) -> jax.Array:
     ``motor_wrench``, then clipped so each speed lies in ``[0, motor_speed_max]``."""
     dtype = torque.dtype
     signs = jnp.asarray(_MIX_SIGNS, dtype=dtype)  # (3, 4)
-    arm_kf = params.moment_arm * params.thrust_coefficient
+    k_f = params.thrust_coefficient if params.mixer_thrust_coefficient is None else params.mixer_thrust_coefficient
+    arm_kf = params.moment_arm * k_f
     scale = jnp.stack([arm_kf, arm_kf, jnp.asarray(params.torque_coefficient, dtype)]).astype(dtype)
     per_axis = torque / scale
-    speed_sq = (per_axis @ signs + thrust / params.thrust_coefficient) / 4.0  # (4,)
+    speed_sq = (per_axis @ signs + thrust / k_f) / 4.0  # (4,)
     speed_sq = jnp.clip(speed_sq, 0.0, params.motor_speed_max**2)
     return jnp.sqrt(speed_sq)
 
@@ -333,6 +339,13 @@ def specific_force_body(
     drag = -params.drag_coefficient * _safe_norm(v) * v
     world = rot[:, 2] * thrust / params.mass + drag / params.mass + accel_noise_world
     return rot.T @ world
+
+
+def wind_force(v: jax.Array, wind: jax.Array, params: PlantParams) -> jax.Array:
+    """(3,) N, what a wind ``wind`` (3,) (the air's world-frame velocity, m/s) adds to the still-air drag of a
+    vehicle at velocity ``v`` (3,): ``-c_d |v - w| (v - w) + c_d |v| v``."""
+    air = v - wind
+    return -params.drag_coefficient * (_safe_norm(air) * air - _safe_norm(v) * v)
 
 
 def _safe_norm(v: jax.Array) -> jax.Array:
@@ -378,11 +391,14 @@ def init_plant(x0: jax.Array, params: PlantParams) -> PlantState:
 
 
 def plant_substep(
-    state: PlantState, u_cmd: jax.Array, key: jax.Array, params: PlantParams, dt: float = PLANT_DT
+    state: PlantState, u_cmd: jax.Array, key: jax.Array, params: PlantParams, dt: float = PLANT_DT,
+    wind: jax.Array | None = None,
 ) -> tuple[PlantState, IMU]:
     """One 960 Hz step of the vehicle under the rate command ``u_cmd = [wx, wy, wz, thrust]`` (4,).
 
-    Returns the new state and the IMU sample taken at it.
+    ``wind``: (3,) the air's world-frame velocity, m/s (None: still air); the drag acts on the air-relative
+    velocity (:func:`wind_force`), and the accelerometer feels it. Returns the new state and the IMU sample
+    taken at it.
     """
     _check_inputs(state, u_cmd)
     dtype = state.x.dtype
@@ -402,7 +418,10 @@ def plant_substep(
     torque, thrust = motor_wrench(state.motor_speeds, params)
     quad = QuadParams(mass=params.mass, drag_coefficient=params.drag_coefficient, gravity=params.gravity)
     u_true = jnp.concatenate([state.rates, thrust[None]]).astype(dtype)
-    x_next = state.x + dt * dynamics(state.x, u_true, quad, w_f=params.mass * linear_noise)
+    external = params.mass * linear_noise
+    if wind is not None:
+        external = external + wind_force(state.x[7:10], wind, params)
+    x_next = state.x + dt * dynamics(state.x, u_true, quad, w_f=external)
     x_next = x_next.at[QUAT].set(normalize_quat(x_next[QUAT]))
     gyroscopic = jnp.cross(state.rates, inertia * state.rates)
     rates_dot = (torque - gyroscopic) / inertia + angular_noise
@@ -413,7 +432,8 @@ def plant_substep(
     )
 
     # IMU at the new state; the gyro sample feeds the low-pass for the next step's PID.
-    accel_true = specific_force_body(x_next, motors_next, linear_noise, params)
+    felt = linear_noise if wind is None else linear_noise + wind_force(x_next[7:10], wind, params) / params.mass
+    accel_true = specific_force_body(x_next, motors_next, felt, params)
     accel = accel_true + jnp.sqrt(params.accel_noise_variance) * jax.random.normal(key_accel, (3,), dtype)
     gyro = rates_next + jnp.sqrt(params.gyro_noise_variance) * jax.random.normal(key_gyro, (3,), dtype)
     filtered_rate, filtered_rate_dot = lowpass_update(
@@ -438,10 +458,12 @@ def plant_tick(
     params: PlantParams,
     substeps: int = SUBSTEPS_PER_TICK,
     dt: float = PLANT_DT,
+    wind: jax.Array | None = None,
 ) -> tuple[PlantState, IMU, TickIMU]:
     """One control period (``substeps * dt``, 1/40 s by default) with the command held, by ``lax.scan``.
 
     ``substeps`` is static (jit with ``static_argnames=("substeps",)``); the key is split once per substep.
+    ``wind``: (3,) m/s, held over the tick (see :func:`plant_substep`; None: still air).
 
     Returns:
         state: the plant after the tick.
@@ -453,7 +475,7 @@ def plant_tick(
     substep_keys = jax.random.split(key, substeps)
 
     def substep(carry, substep_key):
-        return plant_substep(carry, u_cmd, substep_key, params, dt)
+        return plant_substep(carry, u_cmd, substep_key, params, dt, wind)
 
     state, imus = jax.lax.scan(substep, state, substep_keys)  # each IMU field (substeps, 3)
     imu_last = jax.tree.map(lambda a: a[-1], imus)

@@ -1,0 +1,141 @@
+"""Guards of the particle filter against a lying detector and its own divergence (issue 28), both off by default.
+
+- **Detection gate** (``detection_gate_px``): after the motion update each particle predicts where the named
+  gate's centre appears in the image. A detection whose centre lies farther than the gate's radius from the
+  prediction of every particle but a share below :data:`GATE_MIN_SHARE` of the weight is rejected. The filter
+  then skips it, and the loop passes it on as "not found". Gating on the particles, not on their mean, keeps a
+  spread (or re-spread) cloud open to the detections that can bring it back.
+- **Divergence recovery** (``recover_error_px``): when a detection is informative but the best particle's summed
+  corner error still exceeds this many pixels, no particle explains it: the estimate has diverged. The
+  predicted particles are then re-spread by ``recover_spread`` (position m, attitude rad as a body rotation,
+  velocity m/s), their weights reset, and the detection weighs the re-spread cloud instead.
+
+:func:`guarded_pf_step` is :func:`~pixelmpc_jax.perception.particle_filter.pf_step` with the guards between the
+motion and the sensor update; with no guard on it is ``pf_step`` itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, VEL
+from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.world import camera as camera_lib
+
+GATE_MIN_SHARE = 0.01  # the weight share of particles that must place the gate near a detection to keep it
+
+
+@dataclasses.dataclass(frozen=True)
+class GuardConfig:
+    """Static settings of the filter's guards (hashable; None: the guard is off).
+
+    Attributes:
+        detection_gate_px: pixels, the radius around the particles' predicted gate centre within which a
+            detection's centre is kept.
+        recover_error_px: pixels, the best particle's summed corner error above which the filter re-spreads.
+        recover_spread: (position m, attitude rad, velocity m/s) stds of the re-spread.
+    """
+
+    detection_gate_px: float | None = None
+    recover_error_px: float | None = None
+    recover_spread: tuple = (1.0, 0.05, 0.5)
+
+    def __post_init__(self):
+        for name in ("detection_gate_px", "recover_error_px"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float)) and 0 < value < math.inf):
+                raise ValueError(f"{name} must be a positive finite number of pixels or None, got {value!r}")
+            object.__setattr__(self, name, None if value is None else float(value))
+        spread = tuple(float(s) for s in self.recover_spread)
+        if len(spread) != 3 or not all(math.isfinite(s) and s >= 0 for s in spread):
+            raise ValueError(f"recover_spread must be 3 finite stds >= 0 (position, attitude, velocity), got "
+                             f"{self.recover_spread!r}")
+        object.__setattr__(self, "recover_spread", spread)
+
+    @property
+    def active(self) -> bool:
+        return self.detection_gate_px is not None or self.recover_error_px is not None
+
+
+class GuardInfo(NamedTuple):
+    """What the guards did at a tick. accepted: () bool, the detection passed the gate (True without it);
+    recovered: () bool, the filter re-spread its particles."""
+
+    accepted: jax.Array
+    recovered: jax.Array
+
+
+def detection_accepted(state: pf_lib.PFState, detection, gates, camera: camera_lib.Camera,
+                       gate_px: float) -> jax.Array:
+    """() bool: no detection, a detection of no named gate, or one whose centre lies within ``gate_px`` pixels of
+    the named gate's centre as particles holding at least :data:`GATE_MIN_SHARE` of the weight see it."""
+    gate_id = jnp.asarray(detection.gate_id, jnp.int32)
+    centre = gates.centre[jnp.clip(gate_id, 0, gates.centre.shape[0] - 1)]
+    uv, _, in_front = jax.vmap(lambda x: camera_lib.project(centre, x, camera))(state.particles)  # (P, 2), (P,)
+    scale = jnp.asarray([camera.width, camera.height], uv.dtype)
+    distance = jnp.linalg.norm((uv - jnp.asarray(detection.centre, uv.dtype)) * scale, axis=-1)  # (P,) px
+    share = jnp.sum(jnp.exp(state.log_weights) * (in_front & (distance <= gate_px)))
+    found = jnp.asarray(detection.found, bool)
+    return ~found | (gate_id < 0) | (share >= GATE_MIN_SHARE)
+
+
+def respread(state: pf_lib.PFState, spread: tuple, key: jax.Array) -> pf_lib.PFState:
+    """The particles each moved by Gaussian noise of ``spread`` (position m, attitude rad, velocity m/s), uniform
+    weights."""
+    P = state.particles.shape[0]
+    key_pos, key_att, key_vel = jax.random.split(key, 3)
+    position_std, attitude_std, velocity_std = spread
+    particles = state.particles
+    q = jax.vmap(lambda q, d: quadrotor.quat_multiply(q, quadrotor.quat_exp(d, 1.0)))(
+        particles[:, QUAT], attitude_std * jax.random.normal(key_att, (P, 3), particles.dtype))
+    particles = jnp.concatenate([
+        particles[:, POS] + position_std * jax.random.normal(key_pos, (P, 3), particles.dtype),
+        quadrotor.normalize_quat(q),
+        particles[:, VEL] + velocity_std * jax.random.normal(key_vel, (P, 3), particles.dtype)], axis=-1)
+    return state.replace(particles=particles, log_weights=jnp.full((P,), -math.log(P), state.log_weights.dtype))
+
+
+def _error_log_likelihood(error_px: float, config: pf_lib.PFConfig) -> float:
+    """The log-likelihood of a summed corner error of ``error_px`` pixels under the filter's likelihood."""
+    scaled = error_px / config.measurement_sigma_px
+    return -0.5 * scaled * scaled if config.likelihood == "gaussian" else -scaled
+
+
+def _recover(state: pf_lib.PFState, detection, track, camera, config: pf_lib.PFConfig, guards: GuardConfig):
+    """``(state, recovered)``: the predicted filter, re-spread when no particle explains ``detection``."""
+    key, key_spread = jax.random.split(state.key)
+    state = state.replace(key=key)
+    _, _, max_ll = pf_lib.pf_update(state, detection, track.gates, camera, config)
+    informative = jnp.asarray(detection.found, bool) & (jnp.asarray(detection.gate_id) >= 0)
+    diverged = informative & (max_ll < _error_log_likelihood(guards.recover_error_px, config))
+    spread = respread(state, guards.recover_spread, key_spread)
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, a, b), spread, state), diverged
+
+
+def guarded_pf_step(state: pf_lib.PFState, imu, detection, track, camera: camera_lib.Camera,
+                    config: pf_lib.PFConfig, guards: GuardConfig):
+    """One control tick of the filter with its guards: predict with ``imu``, gate ``detection``, re-spread a
+    diverged cloud, then update, estimate and resample (:func:`~pixelmpc_jax.perception.particle_filter.pf_step`).
+
+    Returns ``(state, estimate, info, GuardInfo)``; the detection as the loop should use it is the given one with
+    ``found`` and ``corners_visible`` masked by ``GuardInfo.accepted``."""
+    if not guards.active:
+        state, estimate, info = pf_lib.pf_step(state, imu, detection, track, camera, config)
+        return state, estimate, info, GuardInfo(jnp.asarray(True), jnp.asarray(False))
+    state = pf_lib.pf_predict(state, imu, config)
+    accepted = jnp.asarray(True)
+    if guards.detection_gate_px is not None:
+        accepted = detection_accepted(state, detection, track.gates, camera, guards.detection_gate_px)
+        detection = detection.replace(found=detection.found & accepted,
+                                      corners_visible=detection.corners_visible & accepted)
+    recovered = jnp.asarray(False)
+    if guards.recover_error_px is not None:
+        state, recovered = _recover(state, detection, track, camera, config, guards)
+    state, estimate, info = pf_lib.pf_step(state, None, detection, track, camera, config)
+    return state, estimate, info, GuardInfo(accepted, recovered)
