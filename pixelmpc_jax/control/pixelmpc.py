@@ -102,6 +102,10 @@ class PixelMPCConfig:
             fill the view cannot be kept whole in it by any attitude; its pixel then only pulls the drone off the
             gate's centre line. None: counted until the gate is passed, as the other models (for which it is
             always None: a preset's limit does not stop another model's pixel cost).
+        model_latency_ticks: control ticks between a command and its effect that the controller's model
+            predicts across (0-3; 0: none, the paper's). The controller in the loop then plans from the
+            estimate rolled forward through the commands it sent and the plant has not applied yet. For a known
+            actuation latency (:class:`~pixelmpc_jax.sim.faults.Faults`); nominal MPPI flies it too.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -115,6 +119,7 @@ class PixelMPCConfig:
     pixel_cost: str = "l1"
     border_margin: float = 0.15
     box_size_limit: float | None = None
+    model_latency_ticks: int = 0
 
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
@@ -137,6 +142,9 @@ class PixelMPCConfig:
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
         if self.box_size_limit is not None and not (0.0 < self.box_size_limit < math.inf):
             raise ValueError(f"box_size_limit must be a positive finite number or None, got {self.box_size_limit!r}")
+        if isinstance(self.model_latency_ticks, bool) or self.model_latency_ticks not in range(4):
+            raise ValueError(f"model_latency_ticks must be an integer in [0, 3], got {self.model_latency_ticks!r}")
+        object.__setattr__(self, "model_latency_ticks", int(self.model_latency_ticks))
         if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
             object.__setattr__(self, "box_size_limit", None)
 

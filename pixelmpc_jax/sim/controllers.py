@@ -14,7 +14,8 @@ def make_policy(controller: str, config=None) -> policies.Policy:
     """The named controller as an episode Policy.
 
     Args:
-        controller: "mppi", the paper's nominal MPPI, flying ``config.mppi`` and ``config.racing``; or
+        controller: "mppi", the paper's nominal MPPI, flying ``config.mppi``, ``config.racing`` and
+            ``config.model_latency_ticks``; or
             "pixelmpc", flying all of ``config``.
         config: a :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` (None: its defaults).
     """
@@ -24,5 +25,5 @@ def make_policy(controller: str, config=None) -> policies.Policy:
 
     config = PixelMPCConfig() if config is None else config
     if controller == "mppi":
-        return policies.nominal_mppi_policy(config.mppi, config.racing)
+        return policies.nominal_mppi_policy(config.mppi, config.racing, latency_ticks=config.model_latency_ticks)
     return policies.pixelmpc_policy(config)

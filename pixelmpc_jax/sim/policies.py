@@ -46,47 +46,67 @@ class RacingPolicyState(NamedTuple):
             first plan).
         racing_constants: the racing cost's per-track constants (the path's samples, tangents and speed cap),
             computed once per episode by ``init``.
+        pending: (L, 4) the last L commands sent, oldest first, with a model latency of L ticks (None without).
     """
 
     mppi: Any
     step_progress: jax.Array
     racing_constants: costs.RacingConstants
+    pending: jax.Array | None = None
+
+
+def predict_through(x: jax.Array, pending: jax.Array, quad_params: quadrotor.QuadParams, dt: float) -> jax.Array:
+    """The state (10,) after the commands ``pending`` (L, 4), oldest first, by the controller's model
+    (:func:`~pixelmpc_jax.dynamics.quadrotor.step`): where the vehicle will be when the next command acts."""
+
+    def one(x, u):
+        return quadrotor.step(x, u, dt, quad_params), None
+
+    return jax.lax.scan(one, x, pending)[0]
 
 
 def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
-                  quad_params: quadrotor.QuadParams) -> Policy:
+                  quad_params: quadrotor.QuadParams, latency_ticks: int = 0) -> Policy:
     """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
 
     ``build(obs, world, racing_params) -> (x0, params)`` makes the controller's state and params from an
     observation; the nominal trajectory's first 10 columns must be the robot state. Each tick cuts the
     racing cost's path windows (Eq. 19) around the progress the previous plan predicted for each step, from
-    the per-track constants ``init`` computed for the episode's world.
+    the per-track constants ``init`` computed for the episode's world. With ``latency_ticks`` L the controller
+    plans from the estimate rolled forward through its last L commands (:func:`predict_through`), which a plant
+    with that actuation latency has not applied yet.
     """
     horizon = mppi_config.horizon
 
     def init(key: jax.Array, world: World) -> RacingPolicyState:
-        return RacingPolicyState(ctrl.init(key, quadrotor.hover_control(quad_params)),
-                                 jnp.full((horizon,), jnp.nan, jnp.float32),
-                                 costs.racing_constants(world.track, cost_config))
+        hover = quadrotor.hover_control(quad_params)
+        pending = jnp.broadcast_to(hover, (latency_ticks, hover.shape[0])) if latency_ticks else None
+        return RacingPolicyState(ctrl.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
+                                 costs.racing_constants(world.track, cost_config), pending)
 
     def act(state: RacingPolicyState, obs: Observation, world: World):
         # First tick: no previous plan, every step's path window starts at the current progress.
         step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
         racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config,
                                      state.racing_constants)
+        if latency_ticks:
+            obs = obs._replace(x_est=predict_through(obs.x_est, state.pending, quad_params, mppi_config.dt))
         x0, params = build(obs, world, racing)
         u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
-        return u, RacingPolicyState(mppi_state, next_progress, state.racing_constants), info.nominal_trajectory
+        pending = jnp.concatenate([state.pending[1:], u[None].astype(state.pending.dtype)]) if latency_ticks else None
+        return (u, RacingPolicyState(mppi_state, next_progress, state.racing_constants, pending),
+                info.nominal_trajectory)
 
     return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
 
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
                         cost_config: costs.RacingCostConfig | None = None,
-                        quad_params: quadrotor.QuadParams | None = None) -> Policy:
-    """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only."""
+                        quad_params: quadrotor.QuadParams | None = None, latency_ticks: int = 0) -> Policy:
+    """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only (``latency_ticks``:
+    the actuation latency its model predicts across, see :func:`racing_policy`)."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
     quad_params = quad_params or quadrotor.QuadParams()
@@ -95,7 +115,7 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     def build(obs, world, racing):
         return obs.x_est, racing
 
-    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params)
+    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks)
 
 
 def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
@@ -120,4 +140,4 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
         return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
 
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
-                         quad_params)
+                         quad_params, config.model_latency_ticks)
