@@ -1,5 +1,6 @@
 """The ``pixelmpc`` command's argument types: each checks one argument as it is parsed and returns its value, or
-raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs)."""
+raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs). Also the race's
+fault flags (:func:`add_fault_flags`) and the race they make (:func:`with_faults`)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import os
 from pathlib import Path
 
 SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
+GUARD = "guard:"  # the dest of a race flag that sets one of the particle filter's guards: GUARD + its field
 
 
 
@@ -116,6 +118,73 @@ def weights_file(path: str) -> Path:
         reason = "it is a directory" if file.is_dir() else "no such file"
         raise argparse.ArgumentTypeError(f"no DOF weights file at {path!r}: {reason}")
     return file
+
+
+def fault(text: str) -> dict:
+    """A fault, ``NAME=VALUE``: a field of :class:`~pixelmpc_jax.sim.faults.Faults` and its value (``wind=3,0,0``,
+    three numbers for a vector; ``latency_ticks=2``), or a named fault of
+    :data:`~pixelmpc_jax.sim.faults.FAULT_LEVELS` at a level (``gust=moderate``, ``combined=severe``). Returns the
+    ``{field: value}`` it sets; a bad entry is one line naming it and what the fault takes."""
+    import dataclasses
+
+    from pixelmpc_jax.sim import faults as faults_lib
+
+    name, sep, value = (part.strip() for part in text.partition("="))
+    named = (*faults_lib.FAULT_LEVELS, faults_lib.COMBINED)
+    fields = [f.name for f in dataclasses.fields(faults_lib.Faults)]
+    if not sep or not name or not value:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    if name in named and value in faults_lib.LEVELS:
+        level = faults_lib.fault_level(name, value)
+        return {field: getattr(level, field) for field in level.active()}
+    if name not in fields:
+        raise argparse.ArgumentTypeError(
+            f"unknown fault {name!r} in {text!r}; choose a setting ({', '.join(fields)}) or a named fault "
+            f"({', '.join(named)}) at {' or '.join(faults_lib.LEVELS)}")
+    if name in faults_lib.VECTOR_FIELDS and len(value.split(",")) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r}: fault {name} takes 3 numbers x,y,z, comma-separated")
+    try:
+        parsed = tuple(float(v) for v in value.split(",")) if name in faults_lib.VECTOR_FIELDS else float(value)
+        if name in faults_lib.INT_FIELDS and parsed.is_integer():
+            parsed = int(parsed)
+        faults_lib.Faults(**{name: parsed})
+    except ValueError as err:
+        message = str(err) if "fault" in str(err) else f"fault {name} takes a number, got {value!r}"
+        raise argparse.ArgumentTypeError(f"{text!r}: {message}") from None
+    return {name: parsed}
+
+
+def add_fault_flags(p: argparse.ArgumentParser) -> None:
+    """The race's faults (``--fault``, repeatable) and the particle filter's guards against them (each guard flag
+    sets one field of ``RaceSpec.guards``: dest :data:`GUARD` + its field)."""
+    from pixelmpc_jax.sim.faults import FAULT_LEVELS
+
+    p.add_argument("--fault", type=fault, action="append", default=None, metavar="NAME=VALUE",
+                   help="a fault of the world the controller does not model (repeatable): a setting of "
+                        "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; "
+                        "latency_ticks=1; miss_rate=0.2; map_error_m=0.3; ...) or a named fault at a level "
+                        f"({', '.join((*FAULT_LEVELS, 'combined'))}=moderate|severe) (default: none)")
+    p.add_argument("--detection-gate", type=float_in(0.0, 1e4, lo_open=True, unit="px"), default=None,
+                   dest=GUARD + "detection_gate_px", metavar="PX",
+                   help="with --estimator pf: reject a detection farther than PX pixels from where the filter's "
+                        "particles put the gate (default: off)")
+    p.add_argument("--pf-recover", type=float_in(0.0, 1e5, lo_open=True, unit="px"), default=None,
+                   dest=GUARD + "recover_error_px", metavar="PX",
+                   help="with --estimator pf: re-spread the particles when no particle explains a detection within "
+                        "PX pixels summed over its corners (default: off)")
+
+
+def with_faults(args, spec):
+    """``spec`` (a RaceSpec) with the faults of the ``--fault`` entries (in order: a later entry of a setting wins)
+    and the filter's guards the guard flags set."""
+    import dataclasses
+
+    if args.fault:
+        settings = {name: value for entry in args.fault for name, value in entry.items()}
+        spec = spec.replace(faults=dataclasses.replace(spec.faults, **settings))
+    guards = {dest[len(GUARD):]: value for dest, value in vars(args).items() if dest.startswith(GUARD)
+              and value is not None}
+    return spec.replace(guards=dataclasses.replace(spec.guards, **guards)) if guards else spec
 
 
 def course(text: str) -> str:

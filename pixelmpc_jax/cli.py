@@ -122,6 +122,7 @@ def _race_spec(args):
               "max_time_s": args.max_time, "dof_weights": args.dof_weights}
     spec = base.replace(config=_controller_config(args, base.config),
                         **{name: value for name, value in fields.items() if value is not None})
+    spec = arg.with_faults(args, spec)
     if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
         if spec.config.pixel_model != "vdof":
             raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
@@ -488,6 +489,9 @@ def _add_race(sub) -> None:
                    help="perturb the gates per lap within the AlphaPilot bounds")
     p.add_argument("--max-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=None,
                    help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default 60)")
+    _setting(p, "--model-latency", "model_latency_ticks", "ticks of actuation latency the controller's model "
+             "predicts across, in [0, 3] (0: none)", type=arg.int_in(0, 3))
+    arg.add_fault_flags(p)
     p.set_defaults(func=_cmd_race, validate=_seed_range, precheck=_check_race)
 
 

@@ -62,7 +62,7 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
         sample_devices = usable_sample_devices(spec.config.mppi.num_samples)
     policy = spec.policy(sample_devices=sample_devices)
     episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
-                                               estimator=spec.estimator)
+                                               estimator=spec.estimator, guards=spec.guards, faults=spec.faults)
     if dof_params is None:
         dof_params = spec.packaged_dof()
     base = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
@@ -86,13 +86,18 @@ def _fly_batch(flight: _Flight, seeds: list[int], batch_size: int, perturb: bool
 
 def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -> dict:
     """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`), with the filter's figures when the race
-    flies on its estimate, and the lap's seed."""
+    flies on its estimate (its mean and largest position error), whether the vehicle turned upside down, and the
+    lap's seed."""
     lap = metrics_lib.lap_metrics(log, track=track, camera=camera)
+    n = int(log.num_ticks)
     if spec.estimator == "pf":
-        n = int(log.num_ticks)
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
         lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
+        lap["max_position_error_m"] = float(np.max(errors)) if n else None
+    quaternions = np.asarray(log.states)[:n + 1, 3:7]
+    # the body's z axis (the thrust) below the horizon: the world z of its third column, 1 - 2 (qx^2 + qy^2) < 0
+    lap["flipped"] = bool(np.any(1.0 - 2.0 * (quaternions[:, 1] ** 2 + quaternions[:, 2] ** 2) < 0.0))
     lap["seed"] = seed
     return lap
 

@@ -23,9 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, PixelMPCConfig
+from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
+from pixelmpc_jax.sim.faults import Faults
 
 COURSES = ("alphapilot", "straight")
+# Settings added after races were recorded: left out of the record while at their defaults, so every race flown
+# before them keeps its record and its key (a record that lacks them reads back as the defaults).
+LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"))
 
 
 def _default_config() -> PixelMPCConfig:
@@ -38,8 +43,9 @@ class RaceSpec:
 
     Attributes:
         controller: "mppi" (nominal MPPI) or "pixelmpc".
-        config: the controller's configuration. Nominal MPPI flies its ``mppi`` and ``racing``; its PixelMPC
-            fields are reset to their defaults for a nominal race (they fly nothing there), and
+        config: the controller's configuration. Nominal MPPI flies its ``mppi``, ``racing`` and
+            ``model_latency_ticks``; its PixelMPC fields are reset to their defaults for a nominal race (they fly
+            nothing there), and
             ``mppi.sample_devices`` to 1 (how a step runs, not what it computes: :meth:`policy` sets it).
         speed: target speed, m/s.
         laps: number of laps.
@@ -54,6 +60,10 @@ class RaceSpec:
             (:data:`~pixelmpc_jax.dynamics.dof.PACKAGED_VARIANTS`: "flown", "turned"), or the fingerprint
             (:func:`dof_weights_hash`) of other weights; None for the packaged paper weights. Always None for a
             race that does not evaluate the DOF.
+        guards: the particle filter's guards (:class:`~pixelmpc_jax.perception.filter_guards.GuardConfig`); reset
+            to none for a race on the true state.
+        faults: what the world does beyond the controller's model (:class:`~pixelmpc_jax.sim.faults.Faults`;
+            none by default).
     """
 
     controller: str = "mppi"
@@ -67,6 +77,8 @@ class RaceSpec:
     estimator: str = "truth"
     max_time_s: float = 60.0
     dof_weights: str | None = None
+    guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
+    faults: Faults = dataclasses.field(default_factory=Faults)
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -84,10 +96,16 @@ class RaceSpec:
         object.__setattr__(self, "max_time_s", float(self.max_time_s))
         mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
         if self.controller == "mppi":
-            config = PixelMPCConfig(mppi=mppi, racing=self.config.racing)
+            config = PixelMPCConfig(mppi=mppi, racing=self.config.racing,
+                                    model_latency_ticks=self.config.model_latency_ticks)
         else:
             config = dataclasses.replace(self.config, mppi=mppi)
         object.__setattr__(self, "config", config)
+        if not isinstance(self.faults, Faults) or not isinstance(self.guards, GuardConfig):
+            raise ValueError(f"faults must be a Faults and guards a GuardConfig, got {type(self.faults).__name__} "
+                             f"and {type(self.guards).__name__}")
+        if self.estimator != "pf":  # the filter's guards fly nothing on the true state
+            object.__setattr__(self, "guards", GuardConfig())
         packaged_dof_name = self.dof_weights in _packaged_variants()
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
@@ -103,8 +121,16 @@ class RaceSpec:
 
     def record(self) -> dict:
         """The spec in JSON types: its fields, the configuration nested as its dataclasses (tuples as lists once
-        written). :meth:`from_record` reads it back."""
-        return dataclasses.asdict(self)
+        written), less the :data:`LATER_SETTINGS` at their defaults. :meth:`from_record` reads it back."""
+        record = dataclasses.asdict(self)
+        default = dataclasses.asdict(RaceSpec())
+        for *parents, name in LATER_SETTINGS:
+            node, default_node = record, default
+            for parent in parents:
+                node, default_node = node[parent], default_node[parent]
+            if node[name] == default_node[name]:
+                del node[name]
+        return record
 
     @classmethod
     def from_record(cls, record: dict) -> RaceSpec:
