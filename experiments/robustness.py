@@ -1,0 +1,35 @@
+"""Robustness to the faults a real flight brings (issue 28): nominal MPPI and PixelMPC (the ``best`` preset) at the
+paper's pace under wind, model error, latency, IMU and detector faults and map errors, each alone at a moderate and
+a severe level and all moderate ones at once, on the particle filter (and at the moderate level on the true state).
+
+    python experiments/robustness.py --out DIR [--quick] [--levers] [--reuse FOLDER ...]
+
+Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
+robustness.png and results.json. Interrupted runs resume: finished cells are kept.
+"""
+
+import argparse
+from pathlib import Path
+
+from pixelmpc_jax.apps.robustness import robustness_experiment
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("experiments/results/robustness"))
+    parser.add_argument("--quick", action="store_true",
+                        help="a smoke run: 2 laps per cell, the moderate level on the particle filter only")
+    parser.add_argument("--levers", action="store_true",
+                        help="also fly the filter cells with the levers (the filter's guards, the model latency)")
+    parser.add_argument("--reuse", type=Path, nargs="*", default=(),
+                        help="other grids' output folders whose finished fault-free cells are copied, not flown")
+    parser.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
+    args = parser.parse_args(argv)
+    rows = robustness_experiment(args.out, quick=args.quick, levers=args.levers, reuse=args.reuse,
+                                 run=not args.report_only)
+    print((args.out / "REPORT.md").read_text())
+    return rows
+
+
+if __name__ == "__main__":
+    main()

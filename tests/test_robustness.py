@@ -1,0 +1,117 @@
+"""The robustness grid of issue 28: its cells (every fault at both levels and combined, both controllers, the estimators
+the issue names, the laps per cell), the failure causes, the report written from stub results, and a run that flies
+each cell with its laps and shares the fault-free ones."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pixelmpc_jax.apps import grid, race
+from pixelmpc_jax.apps import robustness as R
+from pixelmpc_jax.apps.presets import PAPER_PACE_SPEED
+from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, Faults, fault_level
+
+
+def _by_name(cells):
+    return {rc.cell.name: rc for rc in cells}
+
+
+def test_the_grid_flies_every_fault_at_both_levels_and_combined_for_both_controllers():
+    cells = _by_name(R.robustness_cells())
+    for fault in FAULT_LEVELS:
+        for controller in R.CONTROLLERS:
+            assert cells[f"{controller}_pf_{fault}_moderate"].laps == 10
+            assert cells[f"{controller}_pf_{fault}_severe"].laps == 6
+            assert f"{controller}_truth_{fault}_severe" not in cells  # the truth at the moderate level only
+    for controller in R.CONTROLLERS:
+        assert cells[f"{controller}_pf_{COMBINED}_moderate"].cell.spec.faults == fault_level(COMBINED, "moderate")
+        assert cells[f"{controller}_pf_none"].laps == cells[f"{controller}_truth_none"].laps == 10
+        assert cells[f"{controller}_truth_wind_moderate"].laps == 6
+    spec = cells["pixelmpc_pf_gust_severe"].cell.spec
+    assert spec.speed == PAPER_PACE_SPEED and spec.config.pixel_model == "vdof" and spec.estimator == "pf"
+    assert spec.faults == Faults(gust=FAULT_LEVELS["gust"]["severe"].settings["gust"])
+    assert cells["mppi_pf_none"].cell.spec.controller == "mppi" and cells["mppi_pf_none"].cell.spec.faults == Faults()
+    assert len({rc.cell.spec.key() for rc in cells.values()}) == len(cells)
+
+
+def test_a_fault_that_cannot_reach_a_loop_is_left_out_and_quick_is_the_moderate_filter_cells():
+    names = set(_by_name(R.robustness_cells()))
+    assert "pixelmpc_truth_imu_bias_moderate" not in names and "pixelmpc_truth_miss_moderate" in names
+    assert "mppi_truth_miss_moderate" not in names and "mppi_truth_map_moderate" in names
+    quick = R.robustness_cells(quick=True)
+    assert {rc.laps for rc in quick} == {2} and {rc.estimator for rc in quick} == {"pf"}
+    assert {rc.level for rc in quick} == {None, "moderate"} and len(quick) == 2 * (len(FAULT_LEVELS) + 2)
+
+
+def test_the_levers_fly_the_filter_cells_again_with_the_guards_and_the_known_latency():
+    cells = _by_name(R.robustness_cells(quick=True, levers=True))
+    lever = cells["pixelmpc_pf_latency_moderate_levers"].cell.spec
+    assert lever.guards == R.GUARDS and lever.config.model_latency_ticks == lever.faults.latency_ticks == 1
+    assert cells["mppi_pf_miss_moderate_levers"].cell.spec.config.model_latency_ticks == 0
+    assert "pixelmpc_pf_none_levers" not in cells
+
+
+@pytest.mark.parametrize("lap, cause", [
+    ({"success": True}, None), ({"success": False, "crash": "gate", "max_position_error_m": 0.4}, "gate"),
+    ({"success": False, "crash": "wall", "max_position_error_m": 2.5}, "estimate_diverged"),
+    ({"success": False, "crash": "ground", "flipped": True}, "flip"), ({"success": False, "crash": None}, "timeout"),
+])
+def test_every_failed_lap_has_a_named_cause(lap, cause):
+    assert R.failure_cause(lap) == cause
+
+
+def _lap(success: bool, crash=None, error=0.3) -> dict:
+    return {"success": success, "crash": crash, "lap_time_s": 31.0 if success else None, "time_vis_below_50_s": 2.0,
+            "time_vis_zero_s": 0.5, "share_target_in_view": 0.9, "mean_target_angle_deg": 12.0,
+            "max_position_error_m": error, "flipped": False, "seed": 200}
+
+
+@pytest.fixture
+def flown(monkeypatch):
+    """race.run_laps replaced: every lap succeeds without faults, every other lap under a fault fails with a
+    diverged estimate; records the races flown."""
+    from pixelmpc_jax.sim.metrics import aggregate
+
+    calls = []
+
+    def run_laps(spec, **kwargs):
+        calls.append(spec)
+        laps = [_lap(not spec.faults.active() or i % 2 == 0, "gate", 3.0 * (i % 2)) for i in range(spec.laps)]
+        return {"laps": laps, "aggregate": aggregate(laps), "interrupted": False, "seed": spec.seed,
+                "trajectories": [np.zeros((2, 10))] * spec.laps, "covariances": []}
+
+    monkeypatch.setattr(race, "run_laps", run_laps)
+    return calls
+
+
+def test_a_run_flies_each_cell_with_its_laps_and_writes_the_report(tmp_path, flown):
+    rows = R.robustness_experiment(tmp_path, quick=True, progress=False)
+    assert len(flown) == len(rows) == len(R.robustness_cells(quick=True))
+    assert {spec.laps for spec in flown} == {2} and {spec.seed for spec in flown} == {R.SEED}
+    row = next(r for r in rows if r["cell"] == "pixelmpc_pf_wind_moderate")
+    assert row["successes"] == 1 and row["failures"] == {"estimate_diverged": 1}
+    report = (tmp_path / "REPORT.md").read_text()
+    assert "| wind | moderate | 1/2 | 1/2 |" in report  # the glance table: nominal MPPI, PixelMPC on the filter
+    assert "estimate diverged 1" in report and FAULT_LEVELS["map"]["severe"].why in report
+    saved = json.loads((tmp_path / "robustness.json").read_text())
+    assert len(saved["rows"]) == len(rows) and saved["levels"]["gust"]["moderate"]["why"]
+    assert (tmp_path / "robustness.png").stat().st_size > 10_000
+    flown.clear()
+    R.robustness_experiment(tmp_path, quick=True, progress=False)
+    assert flown == []  # every cell kept
+
+
+def test_the_fault_free_cells_are_copied_from_another_grid(tmp_path, flown):
+    other = tmp_path / "table2"
+    cells = [rc.cell for rc in R.robustness_cells(quick=True) if rc.fault == R.NONE]
+    grid.run_grid(cells, other, laps=2, seed=R.SEED, progress=False)
+    flown.clear()
+    rows = R.robustness_experiment(tmp_path / "robustness", quick=True, progress=False, reuse=(other,))
+    assert all(spec.faults.active() for spec in flown) and len(flown) == len(rows) - len(cells)
+    assert {r["shared_from"] for r in rows if r["fault"] == R.NONE} == {f"table2/{c.name}" for c in cells}
+
+
+def test_the_report_of_finished_cells_only(tmp_path):
+    rows = R.robustness_experiment(tmp_path, quick=True, run=False)
+    assert rows == [] and "Not yet run" in (tmp_path / "REPORT.md").read_text()
