@@ -74,3 +74,20 @@ def test_a_resumed_grid_part_reports_the_wall_time_of_all_its_cells(tmp_path):
     (tmp_path / "results.json").write_text(json.dumps({"a": {"wall_time_s": 100.0}, "b": {"wall_time_s": 200.0}}))
     assert R._part_wall_time(tmp_path, 12.0) == 300.0
     assert R._part_wall_time(tmp_path, 400.0) == 400.0
+
+
+def test_the_report_opens_with_the_presets_and_the_measured_pace(tmp_path):
+    """The overview prints our nominal lap at each recorded pace beside the paper's, and where this run's own
+    frontier puts the paper's lap (linear between the nominal points)."""
+    from pixelmpc_jax.apps.presets import PAPER_PACE_SPEEDS
+
+    nominal = [{"speed": 8.0, "lap_time_s": 33.0, "lap_time_two_sigma_s": 1.0},
+               {"speed": PAPER_PACE_SPEEDS[14.0], "lap_time_s": 31.0, "lap_time_two_sigma_s": 0.5},
+               {"speed": 10.0, "lap_time_s": 27.0, "lap_time_two_sigma_s": 0.5}]
+    (tmp_path / "frontier").mkdir()
+    (tmp_path / "frontier" / "frontier.json").write_text(json.dumps({"nominal": nominal}))
+    text = "\n".join(R._overview(tmp_path))
+    assert "`best`:" in text and "`paper`:" in text
+    # 31.8 s lies between 33.0 s (8 m/s) and 31.0 s (8.5 m/s): 8 + 0.5 * 1.2 / 2 = 8.30 m/s
+    assert "| 14 m/s | 31.8 | 8.5 m/s | 31.0 ± 0.5 | 8.30 m/s |" in text
+    assert "| 20 m/s | - (straight lane) | 10.3 m/s | - | - |" in text
