@@ -491,6 +491,8 @@ def _add_race(sub) -> None:
                    help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default 60)")
     _setting(p, "--model-latency", "model_latency_ticks", "ticks of actuation latency the controller's model "
              "predicts across, in [0, 3] (0: none)", type=arg.int_in(0, 3))
+    _setting(p, "--disturbance-observer", "disturbance_time_constant_s", "s: the controller's model learns an "
+             "external push (wind, model error) with this time constant, in [0.025, 60]", type=arg.float_in(0.025, 60))
     arg.add_fault_flags(p)
     p.set_defaults(func=_cmd_race, validate=_seed_range, precheck=_check_race)
 

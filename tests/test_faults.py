@@ -267,6 +267,26 @@ def test_without_guards_the_guarded_step_is_the_filters_step():
         guards_lib.GuardConfig(detection_gate_px=0.0)
 
 
+def test_the_disturbance_observer_learns_a_constant_push_with_its_time_constant():
+    """The model's step adds dt a to the velocity; the observer integrates the residual of its one-tick prediction
+    (a <- a + (v - v_expected) / tau), so a push the model lacks is learnt as 1 - (1 - dt / tau)^k."""
+    params, dt, tau = Q.QuadParams(), CONTROL_DT, 0.25
+    x, u, push = _level_state((3.0, 0.0, 0.0)), HOVER + jnp.asarray([0.2, 0.0, 0.0, 1.0]), jnp.asarray([2.0, -1.0, 0.5])
+    np.testing.assert_allclose(PM.disturbed_step(x, u, dt, params, push),
+                               Q.step(x, u, dt, params).at[7:10].add(dt * push), atol=1e-6)
+    assert PM.disturbed_step(x, u, dt, params, None) is not None
+    np.testing.assert_array_equal(policies.disturbance_update(push, jnp.full(10, jnp.nan), x, tau), push)
+
+    def tick(estimate, _):
+        expected = PM.disturbed_step(x, u, dt, params, estimate)
+        return policies.disturbance_update(estimate, expected, PM.disturbed_step(x, u, dt, params, push), tau), None
+
+    learnt = jax.lax.scan(tick, jnp.zeros(3), None, length=20)[0]
+    np.testing.assert_allclose(learnt, push * (1 - (1 - dt / tau) ** 20), rtol=1e-4)
+    with pytest.raises(ValueError, match="disturbance_time_constant_s"):
+        PM.PixelMPCConfig(disturbance_time_constant_s=0.0)
+
+
 def test_the_model_latency_rolls_the_estimate_through_the_pending_commands():
     params = Q.QuadParams()
     pending = jnp.asarray([[0.5, 0.0, 0.0, 12.0], [0.0, -0.3, 0.2, 8.0]], jnp.float32)
@@ -286,13 +306,14 @@ SMALL = PM.paper_mppi_config(num_samples=32, horizon=12)
 
 @pytest.fixture(scope="module", params=["pixelmpc", pytest.param("mppi", marks=pytest.mark.slow)])  # same loop
 def faulty_loop(request):
-    """A few ticks of a controller on the filter under every fault at its severe level, with the levers on."""
+    """A few ticks of a controller on the filter under every fault at its severe level, with every lever on."""
     latency = F.fault_level(F.COMBINED, "severe").latency_ticks
     if request.param == "mppi":
-        policy = policies.nominal_mppi_policy(SMALL, latency_ticks=latency)
+        policy = policies.nominal_mppi_policy(SMALL, latency_ticks=latency, disturbance_tau=0.5)
     else:
         policy = policies.pixelmpc_policy(PM.PixelMPCConfig(mppi=SMALL, pixel_model="projection",
-                                                            model_latency_ticks=latency))
+                                                            model_latency_ticks=latency,
+                                                            disturbance_time_constant_s=0.5))
     config = env_lib.EnvConfig(max_time_s=0.4, estimator="pf", pf=pf_lib.PFConfig(num_particles=64),
                                faults=F.fault_level(F.COMBINED, "severe"),
                                guards=guards_lib.GuardConfig(detection_gate_px=30.0, recover_error_px=120.0))
@@ -320,6 +341,7 @@ def test_every_fault_at_once_gives_finite_commands_and_a_named_end(faulty_loop):
     assert np.all(np.isfinite(np.asarray(sim.plant.x)))
     assert int(sim.end_cause) in env_lib.END_NAMES and int(sim.end_cause) != 0  # the 0.4 s limit: a timeout
     np.testing.assert_array_equal(policy_state.pending, commands[-3:])  # the commands the plant has not applied
+    assert np.all(np.isfinite(np.asarray(policy_state.disturbance)))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -44,12 +44,15 @@ def test_a_fault_that_cannot_reach_a_loop_is_left_out_and_quick_is_the_moderate_
     assert {rc.level for rc in quick} == {None, "moderate"} and len(quick) == 2 * (len(FAULT_LEVELS) + 2)
 
 
-def test_the_levers_fly_the_filter_cells_again_with_the_guards_and_the_known_latency():
+def test_the_levers_fly_the_filter_cells_again_with_the_guards_the_observer_and_the_known_latency():
     cells = _by_name(R.robustness_cells(quick=True, levers=True))
     lever = cells["pixelmpc_pf_latency_moderate_levers"].cell.spec
     assert lever.guards == R.GUARDS and lever.config.model_latency_ticks == lever.faults.latency_ticks == 1
-    assert cells["mppi_pf_miss_moderate_levers"].cell.spec.config.model_latency_ticks == 0
-    assert "pixelmpc_pf_none_levers" not in cells
+    assert lever.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
+    nominal = cells["mppi_pf_miss_moderate_levers"].cell.spec
+    assert nominal.config.model_latency_ticks == 0 and nominal.config.disturbance_time_constant_s is not None
+    assert cells["pixelmpc_pf_none_levers"].cell.spec.faults == Faults()  # what the levers cost without faults
+    assert len(cells) == 2 * len(R.robustness_cells(quick=True))
 
 
 @pytest.mark.parametrize("lap, cause", [

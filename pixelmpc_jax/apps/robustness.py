@@ -7,9 +7,11 @@ level also on the true state. A fault that cannot reach a loop is left out there
 feeds only the filter, and nominal MPPI on the true state never looks at the detector.
 
 Laps: 10 per cell for the moderate faults with the filter and for the fault-free races, 6 elsewhere (``quick``: a
-smoke run, 2 laps, the moderate level on the filter only). With ``levers``, the filter cells are flown again with
-the levers against the faults: the filter's guards (:mod:`pixelmpc_jax.perception.filter_guards`) and, under an
-actuation latency, the latency in the controller's model (``PixelMPCConfig.model_latency_ticks``).
+smoke run, 2 laps, the moderate level on the filter only). With ``levers``, the filter cells (the fault-free ones
+too) are flown again with the levers against the faults: the filter's guards
+(:mod:`pixelmpc_jax.perception.filter_guards`), the disturbance observer in the controller's model
+(``PixelMPCConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
+(``PixelMPCConfig.model_latency_ticks``).
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
@@ -42,6 +44,7 @@ DETECTOR_FAULTS = ("miss", "false", "pixel_noise", "detection_delay")  # nominal
 DIVERGED_M = 2.0  # m: a failed lap whose estimate strayed this far from the truth failed by its estimate
 SEED = 200  # the first lap's seed, as the reproduce parts (no setting was tuned on it), so fault-free cells share
 GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0)  # the filter's levers (see the module doc)
+DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer among the levers
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
           "flip": "flip", "estimate_diverged": "estimate diverged"}
@@ -70,18 +73,20 @@ def reaches(fault: str, controller: str, estimator: str) -> bool:
 
 def race(controller: str, estimator: str, faults: Faults | None = None, levers: bool = False):
     """The race of one cell: the ``best`` preset (PixelMPC) or nominal MPPI at its pace and MPPI settings, with the
-    faults (None: none); ``levers``: the filter's guards and the actuation latency in the controller's model."""
+    faults (None: none); ``levers``: the filter's guards, the disturbance observer and the actuation latency in the
+    controller's model."""
     faults = faults or Faults()
     spec = preset("best").replace(controller=controller, estimator=estimator, faults=faults)
     if levers:
-        config = dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks)
+        config = dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks,
+                                     disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S)
         spec = spec.replace(guards=GUARDS, config=config)
     return spec
 
 
 def robustness_cells(quick: bool = False, levers: bool = False) -> list[RobustCell]:
     """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; with
-    ``levers`` also the filter cells with the levers on."""
+    ``levers`` also the filter cells with the levers on (the fault-free ones too: what the levers cost)."""
     cells = []
     for fault in FAULTS:
         for level in (None,) if fault == NONE else LEVELS[:1] if quick or fault == COMBINED else LEVELS:
@@ -93,7 +98,7 @@ def robustness_cells(quick: bool = False, levers: bool = False) -> list[RobustCe
                     if not reaches(fault, controller, estimator):
                         continue
                     laps = _laps(level, estimator, quick)
-                    variants = (False, True) if levers and estimator == "pf" and fault != NONE else (False,)
+                    variants = (False, True) if levers and estimator == "pf" else (False,)
                     for lever in variants:
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
                                          *(["levers"] if lever else [])])

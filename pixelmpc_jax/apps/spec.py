@@ -30,7 +30,8 @@ from pixelmpc_jax.sim.faults import Faults
 COURSES = ("alphapilot", "straight")
 # Settings added after races were recorded: left out of the record while at their defaults, so every race flown
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
-LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"))
+LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
+                  ("config", "disturbance_time_constant_s"))
 
 
 def _default_config() -> PixelMPCConfig:
@@ -43,10 +44,10 @@ class RaceSpec:
 
     Attributes:
         controller: "mppi" (nominal MPPI) or "pixelmpc".
-        config: the controller's configuration. Nominal MPPI flies its ``mppi``, ``racing`` and
-            ``model_latency_ticks``; its PixelMPC fields are reset to their defaults for a nominal race (they fly
-            nothing there), and
-            ``mppi.sample_devices`` to 1 (how a step runs, not what it computes: :meth:`policy` sets it).
+        config: the controller's configuration. Nominal MPPI flies its ``mppi``, ``racing``,
+            ``model_latency_ticks`` and ``disturbance_time_constant_s``; its PixelMPC fields are reset to their
+            defaults for a nominal race (they fly nothing there), and ``mppi.sample_devices`` to 1 (how a step
+            runs, not what it computes: :meth:`policy` sets it).
         speed: target speed, m/s.
         laps: number of laps.
         seed: seed of the first lap.
@@ -97,7 +98,8 @@ class RaceSpec:
         mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
         if self.controller == "mppi":
             config = PixelMPCConfig(mppi=mppi, racing=self.config.racing,
-                                    model_latency_ticks=self.config.model_latency_ticks)
+                                    model_latency_ticks=self.config.model_latency_ticks,
+                                    disturbance_time_constant_s=self.config.disturbance_time_constant_s)
         else:
             config = dataclasses.replace(self.config, mppi=mppi)
         object.__setattr__(self, "config", config)

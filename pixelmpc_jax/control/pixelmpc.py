@@ -106,6 +106,10 @@ class PixelMPCConfig:
             predicts across (0-3; 0: none, the paper's). The controller in the loop then plans from the
             estimate rolled forward through the commands it sent and the plant has not applied yet. For a known
             actuation latency (:class:`~pixelmpc_jax.sim.faults.Faults`); nominal MPPI flies it too.
+        disturbance_time_constant_s: s; the controller's model adds an external acceleration (wind, a mass, drag or
+            thrust off the model's) that the controller in the loop estimates from the residual of its own one-tick
+            predictions, with this time constant (offset-free MPC; ``PixelMPCParams.disturbance``). None: no
+            disturbance model (the paper's). Nominal MPPI flies it too.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -120,6 +124,7 @@ class PixelMPCConfig:
     border_margin: float = 0.15
     box_size_limit: float | None = None
     model_latency_ticks: int = 0
+    disturbance_time_constant_s: float | None = None
 
     def __post_init__(self):
         if self.pixel_model not in PIXEL_MODELS:
@@ -145,6 +150,10 @@ class PixelMPCConfig:
         if isinstance(self.model_latency_ticks, bool) or self.model_latency_ticks not in range(4):
             raise ValueError(f"model_latency_ticks must be an integer in [0, 3], got {self.model_latency_ticks!r}")
         object.__setattr__(self, "model_latency_ticks", int(self.model_latency_ticks))
+        tau = self.disturbance_time_constant_s
+        if tau is not None and not (isinstance(tau, (int, float)) and self.mppi.dt <= tau < math.inf):
+            raise ValueError(f"disturbance_time_constant_s must be None or a finite number of seconds >= the step "
+                             f"{self.mppi.dt:g} s, got {tau!r}")
         if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
             object.__setattr__(self, "box_size_limit", None)
 
@@ -169,6 +178,8 @@ class PixelMPCParams:
             cost stops counting for that sample (otherwise flying through the gate would be penalised by
             the pixel of a gate already behind the camera).
         camera: the onboard camera (projection model only).
+        disturbance: (3,) m/s^2, the estimated external acceleration the robot model adds (with
+            ``PixelMPCConfig.disturbance_time_constant_s``; None without).
     """
 
     racing: costs.RacingParams
@@ -177,6 +188,7 @@ class PixelMPCParams:
     target_centre: jax.Array
     target_normal: jax.Array
     camera: camera_lib.Camera
+    disturbance: jax.Array | None = None
 
 
 def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
@@ -207,21 +219,30 @@ def behind_camera_pixel(dtype=jnp.float32) -> jax.Array:
     return jnp.full((2,), IMAGE_CENTRE[0] - BEHIND_CAMERA_OFFSET, dtype)
 
 
+def disturbed_step(x: jax.Array, u: jax.Array, dt: float, quad_params: quadrotor.QuadParams,
+                   disturbance: jax.Array | None) -> jax.Array:
+    """:func:`~pixelmpc_jax.dynamics.quadrotor.step` with an external acceleration ``disturbance`` (3,) on the
+    velocity (Euler: the force ``w_f = m a`` of Eq. 4); ``None``: the step itself. -> (10,)."""
+    x_next = quadrotor.step(x, u, dt, quad_params)
+    return x_next if disturbance is None else x_next.at[quadrotor.VEL].add(dt * disturbance.astype(x.dtype))
+
+
 def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
                       cost_config: costs.RacingCostConfig | None = None,
-                      quad_params: quadrotor.QuadParams | None = None) -> Controller:
+                      quad_params: quadrotor.QuadParams | None = None, disturbance: bool = False) -> Controller:
     """The paper's baseline, "nominal MPPI": the 10-state robot model with the racing cost of Eq. (19) only;
-    ``step(state, x0 (10,), params: RacingParams)``."""
+    ``step(state, x0 (10,), params: RacingParams)``; with ``disturbance`` the model adds an external acceleration
+    and ``params`` is ``(RacingParams, disturbance (3,))``."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     dt = mppi_config.dt
 
     def dynamics(x, u, p):
-        return quadrotor.step(x, u, dt, quad_params)
+        return disturbed_step(x, u, dt, quad_params, p[1] if disturbance else None)
 
     def trajectory_cost(X, U, steps, p):
-        return costs.racing_costs(X, steps, p, cost_config)
+        return costs.racing_costs(X, steps, p[0] if disturbance else p, cost_config)
 
     return make_mppi(mppi_config, dynamics, TrajectoryCost(trajectory_cost))
 
@@ -241,28 +262,28 @@ def make_pixelmpc(config: PixelMPCConfig | None = None,
     dt = config.mppi.dt
     n_f = config.pixel_steps
 
-    def robot_step(X, u):
-        return quadrotor.step(X[:quadrotor.STATE_DIM], u, dt, quad_params)
+    def robot_step(X, u, p):
+        return disturbed_step(X[:quadrotor.STATE_DIM], u, dt, quad_params, p.disturbance)
 
     # The rest of the horizon: the robot alone, the pixel carried unchanged and not costed.
     def dynamics(X, u, p):
-        return jnp.concatenate([robot_step(X, u), X[quadrotor.STATE_DIM:]])
+        return jnp.concatenate([robot_step(X, u, p), X[quadrotor.STATE_DIM:]])
 
     if config.pixel_model == "dof":
         def prefix_dynamics(X, u, p):
             x, uv = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
             uv_dot = dof_lib.pixel_velocity(p.dof, x[quadrotor.QUAT], uv, u)
-            return jnp.concatenate([robot_step(X, u), uv + dt * uv_dot])
+            return jnp.concatenate([robot_step(X, u, p), uv + dt * uv_dot])
 
     elif config.pixel_model == "vdof":
         def prefix_dynamics(X, u, p):
             x, pixel = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
             pixel_dot = vdof_lib.pixel_state_velocity(p.dof, x, pixel, u)
-            return jnp.concatenate([robot_step(X, u), pixel + dt * pixel_dot])
+            return jnp.concatenate([robot_step(X, u, p), pixel + dt * pixel_dot])
 
     else:
         def prefix_dynamics(X, u, p):
-            x_next = robot_step(X, u)
+            x_next = robot_step(X, u, p)
             uv, _, in_front = camera_lib.project(p.target_centre, x_next, p.camera)
             # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
             uv = jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))

@@ -14,8 +14,8 @@ def make_policy(controller: str, config=None) -> policies.Policy:
     """The named controller as an episode Policy.
 
     Args:
-        controller: "mppi", the paper's nominal MPPI, flying ``config.mppi``, ``config.racing`` and
-            ``config.model_latency_ticks``; or
+        controller: "mppi", the paper's nominal MPPI, flying ``config.mppi``, ``config.racing``,
+            ``config.model_latency_ticks`` and ``config.disturbance_time_constant_s``; or
             "pixelmpc", flying all of ``config``.
         config: a :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` (None: its defaults).
     """
@@ -25,5 +25,6 @@ def make_policy(controller: str, config=None) -> policies.Policy:
 
     config = PixelMPCConfig() if config is None else config
     if controller == "mppi":
-        return policies.nominal_mppi_policy(config.mppi, config.racing, latency_ticks=config.model_latency_ticks)
+        return policies.nominal_mppi_policy(config.mppi, config.racing, latency_ticks=config.model_latency_ticks,
+                                            disturbance_tau=config.disturbance_time_constant_s)
     return policies.pixelmpc_policy(config)

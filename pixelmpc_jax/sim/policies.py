@@ -47,75 +47,106 @@ class RacingPolicyState(NamedTuple):
         racing_constants: the racing cost's per-track constants (the path's samples, tangents and speed cap),
             computed once per episode by ``init``.
         pending: (L, 4) the last L commands sent, oldest first, with a model latency of L ticks (None without).
+        disturbance: (3,) m/s^2, the estimated external acceleration (None without a disturbance model).
+        expected: (10,) the model's prediction of the next tick's estimate (NaN before the first; None without).
     """
 
     mppi: Any
     step_progress: jax.Array
     racing_constants: costs.RacingConstants
     pending: jax.Array | None = None
+    disturbance: jax.Array | None = None
+    expected: jax.Array | None = None
 
 
-def predict_through(x: jax.Array, pending: jax.Array, quad_params: quadrotor.QuadParams, dt: float) -> jax.Array:
+DISTURBANCE_MAX = 10.0  # m/s^2 per axis: the estimated external acceleration is clipped to this
+
+
+def predict_through(x: jax.Array, pending: jax.Array, quad_params: quadrotor.QuadParams, dt: float,
+                    disturbance: jax.Array | None = None) -> jax.Array:
     """The state (10,) after the commands ``pending`` (L, 4), oldest first, by the controller's model
-    (:func:`~pixelmpc_jax.dynamics.quadrotor.step`): where the vehicle will be when the next command acts."""
+    (:func:`~pixelmpc_jax.control.pixelmpc.disturbed_step`): where the vehicle will be when the next command acts."""
 
     def one(x, u):
-        return quadrotor.step(x, u, dt, quad_params), None
+        return pixelmpc_lib.disturbed_step(x, u, dt, quad_params, disturbance), None
 
     return jax.lax.scan(one, x, pending)[0]
 
 
+def disturbance_update(disturbance: jax.Array, expected: jax.Array, x_est: jax.Array, tau: float) -> jax.Array:
+    """The external acceleration (3,) one tick later: ``a + (v_est - v_expected) / tau``, clipped to
+    :data:`DISTURBANCE_MAX`. The residual of the model's one-tick prediction (which holds ``a``) is integrated, so a
+    constant push is learnt with time constant ``tau`` (offset-free MPC). No prediction yet (NaN): no change."""
+    residual = x_est[quadrotor.VEL] - expected[quadrotor.VEL]
+    residual = jnp.where(jnp.isfinite(residual), residual, 0.0)
+    return jnp.clip(disturbance + residual / tau, -DISTURBANCE_MAX, DISTURBANCE_MAX).astype(disturbance.dtype)
+
+
 def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
-                  quad_params: quadrotor.QuadParams, latency_ticks: int = 0) -> Policy:
+                  quad_params: quadrotor.QuadParams, latency_ticks: int = 0,
+                  disturbance_tau: float | None = None) -> Policy:
     """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
 
-    ``build(obs, world, racing_params) -> (x0, params)`` makes the controller's state and params from an
-    observation; the nominal trajectory's first 10 columns must be the robot state. Each tick cuts the
-    racing cost's path windows (Eq. 19) around the progress the previous plan predicted for each step, from
-    the per-track constants ``init`` computed for the episode's world. With ``latency_ticks`` L the controller
-    plans from the estimate rolled forward through its last L commands (:func:`predict_through`), which a plant
-    with that actuation latency has not applied yet.
+    ``build(obs, world, racing_params, disturbance) -> (x0, params)`` makes the controller's state and params from
+    an observation (``disturbance``: (3,) or None); the nominal trajectory's first 10 columns must be the robot
+    state. Each tick cuts the racing cost's path windows (Eq. 19) around the progress the previous plan predicted
+    for each step, from the per-track constants ``init`` computed for the episode's world. With ``latency_ticks``
+    L the controller plans from the estimate rolled forward through its last L commands (:func:`predict_through`),
+    which a plant with that actuation latency has not applied yet. With ``disturbance_tau`` the model's external
+    acceleration is estimated each tick (:func:`disturbance_update`).
     """
-    horizon = mppi_config.horizon
+    horizon, dt = mppi_config.horizon, mppi_config.dt
 
     def init(key: jax.Array, world: World) -> RacingPolicyState:
         hover = quadrotor.hover_control(quad_params)
         pending = jnp.broadcast_to(hover, (latency_ticks, hover.shape[0])) if latency_ticks else None
+        observer = (jnp.zeros(3, jnp.float32), jnp.full((quadrotor.STATE_DIM,), jnp.nan, jnp.float32)) \
+            if disturbance_tau else (None, None)
         return RacingPolicyState(ctrl.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
-                                 costs.racing_constants(world.track, cost_config), pending)
+                                 costs.racing_constants(world.track, cost_config), pending, *observer)
 
     def act(state: RacingPolicyState, obs: Observation, world: World):
         # First tick: no previous plan, every step's path window starts at the current progress.
         step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
         racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config,
                                      state.racing_constants)
+        x_now, disturbance = obs.x_est, None
+        if disturbance_tau:
+            disturbance = disturbance_update(state.disturbance, state.expected, x_now, disturbance_tau)
         if latency_ticks:
-            obs = obs._replace(x_est=predict_through(obs.x_est, state.pending, quad_params, mppi_config.dt))
-        x0, params = build(obs, world, racing)
+            obs = obs._replace(x_est=predict_through(x_now, state.pending, quad_params, dt, disturbance))
+        x0, params = build(obs, world, racing, disturbance)
         u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
-        pending = jnp.concatenate([state.pending[1:], u[None].astype(state.pending.dtype)]) if latency_ticks else None
-        return (u, RacingPolicyState(mppi_state, next_progress, state.racing_constants, pending),
-                info.nominal_trajectory)
+        pending, expected = state.pending, state.expected
+        if disturbance_tau:  # what the plant applies this tick: the oldest pending command, else this one
+            applied = pending[0] if latency_ticks else u
+            expected = pixelmpc_lib.disturbed_step(x_now, applied.astype(x_now.dtype), dt, quad_params, disturbance)
+        if latency_ticks:
+            pending = jnp.concatenate([pending[1:], u[None].astype(pending.dtype)])
+        return (u, RacingPolicyState(mppi_state, next_progress, state.racing_constants, pending, disturbance,
+                                     expected), info.nominal_trajectory)
 
     return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
 
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
                         cost_config: costs.RacingCostConfig | None = None,
-                        quad_params: quadrotor.QuadParams | None = None, latency_ticks: int = 0) -> Policy:
+                        quad_params: quadrotor.QuadParams | None = None, latency_ticks: int = 0,
+                        disturbance_tau: float | None = None) -> Policy:
     """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only (``latency_ticks``:
-    the actuation latency its model predicts across, see :func:`racing_policy`)."""
+    the actuation latency its model predicts across; ``disturbance_tau``: the time constant of its estimate of an
+    external acceleration; see :func:`racing_policy`)."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
     quad_params = quad_params or quadrotor.QuadParams()
-    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params)
+    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params, disturbance=bool(disturbance_tau))
 
-    def build(obs, world, racing):
-        return obs.x_est, racing
+    def build(obs, world, racing, disturbance):
+        return obs.x_est, racing if disturbance is None else (racing, disturbance)
 
-    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks)
+    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks, disturbance_tau)
 
 
 def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
@@ -127,7 +158,7 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
 
-    def build(obs, world, racing):
+    def build(obs, world, racing, disturbance):
         detection = obs.detection
         uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
         if config.pixel_model == "vdof":  # not costed while the target is not detected, whatever it holds
@@ -135,9 +166,9 @@ def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
         params = pixelmpc_lib.PixelMPCParams(
             racing=racing, dof=world.dof, target_active=detection.found,
             target_centre=world.track.gates.centre[obs.target_gate],
-            target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera,
+            target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera, disturbance=disturbance,
         )
         return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
 
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
-                         quad_params, config.model_latency_ticks)
+                         quad_params, config.model_latency_ticks, config.disturbance_time_constant_s)
