@@ -160,7 +160,8 @@ def adopt(cells: list[grid.Cell], out: Path, laps: int, seed: int, sources=()) -
         if found is None:
             continue
         folder, name = found
-        results[cell.name] = {**flown[folder][name], "shared_from": f"{folder}/{name}"}
+        # the wall time was spent where it was flown; here it cost nothing
+        results[cell.name] = {**flown[folder][name], "shared_from": f"{folder}/{name}", "wall_time_s": 0.0}
         trajectories = folder / f"trajectories_{name}.npz"
         if trajectories.exists():
             out.mkdir(parents=True, exist_ok=True)
