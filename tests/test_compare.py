@@ -2,12 +2,14 @@
 the lap metrics (the share of time with the target in view, the angle to it)."""
 
 import json
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from pixelmpc_jax.apps import compare, presets, race
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import metrics
 from pixelmpc_jax.world import camera as camera_lib
@@ -63,7 +65,11 @@ def test_the_presets():
     assert paper.speed == 14.0 and paper.config.pixel_cost == "l1" and paper.config.c_pixel == 9e6
     assert paper.dof_weights is None  # the paper's own DOF weights
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
-    assert best.config.pixel_model == "vdof" and best.config.box_size_limit == 0.5 and best.key() != paper.key()
+    assert best.config.pixel_model == "vdof" and best.key() != paper.key()
+    # best flies the tuned trial it names, exactly as the search recorded it
+    tuned = json.loads((Path(presets.__file__).parents[2] / "experiments/results/tune/best.json").read_text())
+    assert RaceSpec.from_record(tuned).replace(laps=1, seed=0).key() == best.key()
+    assert best.config != presets.HAND_TUNED_BEST and presets.HAND_TUNED_BEST.box_size_limit == 0.5
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         presets.preset("fast")
 
