@@ -24,8 +24,10 @@ from pathlib import Path
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 
-# Around the `best` preset (vdof, border cost, c_pixel 9e6, box size limit 0.5, t_f 1 s, lambda 200, white noise):
-# the settings its hand tuning moved, each over the range the 4-lap probes spanned and somewhat beyond.
+# Around the hand-tuned `best` settings the search started from (presets.HAND_TUNED_BEST: vdof, border cost,
+# c_pixel 9e6, box size limit 0.5, t_f 1 s, lambda 200, white noise): the settings the hand tuning moved, each over
+# the range the 4-lap probes spanned and somewhat beyond. The tuned preset sits near two edges (lambda 747, border
+# margin 0.076): a further search would widen those.
 SPACES = {
     "best": {
         "c_pixel": {"low": 2e6, "high": 3e7, "log": True},
