@@ -44,11 +44,12 @@ def _race(who: str, speed: float, **changes):
 
 
 def _points(labels, quick: bool) -> list[tuple[float, float, tuple]]:
-    """(label, our target, who flies it): each label as the paper named it (nominal and ``paper``), then its pace
-    (all three); ``quick``: the pace of the last label only."""
+    """(label, our target, who flies it): each label's pace (all three), then each label as the paper named it
+    (nominal and ``paper``), the fastest label first; ``quick``: the pace of the fastest label only."""
+    labels = sorted(labels, reverse=True)
     if quick:
-        return [(labels[-1], pace_speed(labels[-1]), WHO)]
-    return [(label, label, WHO[:2]) for label in labels] + [(label, pace_speed(label), WHO) for label in labels]
+        return [(labels[0], pace_speed(labels[0]), WHO)]
+    return [(label, pace_speed(label), WHO) for label in labels] + [(label, label, WHO[:2]) for label in labels]
 
 
 def race_cells(labels=RACE_LABELS, quick: bool = False) -> list[Cell]:
