@@ -2,7 +2,7 @@
 paper's pace under wind, model error, latency, IMU and detector faults and map errors, each alone at a moderate and
 a severe level and all moderate ones at once, on the particle filter (and at the moderate level on the true state).
 
-    python experiments/robustness.py --out DIR [--quick] [--levers] [--reuse FOLDER ...]
+    python experiments/robustness.py --out DIR [--quick] [--levers [model] [filter]] [--reuse FOLDER ...]
 
 Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
 robustness.png and results.json. Interrupted runs resume: finished cells are kept.
@@ -11,7 +11,7 @@ robustness.png and results.json. Interrupted runs resume: finished cells are kep
 import argparse
 from pathlib import Path
 
-from pixelmpc_jax.apps.robustness import robustness_experiment
+from pixelmpc_jax.apps.robustness import LEVER_SETS, robustness_experiment
 
 
 def main(argv=None):
@@ -19,13 +19,15 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("experiments/results/robustness"))
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: 2 laps per cell, the moderate level on the particle filter only")
-    parser.add_argument("--levers", action="store_true",
-                        help="also fly the filter cells with the levers (the filter's guards, the model latency)")
+    parser.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
+                        help="also fly the filter cells with each set of levers on, apart: model (the disturbance "
+                             "observer, the latency in the model), filter (the filter's guards); no name: both")
     parser.add_argument("--reuse", type=Path, nargs="*", default=(),
                         help="other grids' output folders whose finished fault-free cells are copied, not flown")
     parser.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
     args = parser.parse_args(argv)
-    rows = robustness_experiment(args.out, quick=args.quick, levers=args.levers, reuse=args.reuse,
+    levers = () if args.levers is None else tuple(args.levers or LEVER_SETS)
+    rows = robustness_experiment(args.out, quick=args.quick, levers=levers, reuse=args.reuse,
                                  run=not args.report_only)
     print((args.out / "REPORT.md").read_text())
     return rows

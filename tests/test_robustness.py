@@ -10,6 +10,7 @@ import pytest
 from pixelmpc_jax.apps import grid, race
 from pixelmpc_jax.apps import robustness as R
 from pixelmpc_jax.apps.presets import PAPER_PACE_SPEED
+from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, Faults, fault_level
 
 
@@ -44,15 +45,17 @@ def test_a_fault_that_cannot_reach_a_loop_is_left_out_and_quick_is_the_moderate_
     assert {rc.level for rc in quick} == {None, "moderate"} and len(quick) == 2 * (len(FAULT_LEVELS) + 2)
 
 
-def test_the_levers_fly_the_filter_cells_again_with_the_guards_the_observer_and_the_known_latency():
-    cells = _by_name(R.robustness_cells(quick=True, levers=True))
-    lever = cells["pixelmpc_pf_latency_moderate_levers"].cell.spec
-    assert lever.guards == R.GUARDS and lever.config.model_latency_ticks == lever.faults.latency_ticks == 1
-    assert lever.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
-    nominal = cells["mppi_pf_miss_moderate_levers"].cell.spec
-    assert nominal.config.model_latency_ticks == 0 and nominal.config.disturbance_time_constant_s is not None
-    assert cells["pixelmpc_pf_none_levers"].cell.spec.faults == Faults()  # what the levers cost without faults
-    assert len(cells) == 2 * len(R.robustness_cells(quick=True))
+def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
+    cells = _by_name(R.robustness_cells(quick=True, levers=("model", "filter")))
+    model = cells["pixelmpc_pf_latency_moderate_model"].cell.spec
+    assert model.config.model_latency_ticks == model.faults.latency_ticks == 1
+    assert model.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S and model.guards == GuardConfig()
+    guarded = cells["mppi_pf_miss_moderate_filter"].cell.spec
+    assert guarded.guards == R.GUARDS and guarded.config.disturbance_time_constant_s is None
+    assert cells["pixelmpc_pf_none_model"].cell.spec.faults == Faults()  # what the levers cost without faults
+    assert len(cells) == 3 * len(R.robustness_cells(quick=True))
+    with pytest.raises(ValueError, match="unknown levers 'magic'"):
+        R.race("mppi", "pf", levers="magic")
 
 
 @pytest.mark.parametrize("lap, cause", [
@@ -89,19 +92,20 @@ def flown(monkeypatch):
 
 
 def test_a_run_flies_each_cell_with_its_laps_and_writes_the_report(tmp_path, flown):
-    rows = R.robustness_experiment(tmp_path, quick=True, progress=False)
-    assert len(flown) == len(rows) == len(R.robustness_cells(quick=True))
+    rows = R.robustness_experiment(tmp_path, quick=True, progress=False, levers=("model",))
+    assert len(flown) == len(rows) == len(R.robustness_cells(quick=True, levers=("model",)))
     assert {spec.laps for spec in flown} == {2} and {spec.seed for spec in flown} == {R.SEED}
     row = next(r for r in rows if r["cell"] == "pixelmpc_pf_wind_moderate")
     assert row["successes"] == 1 and row["failures"] == {"estimate_diverged": 1}
     report = (tmp_path / "REPORT.md").read_text()
-    assert "| wind | moderate | 1/2 | 1/2 |" in report  # the glance table: nominal MPPI, PixelMPC on the filter
+    assert "| wind | moderate | 1/2 | 1/2 | 1/2 | 1/2 |" in report  # glance: both controllers, then with the levers
+    assert "PixelMPC (best), filter + model levers" in report and R.LEVER_SETS["model"] in report
     assert "estimate diverged 1" in report and FAULT_LEVELS["map"]["severe"].why in report
     saved = json.loads((tmp_path / "robustness.json").read_text())
     assert len(saved["rows"]) == len(rows) and saved["levels"]["gust"]["moderate"]["why"]
     assert (tmp_path / "robustness.png").stat().st_size > 10_000
     flown.clear()
-    R.robustness_experiment(tmp_path, quick=True, progress=False)
+    R.robustness_experiment(tmp_path, quick=True, progress=False, levers=("model",))
     assert flown == []  # every cell kept
 
 

@@ -8,10 +8,10 @@ feeds only the filter, and nominal MPPI on the true state never looks at the det
 
 Laps: 10 per cell for the moderate faults with the filter and for the fault-free races, 6 elsewhere (``quick``: a
 smoke run, 2 laps, the moderate level on the filter only). With ``levers``, the filter cells (the fault-free ones
-too) are flown again with the levers against the faults: the filter's guards
-(:mod:`pixelmpc_jax.perception.filter_guards`), the disturbance observer in the controller's model
-(``PixelMPCConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
-(``PixelMPCConfig.model_latency_ticks``).
+too: what a lever costs) are flown again with each named set of levers (:data:`LEVER_SETS`) on: ``model``, the
+disturbance observer in the controller's model (``PixelMPCConfig.disturbance_time_constant_s``) and, under an
+actuation latency, the latency in its model (``PixelMPCConfig.model_latency_ticks``); ``filter``, the filter's
+guards (:mod:`pixelmpc_jax.perception.filter_guards`). The sets fly apart, so each is measured on its own.
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
@@ -43,8 +43,12 @@ IMU_FAULTS = ("imu_bias", "imu_noise")  # read only by the filter
 DETECTOR_FAULTS = ("miss", "false", "pixel_noise", "detection_delay")  # nominal MPPI on the truth never detects
 DIVERGED_M = 2.0  # m: a failed lap whose estimate strayed this far from the truth failed by its estimate
 SEED = 200  # the first lap's seed, as the reproduce parts (no setting was tuned on it), so fault-free cells share
-GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0)  # the filter's levers (see the module doc)
-DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer among the levers
+GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0)  # the "filter" levers (see the module doc)
+DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer, a "model" lever
+LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:g} s) and the fault's latency in the "
+                       "controller's model",
+              "filter": f"the filter's detection gate ({GUARDS.detection_gate_px:g} px) and divergence recovery "
+                        f"({GUARDS.recover_error_px:g} px)"}
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
           "flip": "flip", "estimate_diverged": "estimate diverged"}
@@ -52,14 +56,14 @@ CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate
 
 class RobustCell(NamedTuple):
     """A grid cell with what it measures: the fault, its level (None for the fault-free race), the controller, the
-    estimator, whether it flies the levers, and its laps."""
+    estimator, the set of levers it flies (None: none), and its laps."""
 
     cell: Cell
     fault: str
     level: str | None
     controller: str
     estimator: str
-    levers: bool
+    levers: str | None
     laps: int
 
 
@@ -71,22 +75,25 @@ def reaches(fault: str, controller: str, estimator: str) -> bool:
     return not (estimator == "truth" and controller == "mppi" and fault in DETECTOR_FAULTS)
 
 
-def race(controller: str, estimator: str, faults: Faults | None = None, levers: bool = False):
+def race(controller: str, estimator: str, faults: Faults | None = None, levers: str | None = None):
     """The race of one cell: the ``best`` preset (PixelMPC) or nominal MPPI at its pace and MPPI settings, with the
-    faults (None: none); ``levers``: the filter's guards, the disturbance observer and the actuation latency in the
-    controller's model."""
+    faults (None: none) and the set of ``levers`` of :data:`LEVER_SETS` (None: none)."""
     faults = faults or Faults()
     spec = preset("best").replace(controller=controller, estimator=estimator, faults=faults)
-    if levers:
-        config = dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks,
-                                     disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S)
-        spec = spec.replace(guards=GUARDS, config=config)
+    if levers == "model":
+        spec = spec.replace(config=dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks,
+                                                       disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S))
+    elif levers == "filter":
+        spec = spec.replace(guards=GUARDS)
+    elif levers is not None:
+        raise ValueError(f"unknown levers {levers!r}; choose one of {', '.join(LEVER_SETS)}")
     return spec
 
 
-def robustness_cells(quick: bool = False, levers: bool = False) -> list[RobustCell]:
-    """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; with
-    ``levers`` also the filter cells with the levers on (the fault-free ones too: what the levers cost)."""
+def robustness_cells(quick: bool = False, levers: tuple = ()) -> list[RobustCell]:
+    """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; for
+    each set of ``levers`` (names of :data:`LEVER_SETS`) also the filter cells with it on (the fault-free ones too:
+    what the levers cost)."""
     cells = []
     for fault in FAULTS:
         for level in (None,) if fault == NONE else LEVELS[:1] if quick or fault == COMBINED else LEVELS:
@@ -98,10 +105,9 @@ def robustness_cells(quick: bool = False, levers: bool = False) -> list[RobustCe
                     if not reaches(fault, controller, estimator):
                         continue
                     laps = _laps(level, estimator, quick)
-                    variants = (False, True) if levers and estimator == "pf" else (False,)
-                    for lever in variants:
+                    for lever in (None, *(levers if estimator == "pf" else ())):
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
-                                         *(["levers"] if lever else [])])
+                                         *([lever] if lever else [])])
                         cells.append(RobustCell(Cell(name, race(controller, estimator, faults, lever)), fault,
                                                 level, controller, estimator, lever, laps))
     return cells
@@ -153,14 +159,15 @@ def summarise(results: dict, cells: list[RobustCell]) -> list[dict]:
     return rows
 
 
-def _column(controller: str, estimator: str, levers: bool) -> str:
-    return f"{LABELS[controller]}, {'filter' if estimator == 'pf' else 'truth'}{' + levers' if levers else ''}"
+def _column(controller: str, estimator: str, levers: str | None) -> str:
+    lever = f" + {levers} levers" if levers else ""
+    return f"{LABELS[controller]}, {'filter' if estimator == 'pf' else 'truth'}{lever}"
 
 
 def _columns(rows: list[dict]) -> list[tuple]:
     """(controller, estimator, levers) of the loops the rows cover, in a fixed order."""
     present = {(r["controller"], r["estimator"], r["levers"]) for r in rows}
-    return [key for key in ((c, e, lever) for e in ESTIMATORS for lever in (False, True) for c in CONTROLLERS)
+    return [key for key in ((c, e, lever) for e in ESTIMATORS for lever in (None, *LEVER_SETS) for c in CONTROLLERS)
             if key in present]
 
 
@@ -226,15 +233,25 @@ def _levels_table() -> list[str]:
     return lines
 
 
+def _levers_lines(rows: list[dict]) -> list[str]:
+    """What each set of levers flown in ``rows`` turns on (none: nothing to say)."""
+    flown = [name for name in LEVER_SETS if any(r["levers"] == name for r in rows)]
+    if not flown:
+        return []
+    return ["Levers, each set flown apart on the filter cells: " + "; ".join(f"*{name}*: {LEVER_SETS[name]}"
+                                                                          for name in flown) + ".", ""]
+
+
 def markdown_report(rows: list[dict], device: str, missing: list[str]) -> str:
     """REPORT.md: success at a glance, the cells in detail, the fault levels and their reasons."""
     lines = ["# Robustness: faults a real flight brings", "",
              f"Device: {device}. Nominal MPPI and PixelMPC (`best` preset: vdof, border cost) at the paper's pace "
              "(8.5 m/s) on the AlphaPilot course, seeds from 200. The faults act on the world only: the controllers "
              "keep their nominal model, the map and the detector's word (`pixelmpc_jax/sim/faults.py`). Laps: 10 for "
-             "the fault-free races and the moderate faults on the particle filter, 6 elsewhere. \"n/a\": the fault "
-             "cannot reach that loop (the IMU feeds only the filter; nominal MPPI on the truth uses no detection). "
-             f"A failed lap whose estimate strayed more than {DIVERGED_M:g} m counts as \"estimate diverged\".", "",
+             "the fault-free races and the moderate faults on the particle filter, 6 elsewhere (2 in a quick run). "
+             "\"n/a\": the fault cannot reach that loop (the IMU feeds only the filter; nominal MPPI on the truth "
+             f"uses no detection). A failed lap whose estimate strayed more than {DIVERGED_M:g} m counts as "
+             "\"estimate diverged\".", "", *_levers_lines(rows),
              "## Success at a glance (laps completed / flown)", "", *_glance_table(rows), "",
              "![success per fault, level and loop](robustness.png)", "",
              "## Every cell (lap time over the completed laps, figures mean ± 2σ over the laps)", "",
@@ -276,7 +293,7 @@ def plot_success(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: bool = False,
+def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: tuple = (),
                           reuse=(), run: bool = True) -> list[dict]:
     """Fly the robustness grid into ``out`` (resumable per cell) and write its report; returns the rows.
 
