@@ -85,28 +85,30 @@ def test_results_without_seed_or_hash_count_as_the_defaults(tmp_path, flown):
     assert _run(flown, tmp_path, seed=3) == ["dof", "nominal", "projection"]
 
 
-@pytest.mark.parametrize("folder", ["reproduce/table2", "reproduce/table2_projection", "reproduce/table4",
-                                    "frontier"])
+@pytest.mark.parametrize("folder", ["reproduce/frontier", "reproduce/table2", "frontier"])
 def test_the_committed_results_stay_valid_for_a_default_run(folder):
     results = grid.load_results(RESULTS / folder)
     assert results, f"no committed results in {folder}"
     for name, entry in results.items():
+        seed = entry.get("seed", 0)
         cell = grid.Cell(name, grid.recorded_race(entry).replace(laps=1, seed=0, dof_weights=None))
-        assert grid.is_current(entry, cell.race(len(entry["laps"]), seed=0, dof_weights=None))
-        assert not grid.is_current(entry, cell.race(len(entry["laps"]), seed=1, dof_weights=None))
+        assert grid.is_current(entry, cell.race(len(entry["laps"]), seed=seed, dof_weights=None))
+        assert not grid.is_current(entry, cell.race(len(entry["laps"]), seed=seed + 1, dof_weights=None))
 
 
 def test_the_apps_cells_find_their_committed_results():
-    """The cells the paper's tables and the frontier define now are the ones their committed results answer."""
-    from pixelmpc_jax.apps import estimation, frontier, paper
+    """The cells the reproduce parts and the frontier define now are the ones their committed results answer, so a
+    resumed `pixelmpc reproduce all --out experiments/results/reproduce` keeps them."""
+    from pixelmpc_jax.apps import frontier, paper, presets, reproduce
 
-    runs = {"reproduce/table2": (paper.visibility_cells("dof"), 10),
-            "reproduce/table2_projection": (paper.visibility_cells("projection"), 10),
-            "reproduce/table4": (estimation.race_cells() + estimation.straight_cells(), 25),
+    runs = {"reproduce/frontier": ([frontier.nominal_cell(v) for v in frontier.DEFAULT_SPEEDS]
+                                   + list(frontier.preset_cells(presets.PAPER_PACE_SPEED)), 10, reproduce.SEED),
+            "reproduce/table2": (paper.table_cells("dof"), 10, reproduce.SEED),
             "frontier": ([frontier.nominal_cell(v) for v in (6.0, 7.0, 8.0, 10.0, 14.0)]
-                         + list(frontier.default_cells()), 10)}
-    for folder, (cells, laps) in runs.items():
-        assert sorted(grid.current_results(cells, RESULTS / folder, laps)) == sorted(c.name for c in cells), folder
+                         + list(frontier.default_cells()), 10, 0)}
+    for folder, (cells, laps, seed) in runs.items():
+        found = grid.current_results(cells, RESULTS / folder, laps, seed)
+        assert sorted(found) == sorted(c.name for c in cells), folder
 
 
 def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):

@@ -42,7 +42,9 @@ def test_finished_parts_are_kept_and_an_interrupted_part_is_rerun(tmp_path, monk
     # an interrupted part that left a report of its finished cells appears, marked unfinished
     (tmp_path / "table4" / "REPORT.md").write_text("# table4 so far\n")
     R.write_report(tmp_path, state)
-    assert "no: interrupted, resume with `pixelmpc reproduce table4" in (tmp_path / "REPORT.md").read_text()
+    written = (tmp_path / "REPORT.md").read_text()
+    assert "no: interrupted, resume with `pixelmpc reproduce table4" in written
+    assert "not run yet: `pixelmpc reproduce bench" in written and "not run yet: `pixelmpc reproduce dof" in written
 
     fail_table4[0] = False
     R.reproduce(["table1", "table2", "table4"], tmp_path, quick=True, progress=False)

@@ -188,6 +188,8 @@ def write_report(out: Path, state: dict) -> Path:
         elif part in partial:
             lines.append(f"| [{TITLES[part]}](#{part}) | - | - | no: interrupted, resume with "
                          f"`pixelmpc reproduce {part} --out {out}` |")
+        elif part in ALL and state:
+            lines.append(f"| {TITLES[part]} | - | - | not run yet: `pixelmpc reproduce {part} --out {out}` |")
     lines += ["", *_overview(out)]
     total = sum(entry["wall_time_s"] for entry in state.values())
     lines += ["", f"Total wall time of the finished parts: {total / 60:.1f} min (an unfinished part reports the "
