@@ -1,10 +1,11 @@
 """Robustness: which faults of a real flight nominal MPPI and PixelMPC survive (issue 28).
 
 Each fault of :data:`~pixelmpc_jax.sim.faults.FAULT_LEVELS` alone at its moderate and severe level, then every fault
-at its moderate level at once (``combined``), beside the fault-free race. Nominal MPPI and PixelMPC with the ``best``
-preset fly each at the paper's pace (8.5 m/s). Every cell is flown on the particle filter's estimate, and the moderate
-level also on the true state. A fault that cannot reach a loop is left out there, and the report says so: the IMU
-feeds only the filter, and nominal MPPI on the true state never looks at the detector.
+at its moderate level at once (``combined``), beside the fault-free race. Nominal MPPI (the paper's MPPI settings)
+and PixelMPC with the ``best`` preset fly each at the preset's pace, the paper's (8.5 m/s). Every cell is flown on
+the particle filter's estimate, and the moderate level also on the true state. A fault that cannot reach a loop is
+left out there, and the report says so: the IMU feeds only the filter, and nominal MPPI on the true state never
+looks at the detector.
 
 Laps: 10 per cell for the moderate faults with the filter and for the fault-free races, 6 elsewhere (``quick``: a
 smoke run, 2 laps, the moderate level on the filter only). With ``levers``, the filter cells (the fault-free ones
@@ -30,6 +31,7 @@ import numpy as np
 
 from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
 from pixelmpc_jax.apps.presets import preset
+from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, LEVELS, Faults, fault_level
@@ -76,10 +78,12 @@ def reaches(fault: str, controller: str, estimator: str) -> bool:
 
 
 def race(controller: str, estimator: str, faults: Faults | None = None, levers: str | None = None):
-    """The race of one cell: the ``best`` preset (PixelMPC) or nominal MPPI at its pace and MPPI settings, with the
-    faults (None: none) and the set of ``levers`` of :data:`LEVER_SETS` (None: none)."""
+    """The race of one cell: the ``best`` preset (PixelMPC) or nominal MPPI (the paper's MPPI settings) at the
+    preset's pace, with the faults (None: none) and the set of ``levers`` of :data:`LEVER_SETS` (None: none)."""
     faults = faults or Faults()
-    spec = preset("best").replace(controller=controller, estimator=estimator, faults=faults)
+    best = preset("best")
+    spec = best if controller == "pixelmpc" else RaceSpec(controller, speed=best.speed)
+    spec = spec.replace(estimator=estimator, faults=faults)
     if levers == "model":
         spec = spec.replace(config=dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks,
                                                        disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S))
