@@ -39,10 +39,15 @@ def test_both_controllers_fly_the_same_race_and_one_file_names_the_preset(monkey
     spec = presets.preset("best").replace(laps=1, seed=7)
     record = compare.run_compare(spec, out=tmp_path, preset="best", progress=False)
     assert [s.controller for s in flown] == ["pixelmpc", "mppi"]
-    assert flown[0].replace(controller="mppi") == flown[1] and flown[1].seed == 7  # the same race otherwise
+    # the same race otherwise, nominal MPPI with the paper's sampling (the frontier's), not the tuned lambda
+    assert flown[1] == presets.nominal_of(flown[0]) and flown[1].seed == 7 and flown[1].speed == flown[0].speed
+    assert flown[1].config.mppi.temperature == 200.0 and flown[1].config.mppi.noise_exponent == 0.0
+    assert flown[0].config.mppi.temperature != 200.0 and flown[1].config.mppi.num_samples == 512
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["preset"] == "best" and saved["race"] == json.loads(json.dumps(spec.record()))
     assert saved["race"]["config"]["pixel_cost"] == "border" and set(saved["controllers"]) == {"pixelmpc", "mppi"}
+    assert saved["controllers"]["mppi"]["race"]["controller"] == "mppi"
+    assert saved["controllers"]["mppi"]["race"]["config"]["mppi"]["temperature"] == 200.0
     assert (tmp_path / "trajectories.png").stat().st_size > 0 and (tmp_path / "visibility.png").stat().st_size > 0
     table = compare.side_by_side(record).splitlines()
     assert "PixelMPC" in table[0] and "nominal MPPI" in table[0]

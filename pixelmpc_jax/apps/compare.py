@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps import race
+from pixelmpc_jax.apps.presets import nominal_of
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 from pixelmpc_jax.strict_json import write_json_atomic
@@ -23,18 +24,20 @@ COLOURS = {"pixelmpc": "tab:green", "mppi": "tab:red"}
 
 def run_compare(spec: RaceSpec, controllers=("pixelmpc", "mppi"), out: Path | None = None, preset: str | None = None,
                 batch_size: int = 1, progress: bool = True, video: bool = False, dof_params=None) -> dict:
-    """Fly ``spec`` with each of ``controllers`` (the same race otherwise) and return
+    """Fly ``spec`` with each of ``controllers`` (the same race otherwise; nominal MPPI with the paper's sampling,
+    :func:`~pixelmpc_jax.apps.presets.nominal_of`, each controller's race recorded under its name) and return
     ``{"preset", "race", "controllers": {name: run_laps' results}, "interrupted"}``; with ``out``, write
     ``metrics.json`` after each controller, then ``trajectories.png`` and ``visibility.png``."""
     record = {"preset": preset, "race": spec.record(), "controllers": {}, "interrupted": False}
     flown = {}
     for name in controllers:
-        flight = spec.replace(controller=name)
+        flight = nominal_of(spec) if name == "mppi" else spec.replace(controller=name)
         results = race.run_laps(flight, batch_size=batch_size, progress=progress, video=video and name == "pixelmpc",
                                 out=None, dof_params=dof_params if flight.uses_dof else None)
         flown[name] = results
         record["controllers"][name] = {k: v for k, v in results.items()
                                        if k not in ("trajectories", "covariances", "visibility")}
+        record["controllers"][name]["race"] = flight.record()
         record["interrupted"] = bool(results["interrupted"])
         if out is not None:
             write_json_atomic(Path(out) / "metrics.json", record)

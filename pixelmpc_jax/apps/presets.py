@@ -49,13 +49,22 @@ def _tuned_best() -> PixelMPCConfig:
 
 
 def preset(name: str) -> RaceSpec:
-    """The race ``name`` ("paper" or "best"), PixelMPC; ``replace(controller="mppi")`` gives its nominal MPPI
-    baseline at the same target, seed and MPPI settings."""
+    """The race ``name`` ("paper" or "best"), PixelMPC; :func:`nominal_of` gives its nominal MPPI baseline."""
     if name == "paper":
         return RaceSpec("pixelmpc", PixelMPCConfig(), speed=PAPER_LABEL_SPEEDS[0])
     if name == "best":
         return RaceSpec("pixelmpc", _tuned_best(), speed=PAPER_PACE_SPEED)
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+
+def nominal_of(spec: RaceSpec) -> RaceSpec:
+    """Nominal MPPI's baseline for ``spec``: the same race (target, seed, course, estimator, faults, samples and
+    horizon), flown by nominal MPPI with the paper's sampling temperature and noise colour, as the nominal frontier
+    that every frontier gain is measured against flies it. A preset's tuned lambda and noise colour were searched
+    for PixelMPC's cost and stay with it."""
+    paper = PixelMPCConfig().mppi
+    mppi = dataclasses.replace(spec.config.mppi, temperature=paper.temperature, noise_exponent=paper.noise_exponent)
+    return spec.replace(controller="mppi", config=dataclasses.replace(spec.config, mppi=mppi))
 
 
 def pace_speed(label: float) -> float:
