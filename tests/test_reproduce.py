@@ -12,6 +12,8 @@ def test_aliases_expand_in_canonical_order_without_repeats():
     assert R.resolve_parts(["all"], quick=True) == R.resolve_parts(["all"])
     assert R.resolve_parts(["fig9", "table1", "table3", "fig6"]) == ["table2", "table4", "bench"]
     assert R.resolve_parts(["projection", "all"])[-1] == "table2_projection"  # not in all, runs last
+    assert R.resolve_parts(["robustness", "table4"]) == ["table4", "robustness"]  # not in all either
+    assert set(R.RUNNERS) == set(R.PARTS) and set(R.TITLES) == set(R.PARTS)
     with pytest.raises(ValueError, match="unknown part 'table9'"):
         R.resolve_parts(["table9"])
 
