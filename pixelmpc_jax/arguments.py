@@ -172,6 +172,22 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
                    dest=GUARD + "recover_error_px", metavar="PX",
                    help="with --estimator pf: re-spread the particles when no particle explains a detection within "
                         "PX pixels summed over its corners (default: off)")
+    p.add_argument("--pf-imu-bias", type=imu_bias_std, default=None, dest=GUARD + "imu_bias_std",
+                   metavar="ACCEL,GYRO",
+                   help="with --estimator pf: the filter estimates its IMU's biases, each particle carrying its "
+                        "own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)")
+
+
+def imu_bias_std(text: str) -> tuple:
+    """``ACCEL,GYRO``: two positive stds of the filter's IMU bias states, m/s^2 and rad/s."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: takes two positive numbers ACCEL,GYRO (m/s^2, rad/s), "
+                                         "e.g. 0.3,0.02")
+    return values
 
 
 def with_faults(args, spec):

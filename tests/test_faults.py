@@ -316,7 +316,8 @@ def faulty_loop(request):
                                                             disturbance_time_constant_s=0.5))
     config = env_lib.EnvConfig(max_time_s=0.4, estimator="pf", pf=pf_lib.PFConfig(num_particles=64),
                                faults=F.fault_level(F.COMBINED, "severe"),
-                               guards=guards_lib.GuardConfig(detection_gate_px=30.0, recover_error_px=120.0))
+                               guards=guards_lib.GuardConfig(detection_gate_px=30.0, recover_error_px=120.0,
+                                                             imu_bias_std=(0.3, 0.02)))
     env, world = env_lib.make_env(config), env_lib.make_world(COURSE, target_speed=8.0)
 
     @jax.jit
@@ -342,6 +343,7 @@ def test_every_fault_at_once_gives_finite_commands_and_a_named_end(faulty_loop):
     assert int(sim.end_cause) in env_lib.END_NAMES and int(sim.end_cause) != 0  # the 0.4 s limit: a timeout
     np.testing.assert_array_equal(policy_state.pending, commands[-3:])  # the commands the plant has not applied
     assert np.all(np.isfinite(np.asarray(policy_state.disturbance)))
+    assert sim.filter.bias.shape == (64, 6) and np.all(np.isfinite(np.asarray(sim.filter.bias)))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -392,3 +394,17 @@ def test_the_fault_flags_make_the_race(tmp_path):
     assert spec.config.model_latency_ticks == 1
     plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path)]))
     assert plain.faults == F.Faults() and plain.guards == guards_lib.GuardConfig()
+
+
+def test_the_bias_flag_gives_the_filter_bias_states(tmp_path, capsys):
+    args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "pf",
+                                          "--pf-imu-bias", "0.3,0.02"])
+    spec, _ = cli._race_spec(args)
+    assert spec.guards == guards_lib.GuardConfig(imu_bias_std=(0.3, 0.02)) and not spec.guards.active
+    pf = guards_lib.filter_config(pf_lib.PFConfig(), spec.guards)
+    assert pf.imu_bias_std == (0.3, 0.02) and pf.imu_bias_walk == pytest.approx((0.03, 0.002)) and pf.estimates_bias
+    assert guards_lib.filter_config(pf_lib.PFConfig(), guards_lib.GuardConfig()) == pf_lib.PFConfig()
+    with pytest.raises(SystemExit):
+        cli.main(["race", "--out", str(tmp_path / "never"), "--pf-imu-bias", "0.3"])
+    err = capsys.readouterr().err
+    assert "takes two positive numbers ACCEL,GYRO" in err and len(err.strip().splitlines()) == 1

@@ -314,3 +314,45 @@ def test_the_config_docstring_names_the_boolean_defaults():
         if isinstance(field.default, bool):
             entry = re.search(rf"\n        {field.name}: (.*?)(?=\n        \w+:|\Z)", doc, re.S)
             assert entry and f"{field.default} (default)" in entry.group(1), field.name
+
+
+def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera, straight):
+    """At rest before a gate with a biased IMU (the moderate bias of sim/faults.py), detected every tick: after 5 s
+    the filter that carries bias states holds the velocity and position far better than the paper's, and its
+    particles' bias leans the way of the true one on the axes the gate's corners see (vertical and lateral)."""
+    x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
+    det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
+    bias = np.asarray([0.1, -0.1, 0.2, 0.01, -0.01, 0.01], np.float32)
+    imu = IMU(jnp.asarray([0.0, 0.0, 9.81], jnp.float32) + bias[:3], jnp.asarray(bias[3:]))
+    errors = {}
+    for std in ((0.0, 0.0), (0.3, 0.02)):
+        config = PF.PFConfig(imu_bias_std=std, imu_bias_walk=tuple(0.1 * s for s in std))
+        state = PF.pf_init(jax.random.PRNGKey(1), x_true, config, spread=(0.1, 0.01, 0.05))
+        assert (state.bias is None) == (std == (0.0, 0.0))
+        velocity, position = [], []
+        for _ in range(200):
+            state, est, _ = PF.pf_step(state, imu, det, straight, camera, config)
+            velocity.append(float(jnp.linalg.norm(est.mean[7:])))
+            position.append(_position_error(est, x_true))
+        errors[std] = (np.mean(velocity[-40:]), np.mean(position[-40:]))
+    plain, biased = errors[(0.0, 0.0)], errors[(0.3, 0.02)]
+    assert biased[0] < 0.5 * plain[0] and biased[1] < 0.5 * plain[1]
+    w = np.exp(np.asarray(state.log_weights))
+    learned = (w / w.sum()) @ np.asarray(state.bias)
+    assert learned[2] > 0.1 and learned[1] < -0.05  # true: +0.2 up, -0.1 left
+
+
+def test_bias_states_are_checked_and_resampled_with_their_particles(camera, straight):
+    with pytest.raises(ValueError, match="imu_bias_std must be 2 finite numbers"):
+        PF.PFConfig(imu_bias_std=(0.3,))
+    config = PF.PFConfig(num_particles=768, imu_bias_std=(0.3, 0.02), resample_threshold=1.0)
+    x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
+    state = PF.pf_init(jax.random.PRNGKey(2), x_true, config)
+    with pytest.raises(ValueError, match="PFState.bias must be"):
+        PF.pf_step(state.replace(bias=None), _hover_imu(), None, straight, camera, config)
+    tagged = state.replace(particles=state.particles.at[:, 0].set(jnp.arange(768.0)),
+                           bias=state.bias.at[:, 0].set(jnp.arange(768.0)))
+    det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
+    after, _, info = PF.pf_step(tagged, None, det, straight, camera, config)
+    assert bool(info.resampled)  # every particle's bias followed it through the resampling
+    np.testing.assert_array_equal(np.asarray(after.bias[:, 0]), np.asarray(after.particles[:, 0]))

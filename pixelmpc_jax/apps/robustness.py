@@ -12,7 +12,8 @@ smoke run, 2 laps, the moderate level on the filter only). With ``levers``, the 
 too: what a lever costs) are flown again with each named set of levers (:data:`LEVER_SETS`) on: ``model``, the
 disturbance observer in the controller's model (``PixelMPCConfig.disturbance_time_constant_s``) and, under an
 actuation latency, the latency in its model (``PixelMPCConfig.model_latency_ticks``); ``filter``, the filter's
-guards (:mod:`pixelmpc_jax.perception.filter_guards`). The sets fly apart, so each is measured on its own.
+guards (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
+states. The sets fly apart, so each is measured on its own.
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
@@ -45,12 +46,14 @@ IMU_FAULTS = ("imu_bias", "imu_noise")  # read only by the filter
 DETECTOR_FAULTS = ("miss", "false", "pixel_noise", "detection_delay")  # nominal MPPI on the truth never detects
 DIVERGED_M = 2.0  # m: a failed lap whose estimate strayed this far from the truth failed by its estimate
 SEED = 200  # the first lap's seed, as the reproduce parts (no setting was tuned on it), so fault-free cells share
-GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0)  # the "filter" levers (see the module doc)
+GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0,
+                     imu_bias_std=(0.3, 0.02))  # the "filter" levers (see the module doc)
 DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer, a "model" lever
 LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:g} s) and the fault's latency in the "
                        "controller's model",
-              "filter": f"the filter's detection gate ({GUARDS.detection_gate_px:g} px) and divergence recovery "
-                        f"({GUARDS.recover_error_px:g} px)"}
+              "filter": f"the filter's detection gate ({GUARDS.detection_gate_px:g} px), divergence recovery "
+                        f"({GUARDS.recover_error_px:g} px) and IMU bias states ({GUARDS.imu_bias_std[0]:g} m/s², "
+                        f"{GUARDS.imu_bias_std[1]:g} rad/s)"}
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
           "flip": "flip", "estimate_diverged": "estimate diverged"}

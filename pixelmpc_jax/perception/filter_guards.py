@@ -9,6 +9,9 @@
   corner error still exceeds this many pixels, no particle explains it: the estimate has diverged. The
   predicted particles are then re-spread by ``recover_spread`` (position m, attitude rad as a body rotation,
   velocity m/s), their weights reset, and the detection weighs the re-spread cloud instead.
+- **IMU bias states** (``imu_bias_std``): the filter estimates its IMU's biases, each particle carrying its own
+  (``PFConfig.imu_bias_std``; :func:`filter_config` gives the filter's configuration with them), walking by
+  :data:`BIAS_WALK_SHARE` of their spread per square-root second.
 
 :func:`guarded_pf_step` is :func:`~pixelmpc_jax.perception.particle_filter.pf_step` with the guards between the
 motion and the sensor update; with no guard on it is ``pf_step`` itself.
@@ -29,6 +32,7 @@ from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.world import camera as camera_lib
 
 GATE_MIN_SHARE = 0.01  # the weight share of particles that must place the gate near a detection to keep it
+BIAS_WALK_SHARE = 0.1  # per square-root second, of the bias states' initial spread
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,11 +44,14 @@ class GuardConfig:
             detection's centre is kept.
         recover_error_px: pixels, the best particle's summed corner error above which the filter re-spreads.
         recover_spread: (position m, attitude rad, velocity m/s) stds of the re-spread.
+        imu_bias_std: (accelerometer m/s^2, gyro rad/s), the spread of the IMU bias each particle carries, or
+            None: the filter estimates no bias (the paper's).
     """
 
     detection_gate_px: float | None = None
     recover_error_px: float | None = None
     recover_spread: tuple = (1.0, 0.05, 0.5)
+    imu_bias_std: tuple | None = None
 
     def __post_init__(self):
         for name in ("detection_gate_px", "recover_error_px"):
@@ -57,10 +64,24 @@ class GuardConfig:
             raise ValueError(f"recover_spread must be 3 finite stds >= 0 (position, attitude, velocity), got "
                              f"{self.recover_spread!r}")
         object.__setattr__(self, "recover_spread", spread)
+        if self.imu_bias_std is not None:
+            bias = tuple(float(s) for s in self.imu_bias_std)
+            if len(bias) != 2 or not all(math.isfinite(s) and s > 0 for s in bias):
+                raise ValueError(f"imu_bias_std must be 2 positive finite stds (accelerometer m/s^2, gyro rad/s) or "
+                                 f"None, got {self.imu_bias_std!r}")
+            object.__setattr__(self, "imu_bias_std", bias)
 
     @property
     def active(self) -> bool:
         return self.detection_gate_px is not None or self.recover_error_px is not None
+
+
+def filter_config(config: pf_lib.PFConfig, guards: GuardConfig) -> pf_lib.PFConfig:
+    """The filter's configuration with the guards' IMU bias states (``config`` itself without them)."""
+    if guards.imu_bias_std is None:
+        return config
+    return dataclasses.replace(config, imu_bias_std=guards.imu_bias_std,
+                               imu_bias_walk=tuple(BIAS_WALK_SHARE * s for s in guards.imu_bias_std))
 
 
 class GuardInfo(NamedTuple):

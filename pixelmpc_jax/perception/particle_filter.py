@@ -41,6 +41,11 @@ Choices where the paper leaves one open:
   square it into ``-0.5 (816 / sigma)^2`` and let one detector glitch decide everything; it is also
   robust to the detector's occasional bad corner. ``"gaussian"`` (``-0.5 sum_k (e_k / sigma)^2``) is
   available for comparison.
+- IMU biases (an option, off by default as in the paper): with ``PFConfig.imu_bias_std`` each particle also
+  carries an accelerometer and a gyro bias (``PFState.bias``, (P, 6)), drawn with those stds, subtracted from the
+  readings it integrates and walking by ``imu_bias_walk`` per square-root second; resampling keeps the biases
+  that explain the detections. Without it, a constant bias of a few tenths of a m/s^2 or a hundredth of a rad/s
+  drifts the velocity and attitude faster than position noise and detections pull them back.
 - Numerics. Log weights, normalised with log-sum-exp. A non-finite particle or likelihood gets weight
   zero; if no weight is left (all ``-inf``/NaN) the particles are kept, the weights reset to uniform and
   ``info.degenerate`` is set.
@@ -73,6 +78,7 @@ from pixelmpc_jax.world import camera as camera_lib
 
 GRAVITY = 9.81
 LIKELIHOODS = ("laplace", "gaussian")
+_BIAS_STREAM = 0x0B1A5  # folded into a step's position key for the biases' draws, leaving the other draws alone
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +104,9 @@ class PFConfig:
             When the target has just left the image, the true pose sits at the field of view's edge and
             the penalty removes the particles on its inner side at every tick, pushing the estimate away
             from the truth (in our loop the attitude error grew ~0.5 deg/s while the target was out of view).
+        imu_bias_std: (accelerometer m/s^2, gyro rad/s), the initial spread of each particle's IMU bias; (0, 0)
+            (default, the paper's filter): the particles carry no bias (module docstring).
+        imu_bias_walk: (m/s^2, rad/s) per square-root second, the random walk of each particle's bias.
         dt: s, one update per control tick (the tick of :mod:`pixelmpc_jax.timing`); used by the one-mean-sample
             motion model (a preintegrated ``TickIMU`` carries its own ``dt``).
         gravity: m/s^2 along world -z.
@@ -113,6 +122,8 @@ class PFConfig:
     likelihood: str = "laplace"
     resample_threshold: float = 0.5
     penalise_undetected_target: bool = False
+    imu_bias_std: tuple = (0.0, 0.0)
+    imu_bias_walk: tuple = (0.0, 0.0)
     dt: float = timing.CONTROL_DT
     gravity: float = GRAVITY
 
@@ -132,6 +143,17 @@ class PFConfig:
             raise ValueError(f"resample_threshold must lie in [0, 1], got {self.resample_threshold!r}")
         if self.likelihood not in LIKELIHOODS:
             raise ValueError(f"likelihood must be one of {LIKELIHOODS}, got {self.likelihood!r}")
+        for name in ("imu_bias_std", "imu_bias_walk"):
+            value = tuple(float(v) for v in getattr(self, name))
+            if len(value) != 2 or not all(math.isfinite(v) and v >= 0 for v in value):
+                raise ValueError(f"{name} must be 2 finite numbers >= 0 (accelerometer, gyro), got "
+                                 f"{getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+
+    @property
+    def estimates_bias(self) -> bool:
+        """Whether each particle carries an IMU bias (``PFState.bias``)."""
+        return any(self.imu_bias_std) or any(self.imu_bias_walk)
 
     @property
     def position_noise_std(self) -> float:
@@ -148,11 +170,14 @@ class PFState:
         particles: (P, 10) robot states ``[p, q(wxyz), v]``.
         log_weights: (P,) normalised log weights (``logsumexp == 0``).
         key: PRNG key, split with purpose names at every step.
+        bias: (P, 6) each particle's accelerometer (m/s^2) and gyro (rad/s) bias with
+            ``PFConfig.imu_bias_std``, else None.
     """
 
     particles: jax.Array
     log_weights: jax.Array
     key: jax.Array
+    bias: jax.Array | None = None
 
 
 class PFEstimate(NamedTuple):
@@ -192,6 +217,11 @@ def _check_state(state: PFState, config: PFConfig) -> None:
             f"PFState for one filter (vmap batches) with P={P} needs particles ({P}, {STATE_DIM}) and "
             f"log_weights ({P},); got {jnp.shape(state.particles)} and {jnp.shape(state.log_weights)}"
         )
+    if config.estimates_bias != (state.bias is not None) or (state.bias is not None and
+                                                             jnp.shape(state.bias) != (P, 6)):
+        raise ValueError(f"PFState.bias must be ({P}, 6) when the config estimates IMU biases and None otherwise; "
+                         f"got {None if state.bias is None else jnp.shape(state.bias)} with imu_bias_std "
+                         f"{config.imu_bias_std} and imu_bias_walk {config.imu_bias_walk}")
 
 
 def _check_imu(imu) -> None:
@@ -232,7 +262,11 @@ def _pf_init(key, x0, config: PFConfig, spread):
     q = jax.vmap(lambda d: quadrotor.quat_multiply(q0, _small_rotation(d)))(dtheta)  # body-frame perturbation
     particles = jnp.concatenate([x0[POS] + dp, quadrotor.normalize_quat(q), x0[VEL] + dv], axis=-1)
     log_weights = jnp.full((P,), -math.log(P), jnp.float32)
-    return PFState(particles=particles, log_weights=log_weights, key=key)
+    bias = None
+    if config.estimates_bias:  # a stream of its own: the cloud above is drawn as without biases
+        std = jnp.repeat(jnp.asarray(config.imu_bias_std, jnp.float32), 3)
+        bias = std * jax.random.normal(jax.random.fold_in(key_pos, _BIAS_STREAM), (P, 6), jnp.float32)
+    return PFState(particles=particles, log_weights=log_weights, key=key, bias=bias)
 
 
 def pf_init(key: jax.Array, x0: jax.Array, config: PFConfig = PFConfig(), spread=(0.5, 0.05, 0.5)) -> PFState:
@@ -300,19 +334,29 @@ def _predict(state: PFState, imu, config: PFConfig) -> PFState:
     key, key_accel, key_gyro, key_pos = jax.random.split(state.key, 4)
     accel_noise = math.sqrt(config.accel_noise_variance) * jax.random.normal(key_accel, (P, 3), jnp.float32)
     gyro_noise = math.sqrt(config.gyro_noise_variance) * jax.random.normal(key_gyro, (P, 3), jnp.float32)
-    if hasattr(imu, "delta_q"):  # preintegrated samples (sim.plant.TickIMU)
+    preintegrated = hasattr(imu, "delta_q")  # the tick's samples (sim.plant.TickIMU), or one mean sample
+    if preintegrated:
         imu = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), imu)
         # the noise is per reading: independent over the tick's samples, its mean has 1/S of the variance
         per_reading = jax.lax.rsqrt(jnp.maximum(imu.num_samples, 1.0))
+        accel_noise, gyro_noise = accel_noise * per_reading, gyro_noise * per_reading
+    bias = state.bias
+    if bias is not None:  # each particle reads the IMU less its own bias
+        accel_noise, gyro_noise = accel_noise - bias[:, :3], gyro_noise - bias[:, 3:]
+    if preintegrated:
         particles = jax.vmap(propagate_preintegrated, in_axes=(0, None, 0, 0, None))(
-            state.particles, imu, accel_noise * per_reading, gyro_noise * per_reading, config.gravity)
-    else:  # one (mean) sample for the tick
+            state.particles, imu, accel_noise, gyro_noise, config.gravity)
+    else:
         accel = jnp.asarray(imu.accel, jnp.float32) + accel_noise
         gyro = jnp.asarray(imu.gyro, jnp.float32) + gyro_noise
         particles = jax.vmap(propagate_particle, in_axes=(0, 0, 0, None, None))(
             state.particles, accel, gyro, config.dt, config.gravity)
     particles = particles.at[:, POS].add(config.position_noise_std * jax.random.normal(key_pos, (P, 3), jnp.float32))
-    return state.replace(particles=particles, key=key)
+    if bias is not None:
+        dt = imu.dt if preintegrated else config.dt
+        walk = jnp.repeat(jnp.asarray(config.imu_bias_walk, jnp.float32), 3) * jnp.sqrt(dt)
+        bias = bias + walk * jax.random.normal(jax.random.fold_in(key_pos, _BIAS_STREAM), (P, 6), jnp.float32)
+    return state.replace(particles=particles, key=key, bias=bias)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -445,13 +489,14 @@ def _maybe_resample(state: PFState, config: PFConfig):
 
     def do(_):
         idx = systematic_resample(key_resample, state.log_weights)
-        return state.particles[idx], jnp.full((P,), -math.log(P), jnp.float32)
+        bias = None if state.bias is None else state.bias[idx]
+        return state.particles[idx], jnp.full((P,), -math.log(P), jnp.float32), bias
 
     def keep(_):
-        return state.particles, state.log_weights
+        return state.particles, state.log_weights, state.bias
 
-    particles, log_weights = jax.lax.cond(resample, do, keep, None)
-    return PFState(particles=particles, log_weights=log_weights, key=key), ess, resample
+    particles, log_weights, bias = jax.lax.cond(resample, do, keep, None)
+    return PFState(particles=particles, log_weights=log_weights, key=key, bias=bias), ess, resample
 
 
 def _estimate(state: PFState) -> PFEstimate:

@@ -260,14 +260,15 @@ def _estimate(config: EnvConfig, world: World, state: SimState, detection: detec
     x = state.plant.x
     if config.estimator != "pf":
         return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
+    pf_config = guards_lib.filter_config(config.pf, config.guards)
     if config.guards.active:
         filter_state, estimate, filter_info, guard = guards_lib.guarded_pf_step(
-            state.filter, state.imu, detection, world.track, world.camera, config.pf, config.guards)
+            state.filter, state.imu, detection, world.track, world.camera, pf_config, config.guards)
         detection = detection.replace(found=detection.found & guard.accepted,
                                       corners_visible=detection.corners_visible & guard.accepted)
     else:
         filter_state, estimate, filter_info = pf_lib.pf_step(state.filter, state.imu, detection, world.track,
-                                                             world.camera, config.pf)
+                                                             world.camera, pf_config)
     x_est = estimate.mean.astype(x.dtype)
     progress_est = _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
     return filter_state, x_est, filter_info.position_cov_trace, progress_est, detection
@@ -289,7 +290,8 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=(pf_lib.pf_init(key, x0, config.pf, config.pf_initial_spread)
+            filter=(pf_lib.pf_init(key, x0, guards_lib.filter_config(config.pf, config.guards),
+                                   config.pf_initial_spread)
                     if config.estimator == "pf" else jnp.zeros(())),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
