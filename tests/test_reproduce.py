@@ -95,3 +95,13 @@ def test_the_report_opens_with_the_presets_and_the_measured_pace(tmp_path):
     # 31.8 s lies between 33.0 s (8 m/s) and 31.0 s (8.5 m/s): 8 + 0.5 * 1.2 / 2 = 8.30 m/s
     assert "| 14 m/s | 31.8 | 8.5 m/s | 31.0 ± 0.5 | 8.30 m/s |" in text
     assert "| 20 m/s | - (straight lane) | 10.3 m/s | - | - |" in text
+
+
+def test_a_part_report_titled_as_its_section_shows_the_title_once(tmp_path):
+    folder = tmp_path / "frontier"
+    folder.mkdir()
+    (folder / "REPORT.md").write_text(f"# {R.TITLES['frontier']}\n\n## Nominal MPPI\n\nrows\n")
+    state = {"frontier": {"quick": False, "wall_time_s": 60.0, "finished": "then", "report": "REPORT.md"}}
+    report = R.write_report(tmp_path, state).read_text()
+    assert report.count(R.TITLES["frontier"]) == 2  # the overview's row and the section's heading
+    assert f"## {R.TITLES['frontier']}" in report and "### Nominal MPPI" in report

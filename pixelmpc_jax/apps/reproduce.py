@@ -212,7 +212,10 @@ def write_report(out: Path, state: dict) -> Path:
         report = out / part / (entry["report"] if entry else "REPORT.md")
         body = report.read_text() if report.exists() else f"(missing: {report})\n"
         # demote the part's headings one level under its section
-        body = "\n".join("#" + line if line.startswith("#") else line for line in body.splitlines())
+        body_lines = body.splitlines()
+        if body_lines and body_lines[0].startswith("# ") and body_lines[0][2:].strip() == TITLES[part]:
+            body_lines = body_lines[1:]  # the section's own title says it
+        body = "\n".join("#" + line if line.startswith("#") else line for line in body_lines)
         lines += [f'<a id="{part}"></a>', "", f"## {TITLES[part]}", "", _relink(body, part), ""]
     path = out / "REPORT.md"
     tmp = path.with_suffix(f".md.{os.getpid()}.tmp")

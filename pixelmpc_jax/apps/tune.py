@@ -161,7 +161,7 @@ def adopt(cells: list[grid.Cell], out: Path, laps: int, seed: int, sources=()) -
             continue
         folder, name = found
         # the wall time was spent where it was flown; here it cost nothing
-        results[cell.name] = {**flown[folder][name], "shared_from": f"{folder}/{name}", "wall_time_s": 0.0}
+        results[cell.name] = {**flown[folder][name], "shared_from": f"{Path(folder).name}/{name}", "wall_time_s": 0.0}
         trajectories = folder / f"trajectories_{name}.npz"
         if trajectories.exists():
             out.mkdir(parents=True, exist_ok=True)

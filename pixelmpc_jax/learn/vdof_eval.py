@@ -53,6 +53,13 @@ NOT_REPORTED = {
 # --------------------------------------------------------------------------------------------------
 
 
+
+def _shown_path(path) -> str:
+    """A weights file as a report shows it: a file shipped in the package by its place in the package (no path of
+    the machine that ran it), any other as given."""
+    path, package = Path(path).resolve(), Path(__file__).resolve().parents[1]
+    return f"pixelmpc_jax/{path.relative_to(package).as_posix()}" if path.is_relative_to(package) else str(path)
+
 def _vdof_image_velocity(params: vdof.VDOFParams, q: jax.Array, uv: jax.Array, u: jax.Array) -> jax.Array:
     """(2,) vdof's image motion at the pixel ``uv`` for attitude ``q`` at rest with a zero box size: its response
     to the rates ``u[:3]`` (``B(uv)``), which is the same at any velocity and box size, in the DOF's signature
@@ -176,7 +183,7 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
         "box_size_rel_err_at": multistep["box_size_rel_err_at"],
         "rotation_response": rotation["vdof"],
         "pixel_cost_rank_correlation": ranking["vdof"],
-        "comparison_dof": {"variant": dof_variant, "weights": str(dof_path), "dof_input": dof_input,
+        "comparison_dof": {"variant": dof_variant, "weights": _shown_path(dof_path), "dof_input": dof_input,
                            "num_parameters": dof.num_trainable_params(dof_params),
                            "target_aee_px": one_step["dof_px"], **multistep["dof"],
                            "rotation_response": rotation["dof"], "pixel_cost_rank_correlation": ranking["dof"]},
