@@ -253,6 +253,11 @@ def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, s
     return detection, fault_state
 
 
+def _pf_config(config: EnvConfig) -> pf_lib.PFConfig:
+    """The filter's configuration with the guards' IMU bias states, if any."""
+    return guards_lib.filter_config(config.pf, config.guards)
+
+
 def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
     """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
     covariance trace, progress of the estimate, the detection as the loop uses it)``. With the filter's detection
@@ -260,7 +265,7 @@ def _estimate(config: EnvConfig, world: World, state: SimState, detection: detec
     x = state.plant.x
     if config.estimator != "pf":
         return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
-    pf_config = guards_lib.filter_config(config.pf, config.guards)
+    pf_config = _pf_config(config)
     if config.guards.active:
         filter_state, estimate, filter_info, guard = guards_lib.guarded_pf_step(
             state.filter, state.imu, detection, world.track, world.camera, pf_config, config.guards)
@@ -290,8 +295,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=(pf_lib.pf_init(key, x0, guards_lib.filter_config(config.pf, config.guards),
-                                   config.pf_initial_spread)
+            filter=(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread)
                     if config.estimator == "pf" else jnp.zeros(())),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
