@@ -179,15 +179,15 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
 
 
 def imu_bias_std(text: str) -> tuple:
-    """``ACCEL,GYRO``: two positive stds of the filter's IMU bias states, m/s^2 and rad/s."""
+    """``ACCEL,GYRO``: two positive stds of the filter's IMU bias states, m/s^2 and rad/s, checked by
+    :class:`~pixelmpc_jax.perception.filter_guards.GuardConfig` itself."""
+    from pixelmpc_jax.perception.filter_guards import GuardConfig
+
     try:
-        values = tuple(float(v) for v in text.split(","))
+        return GuardConfig(imu_bias_std=tuple(float(v) for v in text.split(","))).imu_bias_std
     except ValueError:
-        values = ()
-    if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
         raise argparse.ArgumentTypeError(f"{text!r}: takes two positive numbers ACCEL,GYRO (m/s^2, rad/s), "
-                                         "e.g. 0.3,0.02")
-    return values
+                                         "e.g. 0.3,0.02") from None
 
 
 def with_faults(args, spec):
