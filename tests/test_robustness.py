@@ -52,10 +52,14 @@ def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
     model = cells["pixelmpc_pf_latency_moderate_model"].cell.spec
     assert model.config.model_latency_ticks == model.faults.latency_ticks == 1
     assert model.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S and model.guards == GuardConfig()
-    guarded = cells["mppi_pf_miss_moderate_filter"].cell.spec
+    guarded = cells["pixelmpc_pf_miss_moderate_filter"].cell.spec
     assert guarded.guards == R.GUARDS and guarded.config.disturbance_time_constant_s is None
     assert cells["pixelmpc_pf_none_model"].cell.spec.faults == Faults()  # what the levers cost without faults
-    assert len(cells) == 3 * len(R.robustness_cells(quick=True))
+    # the levers answer PixelMPC's bar: its filter cells only, fault-free and moderate
+    assert not any(name.startswith("mppi") and name.endswith(("_model", "_filter")) for name in cells)
+    assert len(cells) == len(R.robustness_cells(quick=True)) + 2 * (len(FAULT_LEVELS) + 2)
+    full = _by_name(R.robustness_cells(levers=("filter",)))
+    assert "pixelmpc_pf_wind_severe_filter" not in full and "pixelmpc_pf_wind_moderate_filter" in full
     with pytest.raises(ValueError, match="unknown levers 'magic'"):
         R.race("mppi", "pf", levers="magic")
 
@@ -100,7 +104,7 @@ def test_a_run_flies_each_cell_with_its_laps_and_writes_the_report(tmp_path, flo
     row = next(r for r in rows if r["cell"] == "pixelmpc_pf_wind_moderate")
     assert row["successes"] == 1 and row["failures"] == {"estimate_diverged": 1}
     report = (tmp_path / "REPORT.md").read_text()
-    assert "| wind | moderate | 1/2 | 1/2 | 1/2 | 1/2 |" in report  # glance: both controllers, then with the levers
+    assert "| wind | moderate | 1/2 | 1/2 | 1/2 |" in report  # glance: both controllers, then PixelMPC with the levers
     assert "PixelMPC (best), filter + model levers" in report and R.LEVER_SETS["model"] in report
     assert "estimate diverged 1" in report and FAULT_LEVELS["map"]["severe"].why in report
     saved = json.loads((tmp_path / "robustness.json").read_text())
