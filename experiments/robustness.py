@@ -2,7 +2,7 @@
 paper's pace under wind, model error, latency, IMU and detector faults and map errors, each alone at a moderate and
 a severe level and all moderate ones at once, on the particle filter (and at the moderate level on the true state).
 
-    python experiments/robustness.py --out DIR [--quick] [--levers [model] [filter]] [--reuse FOLDER ...]
+    python experiments/robustness.py --out DIR [--quick] [--levers [model] [filter] [gate] [bias]] [--reuse FOLDER ...]
 
 Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
 robustness.png and results.json. Interrupted runs resume: finished cells are kept.
@@ -20,8 +20,9 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run: 2 laps per cell, the moderate level on the particle filter only")
     parser.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
-                        help="also fly the filter cells with each set of levers on, apart: model (the disturbance "
-                             "observer, the latency in the model), filter (the filter's guards); no name: both")
+                        help="also fly PixelMPC's moderate filter cells with each set of levers on, apart: model "
+                             "(the disturbance observer, the latency in the model), filter (the filter's guards), "
+                             "gate and bias (the guards' two halves alone); no name: all four")
     parser.add_argument("--reuse", type=Path, nargs="*", default=(),
                         help="other grids' output folders whose finished fault-free cells are copied, not flown")
     parser.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")

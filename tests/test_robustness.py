@@ -60,6 +60,10 @@ def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
     assert len(cells) == len(R.robustness_cells(quick=True)) + 2 * (len(FAULT_LEVELS) + 2)
     full = _by_name(R.robustness_cells(levers=("filter",)))
     assert "pixelmpc_pf_wind_severe_filter" not in full and "pixelmpc_pf_wind_moderate_filter" in full
+    # the filter set's halves fly alone: the gate and the recovery without the bias states, and the reverse
+    gate, bias = R.race("pixelmpc", "pf", levers="gate").guards, R.race("pixelmpc", "pf", levers="bias").guards
+    assert gate.detection_gate_px == R.GUARDS.detection_gate_px and gate.imu_bias_std is None
+    assert bias.imu_bias_std == R.GUARDS.imu_bias_std and not bias.active
     with pytest.raises(ValueError, match="unknown levers 'magic'"):
         R.race("mppi", "pf", levers="magic")
 

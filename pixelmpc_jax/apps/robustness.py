@@ -14,7 +14,8 @@ named set of levers (:data:`LEVER_SETS`) on: ``model``, the disturbance observer
 (``PixelMPCConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
 (``PixelMPCConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
-states. The sets fly apart, so each is measured on its own.
+states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what). The sets fly apart, so
+each is measured on its own.
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
@@ -47,14 +48,19 @@ IMU_FAULTS = ("imu_bias", "imu_noise")  # read only by the filter
 DETECTOR_FAULTS = ("miss", "false", "pixel_noise", "detection_delay")  # nominal MPPI on the truth never detects
 DIVERGED_M = 2.0  # m: a failed lap whose estimate strayed this far from the truth failed by its estimate
 SEED = 200  # the first lap's seed, as the reproduce parts (no setting was tuned on it), so fault-free cells share
-GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0,
-                     imu_bias_std=(0.3, 0.02))  # the "filter" levers (see the module doc)
+GATE_GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0)  # the "gate" levers (see the module doc)
+BIAS_GUARDS = GuardConfig(imu_bias_std=(0.3, 0.02))  # the "bias" lever
+GUARDS = dataclasses.replace(GATE_GUARDS, imu_bias_std=BIAS_GUARDS.imu_bias_std)  # the "filter" levers: both
 DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer, a "model" lever
+_GATE_WORDS = (f"the filter's detection gate ({GATE_GUARDS.detection_gate_px:g} px) and divergence recovery "
+               f"({GATE_GUARDS.recover_error_px:g} px)")
+_BIAS_WORDS = f"IMU bias states ({BIAS_GUARDS.imu_bias_std[0]:g} m/s², {BIAS_GUARDS.imu_bias_std[1]:g} rad/s)"
 LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:g} s) and the fault's latency in the "
                        "controller's model",
-              "filter": f"the filter's detection gate ({GUARDS.detection_gate_px:g} px), divergence recovery "
-                        f"({GUARDS.recover_error_px:g} px) and IMU bias states ({GUARDS.imu_bias_std[0]:g} m/s², "
-                        f"{GUARDS.imu_bias_std[1]:g} rad/s)"}
+              "filter": f"{_GATE_WORDS} and its {_BIAS_WORDS}",
+              "gate": f"{_GATE_WORDS} alone (the filter set less the bias states)",
+              "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)"}
+FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
           "flip": "flip", "estimate_diverged": "estimate diverged"}
@@ -91,8 +97,8 @@ def race(controller: str, estimator: str, faults: Faults | None = None, levers: 
     if levers == "model":
         spec = spec.replace(config=dataclasses.replace(spec.config, model_latency_ticks=faults.latency_ticks,
                                                        disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S))
-    elif levers == "filter":
-        spec = spec.replace(guards=GUARDS)
+    elif levers in FILTER_GUARDS:
+        spec = spec.replace(guards=FILTER_GUARDS[levers])
     elif levers is not None:
         raise ValueError(f"unknown levers {levers!r}; choose one of {', '.join(LEVER_SETS)}")
     return spec
