@@ -171,7 +171,11 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pf-recover", type=float_in(0.0, 1e5, lo_open=True, unit="px"), default=None,
                    dest=GUARD + "recover_error_px", metavar="PX",
                    help="with --estimator pf: re-spread the particles when no particle explains a detection within "
-                        "PX pixels summed over its corners (default: off)")
+                        "PX pixels summed over its corners, N detections in a row (--pf-recover-after; default: "
+                        "off)")
+    p.add_argument("--pf-recover-after", type=int_in(1, 1000), default=None, dest=GUARD + "recover_after_ticks",
+                   metavar="N", help="with --pf-recover: re-spread after N unexplained detections in a row (default: "
+                                     "1; 3 lets one false detection pass without a re-spread)")
     p.add_argument("--pf-imu-bias", type=imu_bias_std, default=None, dest=GUARD + "imu_bias_std",
                    metavar="ACCEL,GYRO",
                    help="with --estimator pf: the filter estimates its IMU's biases, each particle carrying its "

@@ -249,12 +249,32 @@ def test_recovery_respreads_a_filter_whose_particles_explain_no_detection():
     x, seen = _seen_gate()
     imu, guards = plant_lib.hover_tick_imu(CONTROL_DT), guards_lib.GuardConfig(recover_error_px=120.0)
     for offset, diverged in (((0.0, 2.5, 0.0), True), ((0.0, 0.0, 0.0), False)):
-        state, estimate, _, info = guards_lib.guarded_pf_step(_filter(x, offset), imu, seen, COURSE, CAMERA, PF,
-                                                              guards)
-        assert bool(info.recovered) == diverged and bool(info.accepted)
+        state = guards_lib.init_guards(_filter(x, offset), guards)
+        state, estimate, _, info = guards_lib.guarded_pf_step(state, imu, seen, COURSE, CAMERA, PF, guards)
+        assert bool(info.recovered) == diverged and bool(info.accepted) and int(state.unexplained) == 0
     spread = guards_lib.respread(_filter(x), (1.0, 0.05, 0.5), jax.random.PRNGKey(0))
     assert np.std(np.asarray(spread.particles[:, 1])) == pytest.approx(1.0, rel=0.15)
     np.testing.assert_allclose(np.exp(spread.log_weights), 1.0 / PF.num_particles, rtol=1e-5)
+    with pytest.raises(ValueError, match="init_guards"):  # a state without the count cannot recover
+        guards_lib.guarded_pf_step(_filter(x), imu, seen, COURSE, CAMERA, PF, guards)
+
+
+def test_recovery_waits_for_unexplained_detections_in_a_row():
+    """Waiting for 3, a filter 2.5 m off re-spreads at its third unexplained detection, not before; a tick with no
+    detection keeps the count, and a detection the particles explain clears it."""
+    x, seen = _seen_gate()
+    imu = plant_lib.hover_tick_imu(CONTROL_DT)
+    guards = guards_lib.GuardConfig(recover_error_px=120.0, recover_after_ticks=3)
+    state = guards_lib.init_guards(_filter(x, (0.0, 2.5, 0.0)), guards)
+    for detection, count, recovered in ((seen, 1, False), (_not_found(seen), 1, False), (seen, 2, False),
+                                        (seen, 0, True)):
+        state, _, _, info = guards_lib.guarded_pf_step(state, imu, detection, COURSE, CAMERA, PF, guards)
+        assert (int(state.unexplained), bool(info.recovered)) == (count, recovered)
+    near = guards_lib.init_guards(_filter(x), guards).replace(unexplained=jnp.asarray(2, jnp.int32))
+    near, _, _, info = guards_lib.guarded_pf_step(near, imu, seen, COURSE, CAMERA, PF, guards)
+    assert int(near.unexplained) == 0 and not bool(info.recovered)  # explained: the row is broken
+    with pytest.raises(ValueError, match="recover_after_ticks must be an integer >= 1"):
+        guards_lib.GuardConfig(recover_after_ticks=0)
 
 
 def test_without_guards_the_guarded_step_is_the_filters_step():
@@ -387,10 +407,12 @@ def test_the_fault_flag_refuses_a_bad_entry_in_one_line(entry, message, capsys, 
 def test_the_fault_flags_make_the_race(tmp_path):
     args = cli.build_parser().parse_args(
         ["race", "--out", str(tmp_path), "--estimator", "pf", "--fault", "gust=moderate", "--fault", "wind=1,2,0",
-         "--fault", "gust=0.5", "--detection-gate", "25", "--model-latency", "1"])
+         "--fault", "gust=0.5", "--detection-gate", "25", "--pf-recover", "90", "--pf-recover-after", "3",
+         "--model-latency", "1"])
     spec, _ = cli._race_spec(args)
     assert spec.faults == F.Faults(wind=(1.0, 2.0, 0.0), gust=0.5)  # the later entry of a setting wins
-    assert spec.guards == guards_lib.GuardConfig(detection_gate_px=25.0)
+    assert spec.guards == guards_lib.GuardConfig(detection_gate_px=25.0, recover_error_px=90.0,
+                                                 recover_after_ticks=3)
     assert spec.config.model_latency_ticks == 1
     plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path)]))
     assert plain.faults == F.Faults() and plain.guards == guards_lib.GuardConfig()

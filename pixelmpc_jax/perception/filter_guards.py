@@ -6,9 +6,12 @@
   then skips it, and the loop passes it on as "not found". Gating on the particles, not on their mean, keeps a
   spread (or re-spread) cloud open to the detections that can bring it back.
 - **Divergence recovery** (``recover_error_px``): when a detection is informative but the best particle's summed
-  corner error still exceeds this many pixels, no particle explains it: the estimate has diverged. The
-  predicted particles are then re-spread by ``recover_spread`` (position m, attitude rad as a body rotation,
-  velocity m/s), their weights reset, and the detection weighs the re-spread cloud instead.
+  corner error still exceeds this many pixels, no particle explains it. When that happens to
+  ``recover_after_ticks`` informative detections in a row (ticks without a detection do not break the row), the
+  estimate has diverged: the predicted particles are re-spread by ``recover_spread`` (position m, attitude rad as
+  a body rotation, velocity m/s), their weights reset, and the detection weighs the re-spread cloud instead. The
+  default, 1, re-spreads at the first; but one false detection (another gate's image passing the detection gate)
+  is not a divergence, and the robustness experiment's levers wait for 3.
 - **IMU bias states** (``imu_bias_std``): the filter estimates its IMU's biases, each particle carrying its own
   (``PFConfig.imu_bias_std``; :func:`filter_config` gives the filter's configuration with them), walking by
   :data:`BIAS_WALK_SHARE` of their spread per square-root second.
@@ -44,6 +47,7 @@ class GuardConfig:
             detection's centre is kept.
         recover_error_px: pixels, the best particle's summed corner error above which the filter re-spreads.
         recover_spread: (position m, attitude rad, velocity m/s) stds of the re-spread.
+        recover_after_ticks: how many informative detections in a row no particle explains before the re-spread.
         imu_bias_std: (accelerometer m/s^2, gyro rad/s), the spread of the IMU bias each particle carries, or
             None: the filter estimates no bias (the paper's).
     """
@@ -51,6 +55,7 @@ class GuardConfig:
     detection_gate_px: float | None = None
     recover_error_px: float | None = None
     recover_spread: tuple = (1.0, 0.05, 0.5)
+    recover_after_ticks: int = 1
     imu_bias_std: tuple | None = None
 
     def __post_init__(self):
@@ -64,6 +69,9 @@ class GuardConfig:
             raise ValueError(f"recover_spread must be 3 finite stds >= 0 (position, attitude, velocity), got "
                              f"{self.recover_spread!r}")
         object.__setattr__(self, "recover_spread", spread)
+        after = self.recover_after_ticks
+        if isinstance(after, bool) or not isinstance(after, int) or after < 1:
+            raise ValueError(f"recover_after_ticks must be an integer >= 1, got {after!r}")
         if self.imu_bias_std is not None:
             bias = tuple(float(s) for s in self.imu_bias_std)
             if len(bias) != 2 or not all(math.isfinite(s) and s > 0 for s in bias):
@@ -74,6 +82,14 @@ class GuardConfig:
     @property
     def active(self) -> bool:
         return self.detection_gate_px is not None or self.recover_error_px is not None
+
+
+def init_guards(state: pf_lib.PFState, guards: GuardConfig) -> pf_lib.PFState:
+    """A fresh filter ``state`` with what its guards carry: the recovery's count of unexplained detections (zero)
+    when the recovery is on; ``state`` itself otherwise."""
+    if guards.recover_error_px is None:
+        return state
+    return state.replace(unexplained=jnp.zeros((), jnp.int32))
 
 
 def filter_config(config: pf_lib.PFConfig, guards: GuardConfig) -> pf_lib.PFConfig:
@@ -129,14 +145,18 @@ def _error_log_likelihood(error_px: float, config: pf_lib.PFConfig) -> float:
 
 
 def _recover(state: pf_lib.PFState, detection, track, camera, config: pf_lib.PFConfig, guards: GuardConfig):
-    """``(state, recovered)``: the predicted filter, re-spread when no particle explains ``detection``."""
+    """``(state, recovered)``: the predicted filter, re-spread when no particle has explained ``detection`` nor the
+    informative detections before it, ``guards.recover_after_ticks`` in a row (the count in ``state.unexplained``)."""
     key, key_spread = jax.random.split(state.key)
     state = state.replace(key=key)
     _, _, max_ll = pf_lib.pf_update(state, detection, track.gates, camera, config)
     informative = jnp.asarray(detection.found, bool) & (jnp.asarray(detection.gate_id) >= 0)
-    diverged = informative & (max_ll < _error_log_likelihood(guards.recover_error_px, config))
+    unexplained = informative & (max_ll < _error_log_likelihood(guards.recover_error_px, config))
+    count = jnp.where(unexplained, state.unexplained + 1, jnp.where(informative, 0, state.unexplained))
+    diverged = count >= guards.recover_after_ticks
     spread = respread(state, guards.recover_spread, key_spread)
-    return jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, a, b), spread, state), diverged
+    state = jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, a, b), spread, state)
+    return state.replace(unexplained=jnp.where(diverged, 0, count)), diverged
 
 
 def guarded_pf_step(state: pf_lib.PFState, imu, detection, track, camera: camera_lib.Camera,
@@ -157,6 +177,9 @@ def guarded_pf_step(state: pf_lib.PFState, imu, detection, track, camera: camera
                                       corners_visible=detection.corners_visible & accepted)
     recovered = jnp.asarray(False)
     if guards.recover_error_px is not None:
+        if state.unexplained is None:
+            raise ValueError("the divergence recovery counts unexplained detections in the filter's state: start it "
+                             "with init_guards(pf_init(...), guards)")
         state, recovered = _recover(state, detection, track, camera, config, guards)
     state, estimate, info = pf_lib.pf_step(state, None, detection, track, camera, config)
     return state, estimate, info, GuardInfo(accepted, recovered)

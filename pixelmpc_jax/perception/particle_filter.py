@@ -172,12 +172,15 @@ class PFState:
         key: PRNG key, split with purpose names at every step.
         bias: (P, 6) each particle's accelerometer (m/s^2) and gyro (rad/s) bias with
             ``PFConfig.imu_bias_std``, else None.
+        unexplained: () int32, the divergence guard's count of informative detections in a row that no particle
+            explained (:mod:`~pixelmpc_jax.perception.filter_guards`), else None. The filter's own steps carry it.
     """
 
     particles: jax.Array
     log_weights: jax.Array
     key: jax.Array
     bias: jax.Array | None = None
+    unexplained: jax.Array | None = None
 
 
 class PFEstimate(NamedTuple):
@@ -496,7 +499,7 @@ def _maybe_resample(state: PFState, config: PFConfig):
         return state.particles, state.log_weights, state.bias
 
     particles, log_weights, bias = jax.lax.cond(resample, do, keep, None)
-    return PFState(particles=particles, log_weights=log_weights, key=key, bias=bias), ess, resample
+    return state.replace(particles=particles, log_weights=log_weights, key=key, bias=bias), ess, resample
 
 
 def _estimate(state: PFState) -> PFEstimate:

@@ -295,7 +295,8 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread)
+            filter=(guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
+                                           config.guards)
                     if config.estimator == "pf" else jnp.zeros(())),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
