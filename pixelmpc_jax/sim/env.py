@@ -258,6 +258,12 @@ def _pf_config(config: EnvConfig) -> pf_lib.PFConfig:
     return guards_lib.filter_config(config.pf, config.guards)
 
 
+def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array) -> pf_lib.PFState:
+    """The particle filter's first cloud about ``x0``, with what its guards carry."""
+    return guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
+                                  config.guards)
+
+
 def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
     """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
     covariance trace, progress of the estimate, the detection as the loop uses it)``. With the filter's detection
@@ -295,9 +301,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=(guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
-                                           config.guards)
-                    if config.estimator == "pf" else jnp.zeros(())),
+            filter=_init_filter(config, key, x0) if config.estimator == "pf" else jnp.zeros(()),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
             faults=faults_lib.init_fault_state(faults, key, world.track.gates, hover),
