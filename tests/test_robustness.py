@@ -129,6 +129,17 @@ def test_the_fault_free_cells_are_copied_from_another_grid(tmp_path, flown):
     assert {r["shared_from"] for r in rows if r["fault"] == R.NONE} == {f"table2/{c.name}" for c in cells}
 
 
+def test_a_cell_flown_with_other_settings_counts_as_not_run(tmp_path, flown):
+    R.robustness_experiment(tmp_path, quick=True, progress=False)
+    results = json.loads((tmp_path / "results.json").read_text())
+    name = "pixelmpc_pf_wind_moderate"
+    results[name]["config"]["c_pixel"] = 1.0  # as if the best preset had changed since the cell flew
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    rows = R.robustness_experiment(tmp_path, quick=True, run=False)
+    assert name not in {r["cell"] for r in rows} and len(rows) == len(results) - 1
+    assert name in (tmp_path / "REPORT.md").read_text().split("Not yet run")[1]
+
+
 def test_the_report_of_finished_cells_only(tmp_path):
     rows = R.robustness_experiment(tmp_path, quick=True, run=False)
     assert rows == [] and "Not yet run" in (tmp_path / "REPORT.md").read_text()

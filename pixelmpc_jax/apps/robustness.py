@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
+from pixelmpc_jax.apps.grid import Cell, fmt, is_current, load_results, run_grid
 from pixelmpc_jax.apps.presets import preset
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.perception.filter_guards import GuardConfig
@@ -327,7 +327,10 @@ def robustness_experiment(out: Path, quick: bool = False, progress: bool = True,
                          reuse=reuse)
         except KeyboardInterrupt:
             interrupted = True
-    results = load_results(out)
+    # a cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun
+    flown = load_results(out)
+    results = {rc.cell.name: flown[rc.cell.name] for rc in cells
+               if is_current(flown.get(rc.cell.name), rc.cell.race(rc.laps, SEED, None))}
     rows = summarise(results, cells)
     missing = [rc.cell.name for rc in cells if rc.cell.name not in results]
     out.mkdir(parents=True, exist_ok=True)
