@@ -2,6 +2,7 @@
 the issue names, the laps per cell), the failure causes, the report written from stub results, and a run that flies
 each cell with its laps and shares the fault-free ones."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -64,6 +65,10 @@ def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
     gate, bias = R.race("pixelmpc", "pf", levers="gate").guards, R.race("pixelmpc", "pf", levers="bias").guards
     assert gate.detection_gate_px == R.GUARDS.detection_gate_px and gate.imu_bias_std is None
     assert bias.imu_bias_std == R.GUARDS.imu_bias_std and not bias.active
+    # the margin widens the controller's clearance only: the world keeps the vehicle's radius
+    margin, plain = R.race("pixelmpc", "pf", levers="margin"), R.race("pixelmpc", "pf").config
+    assert margin.config.racing.vehicle_radius == R.MARGIN_RADIUS_M > plain.racing.vehicle_radius
+    assert dataclasses.replace(margin.config, racing=plain.racing) == plain
     with pytest.raises(ValueError, match="unknown levers 'magic'"):
         R.race("mppi", "pf", levers="magic")
 

@@ -14,8 +14,10 @@ named set of levers (:data:`LEVER_SETS`) on: ``model``, the disturbance observer
 (``PixelMPCConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
 (``PixelMPCConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
-states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what). The sets fly apart, so
-each is measured on its own.
+states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``margin``, the
+controller's clearance to the gate frames, floor and walls widened by the filter's error (its vehicle radius in the
+racing cost, :data:`MARGIN_RADIUS_M`; the world's crash test keeps the vehicle's own). The sets fly apart, so each
+is measured on its own.
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
@@ -54,6 +56,9 @@ GATE_GUARDS = GuardConfig(detection_gate_px=30.0, recover_error_px=120.0, recove
 BIAS_GUARDS = GuardConfig(imu_bias_std=(0.3, 0.02))  # the "bias" lever
 GUARDS = dataclasses.replace(GATE_GUARDS, imu_bias_std=BIAS_GUARDS.imu_bias_std)  # the "filter" levers: both
 DISTURBANCE_TIME_CONSTANT_S = 0.5  # the controller's disturbance observer, a "model" lever
+# the "margin" lever: the racing cost's vehicle radius, 0.1 m, plus about the filter's mean position error at the
+# pace (0.1-0.25 m in Table IV), so a sample that passes a frame within the estimate's error counts as a crash
+MARGIN_RADIUS_M = 0.3
 _GATE_WORDS = (f"the filter's detection gate ({GATE_GUARDS.detection_gate_px:g} px) and divergence recovery "
                f"({GATE_GUARDS.recover_error_px:g} px, {GATE_GUARDS.recover_after_ticks} detections in a row)")
 _BIAS_WORDS = f"IMU bias states ({BIAS_GUARDS.imu_bias_std[0]:g} m/s², {BIAS_GUARDS.imu_bias_std[1]:g} rad/s)"
@@ -61,7 +66,9 @@ LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:
                        "controller's model",
               "filter": f"{_GATE_WORDS} and its {_BIAS_WORDS}",
               "gate": f"{_GATE_WORDS} alone (the filter set less the bias states)",
-              "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)"}
+              "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)",
+              "margin": f"the controller's clearance to frames and walls as a {MARGIN_RADIUS_M:g} m sphere (the "
+                        "vehicle's 0.1 m plus the filter's error)"}
 FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
@@ -101,6 +108,9 @@ def race(controller: str, estimator: str, faults: Faults | None = None, levers: 
                                                        disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S))
     elif levers in FILTER_GUARDS:
         spec = spec.replace(guards=FILTER_GUARDS[levers])
+    elif levers == "margin":
+        racing = dataclasses.replace(spec.config.racing, vehicle_radius=MARGIN_RADIUS_M)
+        spec = spec.replace(config=dataclasses.replace(spec.config, racing=racing))
     elif levers is not None:
         raise ValueError(f"unknown levers {levers!r}; choose one of {', '.join(LEVER_SETS)}")
     return spec
