@@ -9,14 +9,12 @@ writes ``truth/``, ``pf/`` (grid folders) and ``truth_frontier.json``.
 """
 
 import argparse
-import dataclasses
 import json
 from pathlib import Path
 
-from pixelmpc_jax.apps import frontier, grid, tune
+from pixelmpc_jax.apps import frontier, grid, robustness, tune
 from pixelmpc_jax.apps.presets import PAPER_PACE_SPEEDS, preset
 from pixelmpc_jax.apps.reproduce import SEED
-from pixelmpc_jax.apps.robustness import MARGIN_RADIUS_M
 
 FRONTIER_SPEEDS = (6.0, 7.0, 8.0, 8.5, 9.1, 10.0, 12.0, 14.0)  # the reproduction's nominal frontier, m/s
 
@@ -27,8 +25,7 @@ def main(argv=None):
     parser.add_argument("--frontier", type=Path, nargs="*", default=(), help="grid folders to copy nominal cells from")
     args = parser.parse_args(argv)
     best = preset("best")
-    racing = dataclasses.replace(best.config.racing, vehicle_radius=MARGIN_RADIUS_M)
-    spec = best.replace(config=dataclasses.replace(best.config, racing=racing))
+    spec = robustness.race("pixelmpc", "truth", levers="margin")  # best, fault-free, with the margin lever
     truth = [frontier.nominal_cell(v, best.max_time_s) for v in FRONTIER_SPEEDS]
     truth.append(grid.Cell(f"margin_v{best.speed:g}", spec))
     tune.adopt(truth, args.out / "truth", 10, SEED, args.frontier)
