@@ -4,7 +4,7 @@ a severe level and all moderate ones at once, on the particle filter (and at the
 
     python experiments/robustness.py --out DIR [--quick] [--levers [NAME ...]] [--reuse FOLDER ...]
 
---levers: model, filter, gate, bias, margin (no name: all).
+--levers: model, filter, gate, bias, robust (no name: all).
 
 Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
 robustness.png and results.json. Interrupted runs resume: finished cells are kept.
@@ -24,8 +24,8 @@ def main(argv=None):
     parser.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
                         help="also fly PixelMPC's moderate filter cells with each set of levers on, apart: model "
                              "(the disturbance observer, the latency in the model), filter (the filter's guards), "
-                             "gate and bias (the guards' two halves alone), margin (a wider clearance in the racing "
-                             "cost); no name: all five")
+                             "gate and bias (the guards' two halves alone), robust (model and gate at once); no name: "
+                             "all five")
     parser.add_argument("--reuse", type=Path, nargs="*", default=(),
                         help="other grids' output folders whose finished fault-free cells are copied, not flown")
     parser.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")

@@ -107,9 +107,10 @@ def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
               "--noise-exponent", "1", "--heading-weight", "0.5", "--speed", "9", "--laps", "3", "--seed", "5",
               "--course", "straight", "--estimator", "pf", "--detector", "image", "--pixel-model", "projection",
               "--t-f", "0.5", "--c-pixel", "3e6", "--max-time", "20", "--temperature", "100", "--perturb",
-              "--samples", "256", "--batch", "2", "--video"])
+              "--samples", "256", "--batch", "2", "--video", "--clearance", "0.2"])
     mppi = dataclasses.replace(paper_mppi_config(num_samples=256, temperature=100.0), noise_exponent=1.0)
-    config = PixelMPCConfig(mppi=mppi, racing=RacingCostConfig(heading_weight=0.5), pixel_model="projection",
+    racing = RacingCostConfig(heading_weight=0.5, vehicle_radius=0.2)
+    config = PixelMPCConfig(mppi=mppi, racing=racing, pixel_model="projection",
                             t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2)
     assert seen["spec"] == RaceSpec("pixelmpc", config, speed=9.0, laps=3, seed=5, perturb=True, course="straight",
                                     detector="image", estimator="pf", max_time_s=20.0)

@@ -1,6 +1,7 @@
 """The main job: PixelMPC beside nominal MPPI (apps/compare.py), the presets, and the two visibility families of
 the lap metrics (the share of time with the target in view, the angle to it)."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -73,7 +74,11 @@ def test_the_presets():
     assert best.config.pixel_model == "vdof" and best.key() != paper.key()
     # best flies the tuned trial it names (the best within +5 %), exactly as the search recorded it
     tuned = json.loads((Path(presets.__file__).parents[2] / "experiments/results/tune/best_bound5.json").read_text())
-    assert RaceSpec.from_record(tuned).replace(laps=1, seed=0).key() == best.key()
+    trial = RaceSpec.from_record(tuned).replace(laps=1, seed=0)
+    assert trial.key() != best.key()  # with the clearance to the frames, which the search did not set
+    racing = dataclasses.replace(trial.config.racing, vehicle_radius=presets.BEST_VEHICLE_RADIUS_M)
+    assert trial.replace(config=dataclasses.replace(trial.config, racing=racing)).key() == best.key()
+    assert best.config.racing.vehicle_radius == 0.3 > trial.config.racing.vehicle_radius
     assert best.config != presets.HAND_TUNED_BEST and presets.HAND_TUNED_BEST.box_size_limit == 0.5
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         presets.preset("fast")

@@ -65,12 +65,21 @@ def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
     gate, bias = R.race("pixelmpc", "pf", levers="gate").guards, R.race("pixelmpc", "pf", levers="bias").guards
     assert gate.detection_gate_px == R.GUARDS.detection_gate_px and gate.imu_bias_std is None
     assert bias.imu_bias_std == R.GUARDS.imu_bias_std and not bias.active
-    # the margin widens the controller's clearance only: the world keeps the vehicle's radius
-    margin, plain = R.race("pixelmpc", "pf", levers="margin"), R.race("pixelmpc", "pf").config
-    assert margin.config.racing.vehicle_radius == R.MARGIN_RADIUS_M > plain.racing.vehicle_radius
-    assert dataclasses.replace(margin.config, racing=plain.racing) == plain
     with pytest.raises(ValueError, match="unknown levers 'magic'"):
         R.race("mppi", "pf", levers="magic")
+
+
+def test_the_robust_set_turns_on_the_model_and_gate_sets_together():
+    latency = fault_level("latency", "moderate")
+    robust = R.race("pixelmpc", "pf", latency, levers="robust")
+    assert robust.config.model_latency_ticks == latency.latency_ticks == 1
+    assert robust.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
+    assert robust.guards == R.GATE_GUARDS and robust.guards.imu_bias_std is None  # not the bias states
+    assert dataclasses.replace(robust, guards=GuardConfig(), config=dataclasses.replace(
+        robust.config, model_latency_ticks=0, disturbance_time_constant_s=None)) == R.race("pixelmpc", "pf", latency)
+    cells = _by_name(R.robustness_cells(levers=("robust",)))
+    assert cells["pixelmpc_pf_gust_moderate_robust"].cell.spec.faults == fault_level("gust", "moderate")
+    assert not any(name.endswith("_robust") and not name.startswith("pixelmpc_pf") for name in cells)
 
 
 @pytest.mark.parametrize("lap, cause", [
