@@ -473,9 +473,8 @@ def _add_race(sub) -> None:
              "horizon, beta in [0, 4] (0: white, the paper's)", type=arg.float_in(0.0, 4.0))
     _setting(p, "--heading-weight", "racing.heading_weight", "share of the racing cost's attitude term that pins "
              "the heading to the path, in [0, 1] (1: the paper's)", type=arg.float_in(0.0, 1.0))
-    _setting(p, "--clearance", "racing.vehicle_radius", "m: the racing cost's vehicle radius, its clearance to "
-             "gate frames, floor and walls (the world's crash test keeps the vehicle's 0.1 m), in [0.05, 1]",
-             type=arg.float_in(0.05, 1.0, unit="m"))
+    _setting(p, "--clearance", "racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor and "
+             "walls (the world keeps the vehicle's 0.1 m), in [0.05, 1]", type=arg.float_in(0.05, 1.0, unit="m"))
     _setting(p, "--temperature", "mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
              type=arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX))
     _setting(p, "--samples", "mppi.num_samples", "MPPI samples per step, in [1, 2^20]", type=arg.int_in(1, 2**20))
