@@ -67,7 +67,7 @@ LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:
               "filter": f"{_GATE_WORDS} and its {_BIAS_WORDS}",
               "gate": f"{_GATE_WORDS} alone (the filter set less the bias states)",
               "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)",
-              "robust": "the model and gate sets at once (not the bias states)"}
+              "robust": f"the {' and '.join(COMBINED_LEVERS['robust'])} sets at once (not the bias states)"}
 FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
