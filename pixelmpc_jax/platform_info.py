@@ -34,6 +34,26 @@ def device_description() -> dict:
     }
 
 
+def cpu_signature() -> str:
+    """The processor as its float rounding depends on it: the model name, family and model numbers, and the vector
+    extensions XLA's CPU kernels choose between (two processors of one name can round a lap differently)."""
+    fields, flags = {}, set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                name, _, value = line.partition(":")
+                name = name.strip()
+                if name in ("model name", "cpu family", "model") and name not in fields:
+                    fields[name] = value.strip()
+                elif name == "flags" and not flags:
+                    flags = set(value.split())
+    except OSError:
+        return platform.processor() or platform.machine()
+    vector = [f for f in ("avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile") if f in flags]
+    return " ".join([fields.get("model name", platform.machine()), f"family {fields.get('cpu family', '?')}",
+                     f"model {fields.get('model', '?')}", *vector])
+
+
 def device_line() -> str:
     """One line for reports: device, CPU, versions."""
     d = device_description()

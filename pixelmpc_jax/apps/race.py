@@ -129,6 +129,7 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     trajectories: list[np.ndarray] = []
     covariances: list[np.ndarray] = []
     visibilities: list[np.ndarray] = []
+    estimates: list[np.ndarray] = []
     seeds = list(range(spec.seed, spec.seed + spec.laps))
     bar = _progress_bar(spec) if progress else None
     try:
@@ -142,6 +143,7 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
                 results["laps"].append(lap_record(spec, log, lap_track, flight.base.camera, lap_seed))
                 trajectories.append(np.asarray(log.states)[: int(log.num_ticks) + 1])
                 visibilities.append(np.asarray(log.visibility)[: int(log.num_ticks) + 1])
+                estimates.append(np.asarray(log.estimates)[: int(log.num_ticks)])
                 if spec.estimator == "pf":
                     covariances.append(np.asarray(log.position_cov_trace)[: int(log.num_ticks)])
             results["aggregate"] = metrics_lib.aggregate(results["laps"])
@@ -161,7 +163,8 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     if out is not None and trajectories:
         plot_trajectories(flight.base.track, trajectories, Path(out) / "trajectories.png",
                           title=f"{spec.controller}, target {spec.speed:g} m/s, {len(trajectories)} lap(s)")
-    return {**results, "trajectories": trajectories, "covariances": covariances, "visibility": visibilities}
+    return {**results, "trajectories": trajectories, "covariances": covariances, "visibility": visibilities,
+            "estimates": estimates}
 
 
 def _progress_bar(spec: RaceSpec):
