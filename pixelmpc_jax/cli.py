@@ -15,6 +15,7 @@ import dataclasses
 import json
 import os
 import sys
+import threading
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
@@ -180,10 +181,12 @@ def _cmd_race(args) -> int:
                                  batch_size=args.batch, video=args.video, dof_params=dof_params)
     if any(results["laps"] for results in record["controllers"].values()):
         print(compare.side_by_side(record))
-        written = [p for p in ("metrics.json", "trajectories.png", "visibility.png") if (args.out / p).exists()]
+        written = [p for p in ("metrics.json", *(f"ticks_{c}.npz" for c in controllers), "trajectories.png",
+                               "visibility.png") if (args.out / p).exists()]
         print(f"wrote {', '.join(str(args.out / p) for p in written)}")
     if record["interrupted"]:
-        print(f"interrupted; the finished laps are in {args.out / 'metrics.json'}", file=sys.stderr)
+        print(f"interrupted; the finished laps are in {args.out / 'metrics.json'} and its ticks_*.npz",
+              file=sys.stderr)
         return EXIT_INTERRUPTED
     laps = [lap for results in record["controllers"].values() for lap in results["laps"]]
     if not any(lap.get("success") for lap in laps):
@@ -542,6 +545,10 @@ def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
         if split_cpu and args.command in SPLIT_CPU_COMMANDS and not args.release_memory:
             host.keep_host_memory()
     command_parser = _command_parser(parser, args.command)
+    if threading.current_thread() is threading.main_thread():
+        from pixelmpc_jax import host
+
+        host.stop_on_sigterm()
     validate = getattr(args, "validate", None)
     problem = validate(args) if validate is not None else None
     if problem:

@@ -97,3 +97,14 @@ def use_compilation_cache(path: str | None = None, min_compile_s: float = 0.5) -
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+def stop_on_sigterm() -> None:
+    """Make SIGTERM (what a batch scheduler or ``kill`` sends) stop the process as Ctrl-C does: it raises
+    KeyboardInterrupt in the main thread, so every command keeps what it had finished, as on Ctrl-C."""
+    import signal
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    signal.signal(signal.SIGTERM, interrupt)

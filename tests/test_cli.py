@@ -175,21 +175,31 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     from pixelmpc_jax.dynamics import dof
 
     seen = {}
-    monkeypatch.setattr(race, "run_laps", lambda spec, **kwargs: seen.update(kwargs, spec=spec) or {
-        "laps": [], "aggregate": {}, "interrupted": False, "trajectories": [], "visibility": []})
-    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
-              "flown"])
+
+    class Prepared(Exception):
+        """Raised where the race is built, once its spec and weights are seen: nothing flies."""
+
+    def prepare(spec, batch_size=1, dof_params=None):
+        seen.update(spec=spec, dof_params=dof_params)
+        raise Prepared
+
+    monkeypatch.setattr(race, "prepare", prepare)
+    with pytest.raises(Prepared):
+        cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+                  "flown"])
     assert seen["dof_params"] is None and seen["spec"].dof_weights == "flown"  # the race loads packaged weights
     flown = dof.load_packaged_dof("flown")
     assert seen["spec"].dof_fingerprint() == dof_weights_hash(flown)
     file = tmp_path / "weights.msgpack"
     dof.save_checkpoint(file, flown, {"what": "test"})
-    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
-              str(file)])
+    with pytest.raises(Prepared):
+        cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+                  str(file)])
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(lambda a, b: bool((a == b).all()), seen["dof_params"], flown))
     assert seen["spec"].dof_weights == dof_weights_hash(flown)  # the spec names the weights it flies
-    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
-              "paper"])
+    with pytest.raises(Prepared):
+        cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--controller", "pixelmpc", "--dof-weights",
+                  "paper"])
     assert seen["dof_params"] is None and seen["spec"].dof_weights is None
     code = cli.main(["race", "--out", str(tmp_path / "new"), "--dof-weights", str(tmp_path / "missing.msgpack")])
     assert code == 2 and "missing.msgpack" in capsys.readouterr().err

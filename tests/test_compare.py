@@ -3,6 +3,10 @@ the lap metrics (the share of time with the target in view, the angle to it)."""
 
 import dataclasses
 import json
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -11,59 +15,85 @@ import pytest
 
 from pixelmpc_jax.apps import compare, presets, race
 from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import metrics
+from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
-
-def _fake_results(spec, lap_time: float, below_50: float) -> dict:
-    states = np.zeros((5, 10), np.float32)
-    states[:, 0] = np.arange(5)
-    lap = {"success": True, "seed": spec.seed, "time_vis_below_50_s": below_50}
-    aggregate = {"lap_time_s": {"mean": lap_time, "two_sigma": 0.0},
-                 "time_vis_below_50_s": {"mean": below_50, "two_sigma": 0.0},
-                 "time_vis_below_50_unavoidable_s": {"mean": 1.0, "two_sigma": 0.0}}
-    return {"race": spec.record(), "laps": [lap], "aggregate": aggregate, "interrupted": False,
-            "trajectories": [states], "visibility": [np.linspace(0.0, 1.0, 5)], "covariances": []}
+SMALL = PixelMPCConfig(pixel_model="projection", mppi=paper_mppi_config(num_samples=32, horizon=10))
 
 
-def test_both_controllers_fly_the_same_race_and_one_file_names_the_preset(monkeypatch, tmp_path):
-    flown = []
+def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeypatch, tmp_path):
+    """PixelMPC and nominal MPPI fly a batch each in turn; metrics.json and ticks_<controller>.npz hold matching
+    laps of both after every batch, and the per-tick record alone gives back each lap's visibility figures."""
+    order, saved_laps = [], []
+    fly_batches, write = race.fly_batches, compare.write_json_atomic
 
-    def run_laps(spec, **kwargs):
-        flown.append(spec)
-        return _fake_results(spec, 30.0 if spec.controller == "mppi" else 33.0,
-                             9.0 if spec.controller == "mppi" else 4.0)
+    def recorded_batches(prepared):
+        for laps in fly_batches(prepared):
+            order.append((prepared.spec.controller, [lap.record["seed"] for lap in laps]))
+            yield laps
 
-    monkeypatch.setattr(race, "run_laps", run_laps)
-    spec = presets.preset("best").replace(laps=1, seed=7)
-    record = compare.run_compare(spec, out=tmp_path, preset="best", progress=False)
-    assert [s.controller for s in flown] == ["pixelmpc", "mppi"]
-    # the same race otherwise, nominal MPPI with the paper's sampling (the frontier's), not the tuned lambda
-    assert flown[1] == presets.nominal_of(flown[0]) and flown[1].seed == 7 and flown[1].speed == flown[0].speed
-    assert flown[1].config.mppi.temperature == 200.0 and flown[1].config.mppi.noise_exponent == 0.0
-    assert flown[0].config.mppi.temperature != 200.0 and flown[1].config.mppi.num_samples == 512
+    def recorded_write(path, record):
+        saved_laps.append({name: len(res["laps"]) for name, res in record["controllers"].items()})
+        write(path, record)
+
+    monkeypatch.setattr(race, "fly_batches", recorded_batches)
+    monkeypatch.setattr(compare, "write_json_atomic", recorded_write)
+    spec = RaceSpec("pixelmpc", SMALL, speed=10.0, laps=3, seed=7, max_time_s=0.2)
+    record = compare.run_compare(spec, out=tmp_path, preset="small", batch_size=2, progress=False)
+    assert order == [("pixelmpc", [7, 8]), ("mppi", [7, 8]), ("pixelmpc", [9]), ("mppi", [9])]
+    assert saved_laps == [{"pixelmpc": 2}, {"pixelmpc": 2, "mppi": 2}, {"pixelmpc": 3, "mppi": 2},
+                          {"pixelmpc": 3, "mppi": 3}]
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["preset"] == "best" and saved["race"] == json.loads(json.dumps(spec.record()))
-    assert saved["race"]["config"]["pixel_cost"] == "border" and set(saved["controllers"]) == {"pixelmpc", "mppi"}
-    assert saved["controllers"]["mppi"]["race"]["controller"] == "mppi"
-    assert saved["controllers"]["mppi"]["race"]["config"]["mppi"]["temperature"] == 200.0
+    assert saved["preset"] == "small" and not saved["interrupted"]
+    assert saved["controllers"]["mppi"]["race"] == json.loads(json.dumps(presets.nominal_of(spec).record()))
+    assert saved["controllers"]["mppi"]["measure"] == metrics.MEASURE
+    for name in ("pixelmpc", "mppi"):
+        record_ticks = ticks_lib.load(tmp_path / f"ticks_{name}.npz")
+        laps = saved["controllers"][name]["laps"]
+        assert record_ticks["seed"].tolist() == [7, 8, 9] and record_ticks["states"].shape[:2] == (3, 9)
+        assert record_ticks["num_ticks"].tolist() == [8, 8, 8] and record_ticks["gate_centre"].shape[2] == 3
+        np.testing.assert_array_equal(record_ticks["states"][0], record["flown"][name]["trajectories"][0])
+        assert np.isnan(record_ticks["estimates"][0, 8]).all() and np.isfinite(record_ticks["estimates"][0, :8]).all()
+        for i, lap in enumerate(laps):
+            recomputed = ticks_lib.lap_visibility(record_ticks, i)
+            for key, value in recomputed.items():
+                assert lap[key] == pytest.approx(value, abs=1e-9), key
     assert (tmp_path / "trajectories.png").stat().st_size > 0 and (tmp_path / "visibility.png").stat().st_size > 0
-    table = compare.side_by_side(record).splitlines()
-    assert "PixelMPC" in table[0] and "nominal MPPI" in table[0]
-    avoidable = next(line for line in table if "avoidable" in line).split()
-    assert avoidable[-2:] == ["3.00", "8.00"]  # below 50 % less the unavoidable part, per controller
+    table = compare.side_by_side(record)
+    assert "PixelMPC" in table.splitlines()[0] and "avoidable vis < 50 %" in table and "paper's rule" in table
 
 
-def test_an_interrupted_controller_ends_the_comparison_and_keeps_its_laps(monkeypatch, tmp_path):
-    def run_laps(spec, **kwargs):
-        return {**_fake_results(spec, 30.0, 5.0), "interrupted": True}
-
-    monkeypatch.setattr(race, "run_laps", run_laps)
-    record = compare.run_compare(presets.preset("paper"), out=tmp_path, preset="paper", progress=False)
-    assert record["interrupted"] and list(record["controllers"]) == ["pixelmpc"]
-    assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
+def test_a_race_stopped_by_sigterm_keeps_the_finished_laps_of_both_controllers(tmp_path):
+    """``pixelmpc race --laps 100`` stopped by SIGTERM, as a batch scheduler stops it, once both controllers have
+    flown a lap: it exits 130 and its metrics.json and ticks files hold the finished laps of both."""
+    command = [sys.executable, "-m", "pixelmpc_jax.cli", "race", "--out", str(tmp_path), "--laps", "100",
+               "--pixel-model", "projection", "--samples", "32", "--max-time", "1", "--no-compile-cache"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    metrics_file, deadline = tmp_path / "metrics.json", time.monotonic() + 400
+    try:
+        while time.monotonic() < deadline and process.poll() is None:
+            if metrics_file.exists():
+                flown = json.loads(metrics_file.read_text())["controllers"]
+                if len(flown) == 2:
+                    break
+            time.sleep(0.2)
+        assert process.poll() is None, process.stderr.read()
+        process.send_signal(signal.SIGTERM)
+        code = process.wait(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert code == 130
+    saved = json.loads(metrics_file.read_text())
+    assert saved["interrupted"] is True
+    laps = {name: len(res["laps"]) for name, res in saved["controllers"].items()}
+    assert set(laps) == {"pixelmpc", "mppi"} and 1 <= laps["mppi"] <= laps["pixelmpc"] <= laps["mppi"] + 1 < 100
+    for name, count in laps.items():
+        assert ticks_lib.load(tmp_path / f"ticks_{name}.npz")["seed"].tolist() == list(range(count))
 
 
 def test_the_presets():
@@ -90,7 +120,8 @@ def test_the_angle_to_the_target_is_the_optical_axis_against_the_ray_to_its_cent
     x = quadrotor.hover_state((0.0, 0.0, 3.0), yaw=yaw)
     states = np.stack([np.asarray(x)] * 3)
     visibility = np.asarray([1.0, 0.0, 1.0])
-    view = metrics.view_metrics(states, visibility, np.zeros(3, np.int32), 2, track, camera_lib.default_camera())
+    view = metrics.view_metrics(states, visibility, np.zeros(3, np.int32), 2, track.gates,
+                                camera_lib.default_camera())
     assert view["mean_target_angle_deg"] == pytest.approx(angle, abs=1e-3)
     assert view["share_target_in_view"] == pytest.approx(0.5)  # ticks 1 and 2: hidden, then in view
 

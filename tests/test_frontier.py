@@ -10,7 +10,7 @@ import pytest
 
 from pixelmpc_jax.apps import frontier as F
 from pixelmpc_jax.apps import grid
-from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES, MEASURE
 
 
 def lap(lap_time, vis, unavoidable, above=None, success=True):
@@ -18,7 +18,7 @@ def lap(lap_time, vis, unavoidable, above=None, success=True):
     causes = dict.fromkeys(LOSS_CAUSES[1:], 0.0)
     causes["above"] = vis - unavoidable if above is None else above
     return {"success": success, "lap_time_s": lap_time if success else None, "time_vis_below_50_s": vis,
-            "time_vis_below_50_unavoidable_s": unavoidable,
+            "time_vis_avoidable_s": vis - unavoidable, "time_vis_below_50_excused_s": unavoidable,
             **{f"time_vis_below_50_{k}_s": v for k, v in causes.items()}}
 
 
@@ -120,7 +120,8 @@ def test_frontier_json_is_strict_and_the_report_and_plot_are_written(tmp_path):
 def test_an_interrupted_run_writes_what_finished_and_raises_again(tmp_path, monkeypatch):
     def interrupted(cells, out, **kwargs):
         first = cells[0]
-        results = {first.name: {"laps": nominal_results()["nominal_6"]["laps"], "config": grid.cell_record(first)}}
+        results = {first.name: {"laps": nominal_results()["nominal_6"]["laps"], "config": grid.cell_record(first),
+                                "measure": MEASURE}}
         (Path(out) / "results.json").parent.mkdir(parents=True, exist_ok=True)
         (Path(out) / "results.json").write_text(json.dumps(results))
         raise KeyboardInterrupt

@@ -155,11 +155,11 @@ def test_loss_causes_split_the_low_visibility_ticks_by_where_the_gate_projects()
                        for a in attitudes]).astype(np.float32)
     below_50 = np.array([True] * 5 + [False])
     target = np.zeros(6, np.int32)
-    causes = M.loss_causes(states, below_50, np.zeros(6, bool), target, track, camera)
+    causes = M.loss_causes(states, below_50, np.zeros(6, bool), target, track.gates, camera)
     names = [M.LOSS_CAUSES[c] if c >= 0 else None for c in causes]
     assert names == ["above", "right", "left", "below", "behind", None]
-    unavoidable = np.array([True] + [False] * 5)
-    assert M.LOSS_CAUSES[M.loss_causes(states, below_50, unavoidable, target, track, camera)[0]] == "unavoidable"
+    excused = np.array([True] + [False] * 5)
+    assert M.LOSS_CAUSES[M.loss_causes(states, below_50, excused, target, track.gates, camera)[0]] == "excused"
 
 
 def test_lap_metrics_causes_add_up_to_the_low_visibility_time():
@@ -181,7 +181,7 @@ def test_lap_metrics_causes_add_up_to_the_low_visibility_time():
                      detection_uv=np.zeros((n, 2)), predicted_uv=np.zeros((n, 1, 2)), estimates=states[:n],
                      position_cov_trace=np.zeros(n), num_ticks=np.asarray(n), gates_passed=np.asarray(0),
                      end_cause=np.asarray(0), finished=np.asarray(False))
-    lap = M.lap_metrics(log, track=track, camera=camera)
+    lap = M.lap_metrics(log, track=track, camera=camera, target_speed=8.0)
     parts = [lap[f"time_vis_below_50_{c}_s"] for c in M.LOSS_CAUSES]
     assert lap["time_vis_below_50_above_s"] > 0.5
     assert sum(parts) == pytest.approx(lap["time_vis_below_50_s"])

@@ -101,7 +101,7 @@ def _lap(success: bool, crash=None, error=0.3) -> dict:
 def flown(monkeypatch):
     """race.run_laps replaced: every lap succeeds without faults, every other lap under a fault fails with a
     diverged estimate; records the races flown."""
-    from pixelmpc_jax.sim.metrics import aggregate
+    from pixelmpc_jax.sim.metrics import MEASURE, aggregate
 
     calls = []
 
@@ -109,7 +109,7 @@ def flown(monkeypatch):
         calls.append(spec)
         laps = [_lap(not spec.faults.active() or i % 2 == 0, "gate", 3.0 * (i % 2)) for i in range(spec.laps)]
         return {"laps": laps, "aggregate": aggregate(laps), "interrupted": False, "seed": spec.seed,
-                "trajectories": [np.zeros((2, 10))] * spec.laps, "covariances": []}
+                "trajectories": [np.zeros((2, 10))] * spec.laps, "covariances": [], "measure": MEASURE}
 
     monkeypatch.setattr(race, "run_laps", run_laps)
     return calls

@@ -12,6 +12,7 @@ from pixelmpc_jax.apps import grid, tune
 from pixelmpc_jax.apps.presets import preset
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.apps.tune_space import SPACES, SpaceError, load_space, with_settings
+from pixelmpc_jax.sim.metrics import MEASURE
 
 # nominal MPPI on the stub's seeds: (lap time s, avoidable s) per target speed
 NOMINAL = {8.0: (34.0, 2.0), 8.5: (32.0, 4.0), 10.0: (28.0, 6.0)}
@@ -19,14 +20,14 @@ NOMINAL = {8.0: (34.0, 2.0), 8.5: (32.0, 4.0), 10.0: (28.0, 6.0)}
 
 def lap(lap_time=33.0, avoidable=1.0, success=True, unavoidable=0.5):
     return {"success": success, "lap_time_s": lap_time if success else None,
-            "time_vis_below_50_s": avoidable + unavoidable, "time_vis_below_50_unavoidable_s": unavoidable}
+            "time_vis_below_50_s": avoidable + unavoidable, "time_vis_avoidable_s": avoidable}
 
 
 def flown(cell: grid.Cell, laps: list[dict], seed: int = 0) -> dict:
     """A cell's results as grid.run_grid records them."""
     race = cell.race(len(laps), seed, None)
     return {"laps": [{**entry, "seed": seed + i} for i, entry in enumerate(laps)], "config": grid.cell_record(cell),
-            "seed": seed, "dof_weights_sha256": race.dof_fingerprint(), "wall_time_s": 1.0}
+            "seed": seed, "dof_weights_sha256": race.dof_fingerprint(), "wall_time_s": 1.0, "measure": MEASURE}
 
 
 def setup(laps: int = 2, space=None) -> tune.TuneSetup:
@@ -56,7 +57,7 @@ def test_the_objective_of_known_laps_is_the_hand_computed_frontier_gain():
 
 def test_a_failed_lap_is_penalised_below_every_feasible_score_and_never_nan():
     s = setup()
-    feasible = tune.evaluate(flown(trial_cell(), [lap(33.9, 9.0)] * 2), trial_cell(), nominal_results(s), s)
+    feasible = tune.evaluate(flown(trial_cell(), [lap(33.9, 1.0)] * 2), trial_cell(), nominal_results(s), s)
     one_lost = tune.evaluate(flown(trial_cell(), [lap(33.0, 0.1), lap(success=False)]), trial_cell(),
                              nominal_results(s), s)
     all_lost = tune.evaluate(flown(trial_cell(), [lap(success=False)] * 2), trial_cell(), nominal_results(s), s)
@@ -74,6 +75,28 @@ def test_a_lap_time_over_the_bound_is_penalised_by_how_far_it_is_over():
     assert not over["feasible"] and over["bound_excess"] == pytest.approx(36 / 32 - 1.1)
     assert over["score"] == pytest.approx(-(36 / 32 - 1.1) / 0.1)
     assert far_over["score"] < over["score"] < 0
+
+
+def test_a_gain_bought_by_looking_away_is_infeasible():
+    """A trial with a large frontier gain that sees the target less than nominal MPPI at its lap time (a lower share
+    in view, a larger mean angle, or more raw time below 50 %) is not feasible, and scores by how far it falls short."""
+    s = setup()
+    nominal = {name: {**res, "laps": [{**entry, "share_target_in_view": 0.9, "mean_target_angle_deg": 20.0}
+                                      for entry in res["laps"]]} for name, res in nominal_results(s).items()}
+    honest = {"share_target_in_view": 0.95, "mean_target_angle_deg": 15.0}
+    seeing = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest}] * 2), trial_cell(), nominal, s)
+    assert seeing["feasible"] and seeing["score"] == pytest.approx(6.0)
+    away = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "share_target_in_view": 0.81}] * 2),
+                         trial_cell(), nominal, s)
+    assert not away["feasible"] and away["score"] == pytest.approx(-0.1)  # 0.09 short of 0.9
+    bordered = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "mean_target_angle_deg": 30.0}] * 2),
+                             trial_cell(), nominal, s)
+    assert not bordered["feasible"] and bordered["score"] == pytest.approx(-0.5)  # 10 deg over 20
+    # the raw time below 50 %: nominal's at 33 s is 5.5 s (7.0 and 4.0 s laps of 32 and 34 s, with 1 s excused
+    # in the stub's laps at 0.5 s each); a trial with 2 s avoidable and 6 s excused has more raw time
+    raw = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 2.0, unavoidable=6.0), **honest}] * 2), trial_cell(),
+                        nominal, s)
+    assert not raw["feasible"] and raw["view_shortfall"]["vis_below_50_s"] > 0
 
 
 def test_the_space_file_gets_one_clear_line_per_bad_entry(tmp_path, capsys):

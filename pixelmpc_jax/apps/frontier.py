@@ -1,11 +1,14 @@
 """The speed frontier: perception-aware control measured against simply flying slower (issue 15).
 
 Nominal MPPI flies the course at several target speeds; each speed gives a point (lap time, avoidable
-low-visibility time), where the avoidable time is the time with the target gate's visibility below 50 %
-less the part no attitude could avoid (``time_vis_below_50_unavoidable_s``). The points, sorted by lap
+low-visibility time), where the avoidable time is the time with the target gate's visibility below 50 %, counted
+at every tick a gate is the target, less the capped part no attitude could avoid (``time_vis_avoidable_s``, see
+:func:`~pixelmpc_jax.sim.metrics.visibility_masks`). The points, sorted by lap
 time and joined linearly, are the frontier: what flying slower buys. A PixelMPC cell is worth having when
 it keeps the gate in view better than the frontier at its own lap time; its ``frontier_gain`` is the
-frontier's avoidable time at the cell's lap time over the cell's (above 1: better than flying slower).
+frontier's avoidable time at the cell's lap time over the cell's (above 1: better than flying slower). Beside it,
+each row holds nominal MPPI's raw time below 50 % (nothing excused), share of time with the target in view and
+mean angle to the target at the same lap time (``frontier_<figure>``), to hold the cell's own against.
 The frontier is never extrapolated: a cell whose lap time lies outside the nominal lap times gets no gain
 and the report names the nominal speed to add. All per-lap figures are means over the *completed* laps (a
 lost lap also ends its low visibility early); a cell that lost laps is flagged.
@@ -34,6 +37,8 @@ PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pa
 AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
 # 42.5 s .. 21.9 s laps: brackets the cells slowed to ~40 s at the pace and the 14 m/s label's cells (22-26 s); 8.5
 # and 9.1 m/s are the paper's 14 and 16 m/s paces (presets.PAPER_PACE_SPEEDS), so the tables' nominal cells are here
+# nominal MPPI's figures interpolated at each cell's lap time, beside the gain
+SAME_LAP_TIME_FIGURES = ("vis_below_50_s", "share_target_in_view", "mean_target_angle_deg")
 DEFAULT_SPEEDS = (6.0, 7.0, 8.0, 8.5, 9.1, 10.0, 12.0, 14.0)
 QUICK_SPEEDS = (6.0, 8.0, 8.5, 10.0)  # 42.5 s .. 27 s: brackets the paper's pace and slowed cells to ~40 s
 
@@ -114,17 +119,19 @@ def summarise(result: dict) -> dict:
     """Means (and two sigma) over the completed laps of one cell's race results."""
     laps = result.get("laps", [])
     done = [lap for lap in laps if lap.get("success") and lap.get("lap_time_s") is not None]
-    below = [lap for lap in done if lap.get("time_vis_below_50_unavoidable_s") is not None]
     lap_time, lap_sigma = _stats([lap["lap_time_s"] for lap in done])
-    avoidable, avoidable_sigma = _stats([lap["time_vis_below_50_s"] - lap["time_vis_below_50_unavoidable_s"]
-                                         for lap in below])
-    vis, _ = _stats([lap["time_vis_below_50_s"] for lap in done])
+    avoidable, avoidable_sigma = _stats([lap["time_vis_avoidable_s"] for lap in done
+                                         if lap.get("time_vis_avoidable_s") is not None])
+    vis, _ = _stats([lap["time_vis_below_50_s"] for lap in done if lap.get("time_vis_below_50_s") is not None])
+    in_view, _ = _stats([lap["share_target_in_view"] for lap in done if lap.get("share_target_in_view") is not None])
+    angle, _ = _stats([lap["mean_target_angle_deg"] for lap in done if lap.get("mean_target_angle_deg") is not None])
     causes = {}
     for cause in LOSS_CAUSES:
         key = f"time_vis_below_50_{cause}_s"
         causes[cause] = _stats([lap[key] for lap in done if lap.get(key) is not None])[0]
     return {"lap_time_s": lap_time, "lap_time_two_sigma_s": lap_sigma, "avoidable_s": avoidable,
-            "avoidable_two_sigma_s": avoidable_sigma, "vis_below_50_s": vis,
+            "avoidable_two_sigma_s": avoidable_sigma, "vis_below_50_s": vis, "share_target_in_view": in_view,
+            "mean_target_angle_deg": angle,
             "success_rate": len(done) / len(laps) if laps else None, "laps": len(laps), "laps_completed": len(done),
             "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes}
 
@@ -160,9 +167,9 @@ BOOTSTRAP_LEVEL = 0.90
 
 def _lap_pairs(result: dict) -> np.ndarray:
     """(L, 2) lap time and avoidable low-visibility time of each completed lap of one cell's results."""
-    return np.asarray([(lap["lap_time_s"], lap["time_vis_below_50_s"] - lap["time_vis_below_50_unavoidable_s"])
+    return np.asarray([(lap["lap_time_s"], lap["time_vis_avoidable_s"])
                        for lap in result.get("laps", []) if lap.get("success") and lap.get("lap_time_s") is not None
-                       and lap.get("time_vis_below_50_unavoidable_s") is not None], np.float64).reshape(-1, 2)
+                       and lap.get("time_vis_avoidable_s") is not None], np.float64).reshape(-1, 2)
 
 
 def gain_interval(cell: np.ndarray, nominal: list[np.ndarray], draws: int = BOOTSTRAP_DRAWS,
@@ -219,6 +226,8 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         row["frontier_gain"] = None
         if frontier is not None and row["avoidable_s"] is not None:
             row["frontier_gain"] = frontier / max(row["avoidable_s"], AVOIDABLE_FLOOR_S)
+        for figure in SAME_LAP_TIME_FIGURES:
+            row[f"frontier_{figure}"] = interpolate(nominal, row["lap_time_s"], figure)
         row["frontier_gain_interval"] = gain_interval(
             _lap_pairs(results[cell.name]), [_lap_pairs(results[nominal_cell(v, max_time_s).name])
                                              for v in nominal_speeds if nominal_cell(v, max_time_s).name in results])
@@ -291,6 +300,10 @@ def _f(value, digits: int = 2, sigma=None) -> str:
     return f"{value:.{digits}f}" + ("" if sigma is None else f" ± {sigma:.{digits}f}")
 
 
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:.1f}"
+
+
 def _done(p: dict) -> str:
     return f"{p['laps_completed']}/{p['laps']}"
 
@@ -299,20 +312,26 @@ def report(frontier: dict) -> str:
     """Markdown: the nominal frontier, the PixelMPC cells against it, the causes, how it was measured."""
     causes = " | ".join(LOSS_CAUSES)
     lines = ["# The speed frontier: PixelMPC against flying slower", "",
-             "Avoidable: time with visibility < 50 % less the part no attitude could avoid; means ± 2σ over the "
+             "Low visibility counts at every tick a gate is the target, from the tick the previous gate is passed. "
+             "Avoidable: that time with visibility < 50 % less the part no attitude could avoid, capped per gate at "
+             "the ticks the target speed needs to fly through it; raw: nothing excused. Means ± 2σ over the "
              "completed laps. Frontier gain: the nominal curve's avoidable time at the cell's lap time over the "
-             "cell's (above 1: better than flying slower).", "",
-             "## Nominal MPPI", "", "| target [m/s] | laps done | lap time [s] | vis < 50 % [s] | avoidable [s] |",
-             "|---|---|---|---|---|"]
+             "cell's (above 1: better than flying slower). In view: share of flown time with the target in the "
+             "image; angle: mean angle between the optical axis and the target's centre. Nominal's figures at the "
+             "cell's lap time stand in brackets.", "",
+             "## Nominal MPPI", "", "| target [m/s] | laps done | lap time [s] | raw vis < 50 % [s] | avoidable [s] "
+             "| in view [%] | angle [deg] |", "|---|---|---|---|---|---|---|"]
     for p in frontier["nominal"]:
         lines.append(f"| {p['speed']:g} | {_done(p)} | {_f(p['lap_time_s'], 1, p['lap_time_two_sigma_s'])} | "
-                     f"{_f(p['vis_below_50_s'])} | {_f(p['avoidable_s'], 2, p['avoidable_two_sigma_s'])} |")
+                     f"{_f(p['vis_below_50_s'])} | {_f(p['avoidable_s'], 2, p['avoidable_two_sigma_s'])} | "
+                     f"{_percent(p.get('share_target_in_view'))} | {_f(p.get('mean_target_angle_deg'), 1)} |")
     pace = frontier["paper_pace"]
     lines += ["", f"Paper's pace (nominal lap of {frontier['paper_lap_time_s']:g} s): "
               + (f"{pace:.2f} m/s." if pace is not None else "not bracketed by the nominal speeds."), "",
               "## PixelMPC cells", "",
-              "| cell | model | options | target [m/s] | laps done | lap time [s] | vis < 50 % [s] | avoidable [s] "
-              "| frontier at its lap time [s] | frontier gain |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "| cell | model | options | target [m/s] | laps done | lap time [s] | raw vis < 50 % [s] (nominal) "
+              "| in view [%] (nominal) | angle [deg] (nominal) | avoidable [s] | frontier at its lap time [s] "
+              "| frontier gain |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in frontier["cells"]:
         options = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "-"
         gain = _f(c["frontier_gain"]) if c["bracketed"] else "not bracketed"
@@ -323,7 +342,11 @@ def report(frontier: dict) -> str:
         if c["frontier_gain"] is not None and not c["all_laps_completed"]:
             gain += " (laps lost)"
         lines.append(f"| {c['name']} | {c['pixel_model']} | {options} | {c['speed']:g} | {_done(c)} | "
-                     f"{_f(c['lap_time_s'], 1, c['lap_time_two_sigma_s'])} | {_f(c['vis_below_50_s'])} | "
+                     f"{_f(c['lap_time_s'], 1, c['lap_time_two_sigma_s'])} | "
+                     f"{_f(c['vis_below_50_s'])} ({_f(c.get('frontier_vis_below_50_s'))}) | "
+                     f"{_percent(c.get('share_target_in_view'))} "
+                     f"({_percent(c.get('frontier_share_target_in_view'))}) | "
+                     f"{_f(c.get('mean_target_angle_deg'), 1)} ({_f(c.get('frontier_mean_target_angle_deg'), 1)}) | "
                      f"{_f(c['avoidable_s'], 2, c['avoidable_two_sigma_s'])} | {_f(c['frontier_avoidable_s'])} | "
                      f"{gain} |")
     for c in frontier["cells"]:

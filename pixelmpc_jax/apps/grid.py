@@ -19,6 +19,8 @@ import numpy as np
 
 from pixelmpc_jax.apps import race
 from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.sim import ticks as ticks_lib
+from pixelmpc_jax.sim.metrics import MEASURE
 from pixelmpc_jax.strict_json import write_json_atomic
 
 RUN_FIELDS = ("laps", "seed", "dof_weights")  # a cell's race takes these from the grid run, not from the cell
@@ -112,10 +114,17 @@ def _nested_settings(settings: dict) -> dict:
     return {**settings, "config": config}
 
 
-def is_current(done: dict | None, spec: RaceSpec) -> bool:
-    """Whether a finished cell's results ``done`` answer the race ``spec``: the same :meth:`RaceSpec.key`."""
+def flies_race(done: dict | None, spec: RaceSpec) -> bool:
+    """Whether a finished cell's results ``done`` were flown as the race ``spec``: the same :meth:`RaceSpec.key`."""
     flown = recorded_race(done) if done else None
     return flown is not None and flown.key() == spec.key()
+
+
+def is_current(done: dict | None, spec: RaceSpec) -> bool:
+    """Whether a finished cell's results ``done`` answer the race ``spec``: flown as it (:func:`flies_race`) and
+    measured with this version's visibility measure (:data:`~pixelmpc_jax.sim.metrics.MEASURE`); results measured
+    otherwise are flown again."""
+    return flies_race(done, spec) and done.get("measure") == MEASURE
 
 
 def load_results(out: Path) -> dict:
@@ -148,7 +157,7 @@ def _copy_shared(shared: tuple[Path, str, dict], out: Path, name: str) -> dict:
     import shutil
 
     folder, shared_name, done = shared
-    for kind in ("trajectories", "covariances"):
+    for kind in ("trajectories", "covariances", "ticks"):
         source = folder / f"{kind}_{shared_name}.npz"
         if source.exists():
             shutil.copyfile(source, out / f"{kind}_{name}.npz")
@@ -168,7 +177,8 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     ``batch_size`` laps fly in one vmapped batch (default :func:`default_batch_size`); a lap's result does
     not depend on it (lap i always uses seed ``seed + i``).
 
-    Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap) and, with the
+    Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap), ``ticks_<cell>.npz``
+    (the per-tick record, :mod:`~pixelmpc_jax.sim.ticks`, from which any measure is recomputed) and, with the
     particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). A cell whose race a
     finished cell in one of the ``reuse`` folders already answers (:func:`find_shared`) is copied from there, not
     flown again (its results name it in ``shared_from``). Interrupted (Ctrl-C),
@@ -198,7 +208,9 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         res = race.run_laps(spec, batch_size=batch_size, progress=progress, dof_params=dof_params)
         trajectories = res.pop("trajectories")
         covariances = res.pop("covariances")
-        res.pop("visibility", None)
+        lap_ticks, camera = res.pop("ticks", []), res.pop("camera", None)
+        for kind in ("visibility", "estimates"):
+            res.pop(kind, None)
         res.pop("race", None), res.pop("key", None)  # the cell records its race below (cell_record)
         if res.get("interrupted") or len(res["laps"]) < laps:  # interrupted inside the cell: keep what is done
             raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
@@ -210,6 +222,8 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         results[cell.name] = res
         write_json_atomic(path, results)
         np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
+        if lap_ticks:
+            ticks_lib.write(out / f"ticks_{cell.name}.npz", lap_ticks, camera, spec.speed)
         if covariances:
             np.savez_compressed(out / f"covariances_{cell.name}.npz", *covariances)
     return results

@@ -1,11 +1,12 @@
 """Racing laps with a controller and writing what a person wants to see: metrics.json, a table, a plot.
 
-Laps are run in batches (``vmap`` of the episode); after every batch ``metrics.json`` is rewritten
-atomically, so an interrupted run keeps the laps it finished.
+Laps are run in batches (``vmap`` of the episode); after every batch ``metrics.json`` and the per-tick record
+``ticks_<controller>.npz`` are rewritten atomically, so an interrupted run keeps the laps it finished.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
 
@@ -17,6 +18,7 @@ from pixelmpc_jax.control.sampling import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
+from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
@@ -88,7 +90,7 @@ def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -
     """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`), with the filter's figures when the race
     flies on its estimate (its mean and largest position error), whether the vehicle turned upside down, and the
     lap's seed."""
-    lap = metrics_lib.lap_metrics(log, track=track, camera=camera)
+    lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=spec.speed)
     n = int(log.num_ticks)
     if spec.estimator == "pf":
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
@@ -102,6 +104,91 @@ def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -
     return lap
 
 
+class FlownLap(NamedTuple):
+    """One flown lap: its metrics (:func:`lap_record`), its per-tick arrays
+    (:func:`~pixelmpc_jax.sim.ticks.lap_ticks`), its episode log (host arrays) and its track as flown."""
+
+    record: dict
+    ticks: dict
+    log: episode_lib.EpisodeLog
+    track: track_lib.Track
+
+
+class Race(NamedTuple):
+    """A race ready to fly: the spec, how its laps fly, and the camera they are seen with."""
+
+    spec: RaceSpec
+    flight: _Flight
+    batch_size: int
+
+    @property
+    def camera(self):
+        return self.flight.base.camera
+
+
+def prepare(spec: RaceSpec, batch_size: int = 1, dof_params=None) -> Race:
+    """Check the race's weights and build what flies it (compiled on the first batch)."""
+    if not (isinstance(batch_size, int) and batch_size > 0):
+        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
+    spec.check_weights(dof_params)
+    return Race(spec, _prepare_flight(spec, batch_size, dof_params), min(batch_size, spec.laps))
+
+
+def fly_batches(race: Race) -> Iterator[list[FlownLap]]:
+    """The race's laps, a batch at a time (lap i flies seed ``spec.seed + i``)."""
+    spec = race.spec
+    seeds = list(range(spec.seed, spec.seed + spec.laps))
+    for first in range(0, spec.laps, race.batch_size):
+        chunk = seeds[first:first + race.batch_size]
+        flown = []
+        for lap_seed, (log, lap_track) in zip(chunk, _fly_batch(race.flight, chunk, race.batch_size, spec.perturb)):
+            flown.append(FlownLap(lap_record(spec, log, lap_track, race.camera, lap_seed),
+                                  ticks_lib.lap_ticks(log, lap_track.gates, race.camera, lap_seed), log, lap_track))
+        yield flown
+
+
+class LapBook:
+    """What a race has flown so far, and its files: ``metrics.json`` (the laps' metrics and their aggregate) and
+    ``ticks_<name>.npz`` (the per-tick record, :mod:`~pixelmpc_jax.sim.ticks`), rewritten atomically after each
+    batch."""
+
+    def __init__(self, race: Race, name: str | None = None):
+        self.race = race
+        self.name = name or race.spec.controller
+        self.results: dict = {"race": race.spec.record(), "key": race.spec.key(), "measure": metrics_lib.MEASURE,
+                              "controller": race.flight.policy_name, "laps": [], "aggregate": {},
+                              "interrupted": False, "sample_devices": race.flight.sample_devices}
+        self.ticks: list[dict] = []
+        self.logs: list[episode_lib.EpisodeLog] = []
+
+    def add(self, laps: list[FlownLap]) -> None:
+        for lap in laps:
+            self.results["laps"].append(lap.record)
+            self.ticks.append(lap.ticks)
+            self.logs.append(lap.log)
+        self.results["aggregate"] = metrics_lib.aggregate(self.results["laps"])
+
+    def write_ticks(self, out: Path) -> None:
+        if self.ticks:
+            ticks_lib.write(Path(out) / f"ticks_{self.name}.npz", self.ticks, self.race.camera, self.race.spec.speed)
+
+    def flown(self) -> dict:
+        """The results with each lap's flown states (``trajectories``), the target's visibility at each tick
+        (``visibility``), the states the controller acted on (``estimates``), with the particle filter the trace
+        of its position covariance at each tick (``covariances``), the per-tick record (``ticks``) and the camera
+        the laps were seen with (``camera``)."""
+        out = {**self.results, "trajectories": [], "visibility": [], "estimates": [], "covariances": [],
+               "ticks": self.ticks, "camera": self.race.camera}
+        for log in self.logs:
+            n = int(log.num_ticks)
+            out["trajectories"].append(np.asarray(log.states)[: n + 1])
+            out["visibility"].append(np.asarray(log.visibility)[: n + 1])
+            out["estimates"].append(np.asarray(log.estimates)[:n])
+            if self.race.spec.estimator == "pf":
+                out["covariances"].append(np.asarray(log.position_cov_trace)[:n])
+        return out
+
+
 def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progress: bool = True,
              video: bool = False, dof_params=None) -> dict:
     """Fly the race ``spec`` and return ``{"race": spec.record(), "laps": [...], "aggregate": {...}, ...}``.
@@ -109,62 +196,44 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     Lap i uses PRNG key ``spec.seed + i`` for the plant noise and the controller, so a lap is reproducible on
     its own and a batch gives the same per-lap result as single runs. ``dof_params`` are the DOF weights the
     spec names (None: the packaged weights; a ValueError if their fingerprint is not the spec's). The result
-    also holds, per lap, the flown states (``trajectories``), the target's visibility at each tick
-    (``visibility``) and, with the particle filter, the trace of its position covariance at each tick
-    (``covariances``). Laps fly ``batch_size`` at a time. With a batch of one
-    and several local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the
-    controller's samples split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to
-    float rounding); ``sample_devices`` in the result says how many. With ``out``, ``metrics.json`` is rewritten
-    after every batch, ``trajectories.png`` drawn at the end and, with ``video``, the first lap's
-    ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C stopped the run: the laps finished before it
-    are kept (and in ``out/metrics.json``).
+    also holds what :meth:`LapBook.flown` adds. Laps fly ``batch_size`` at a time. With a batch of one and several
+    local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the controller's samples
+    split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to float rounding);
+    ``sample_devices`` in the result says how many. With ``out``, ``metrics.json`` and ``ticks_<controller>.npz``
+    are rewritten after every batch, ``trajectories.png`` drawn at the end and, with ``video``, the first lap's
+    ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C (or SIGTERM, under the ``pixelmpc`` command)
+    stopped the run: the laps finished before it are kept (and in ``out``).
     """
-    if batch_size <= 0:
-        raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}")
-    spec.check_weights(dof_params)
-    flight = _prepare_flight(spec, batch_size, dof_params)
-    batch_size = min(batch_size, spec.laps)
-    results: dict = {"race": spec.record(), "key": spec.key(), "controller": flight.policy_name, "laps": [],
-                     "aggregate": {}, "interrupted": False, "sample_devices": flight.sample_devices}
-    trajectories: list[np.ndarray] = []
-    covariances: list[np.ndarray] = []
-    visibilities: list[np.ndarray] = []
-    estimates: list[np.ndarray] = []
-    seeds = list(range(spec.seed, spec.seed + spec.laps))
+    race = prepare(spec, batch_size, dof_params)
+    book = LapBook(race)
     bar = _progress_bar(spec) if progress else None
     try:
-        for first in range(0, spec.laps, batch_size):
-            chunk = seeds[first:first + batch_size]
-            for lap_seed, (log, lap_track) in zip(chunk, _fly_batch(flight, chunk, batch_size, spec.perturb)):
-                if video and out is not None and lap_seed == spec.seed:
-                    from pixelmpc_jax.apps.video import write_onboard_video
+        for laps in fly_batches(race):
+            book.add(laps)
+            if video and out is not None and laps[0].record["seed"] == spec.seed:
+                from pixelmpc_jax.apps.video import write_onboard_video
 
-                    write_onboard_video(flight.base.track, log, Path(out) / "onboard.mp4", flight.base.camera)
-                results["laps"].append(lap_record(spec, log, lap_track, flight.base.camera, lap_seed))
-                trajectories.append(np.asarray(log.states)[: int(log.num_ticks) + 1])
-                visibilities.append(np.asarray(log.visibility)[: int(log.num_ticks) + 1])
-                estimates.append(np.asarray(log.estimates)[: int(log.num_ticks)])
-                if spec.estimator == "pf":
-                    covariances.append(np.asarray(log.position_cov_trace)[: int(log.num_ticks)])
-            results["aggregate"] = metrics_lib.aggregate(results["laps"])
+                write_onboard_video(race.flight.base.track, laps[0].log, Path(out) / "onboard.mp4", race.camera)
             if out is not None:
-                write_json_atomic(Path(out) / "metrics.json", results)
+                write_json_atomic(Path(out) / "metrics.json", book.results)
+                book.write_ticks(out)
             if bar is not None:
-                bar.update(len(chunk))
-                bar.set_postfix(done=sum(lap["success"] for lap in results["laps"]))
+                bar.update(len(laps))
+                bar.set_postfix(done=sum(lap["success"] for lap in book.results["laps"]))
     except KeyboardInterrupt:
-        results["interrupted"] = True
-        if out is not None and results["laps"]:
-            write_json_atomic(Path(out) / "metrics.json", results)
-        print(f"\ninterrupted: keeping the {len(results['laps'])} finished lap(s)")
+        book.results["interrupted"] = True
+        if out is not None and book.results["laps"]:
+            write_json_atomic(Path(out) / "metrics.json", book.results)
+            book.write_ticks(out)
+        print(f"\ninterrupted: keeping the {len(book.results['laps'])} finished lap(s)")
     finally:
         if bar is not None:
             bar.close()
-    if out is not None and trajectories:
-        plot_trajectories(flight.base.track, trajectories, Path(out) / "trajectories.png",
-                          title=f"{spec.controller}, target {spec.speed:g} m/s, {len(trajectories)} lap(s)")
-    return {**results, "trajectories": trajectories, "covariances": covariances, "visibility": visibilities,
-            "estimates": estimates}
+    results = book.flown()
+    if out is not None and results["trajectories"]:
+        plot_trajectories(race.flight.base.track, results["trajectories"], Path(out) / "trajectories.png",
+                          title=f"{spec.controller}, target {spec.speed:g} m/s, {len(results['trajectories'])} lap(s)")
+    return results
 
 
 def _progress_bar(spec: RaceSpec):

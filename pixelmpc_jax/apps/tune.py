@@ -4,12 +4,17 @@
 :mod:`~pixelmpc_jax.apps.frontier`); every trial flies the base race (a preset, ``best`` by default) with the
 trial's settings on the same seeds and laps, through :func:`~pixelmpc_jax.apps.grid.run_grid` (the grids' laps,
 batched over the devices), and scores its frontier gain: the nominal avoidable low-visibility time at the
-trial's mean lap time over the trial's (floored at one control tick, as :func:`frontier.build` does). Two
-constraints make a trial feasible: every lap completed, and a mean lap time at most ``(1 + bound)`` times
-nominal MPPI's at the same target. An infeasible trial scores
-``-(failed laps + excess / bound)``, ``excess`` the lap-time change past the bound: below every feasible score
-(a gain is >= 0), finite, and worse the more laps it lost or the slower it flew, so the sampler still learns
-which way feasibility lies. A feasible trial whose lap time the nominal frontier does not bracket scores 0.
+trial's mean lap time over the trial's (floored at one control tick, as :func:`frontier.build` does; the avoidable
+time counts every tick a gate is the target, :func:`~pixelmpc_jax.sim.metrics.visibility_masks`). The constraints
+that make a trial feasible: every lap completed; a mean lap time at most ``(1 + bound)`` times nominal MPPI's at the
+same target; and, against nominal MPPI at the trial's own lap time, a raw time below 50 % (nothing excused) no
+higher, a share of time with the target in view no lower, and a mean angle to the target no larger, so a gain
+cannot be bought by looking away where the avoidable time does not look. An infeasible trial scores
+``-(failed laps + excess / bound + view shortfall)``, ``excess`` the lap-time change past the bound and the view
+shortfall the sum of the three figures' relative shortfalls against nominal's: below every feasible score
+(a gain is >= 0), finite, and worse the more laps it lost, the slower it flew or the less it saw, so the sampler
+still learns which way feasibility lies. A feasible trial whose lap time the nominal frontier does not bracket
+scores 0.
 
 **Engine: Optuna's TPE sampler, seeded.** Optuna is a well-kept library with the store a long search needs: the
 study lives in a database (SQLite in ``DIR/study.db`` by default), so an interrupted search resumes where it
@@ -89,21 +94,43 @@ class TuneSetup:
                                       "seed": self.seed, "bound": self.bound}))
 
 
+def view_shortfall(row: dict) -> dict:
+    """How far a frontier row (:func:`frontier.build`) sees worse than nominal MPPI at its own lap time, per figure,
+    relative to nominal's (0 where it sees as well or better, or where the frontier does not bracket the row): the
+    raw time below 50 % above nominal's, the share of time in view below it, the mean angle to the target above it."""
+    def relative(mine, nominal, worse_when_higher: bool) -> float:
+        if mine is None or nominal is None:
+            return 0.0
+        over = (mine - nominal) if worse_when_higher else (nominal - mine)
+        return max(0.0, over) / max(abs(nominal), 1e-9)
+
+    return {"vis_below_50_s": relative(row.get("vis_below_50_s"), row.get("frontier_vis_below_50_s"), True),
+            "share_target_in_view": relative(row.get("share_target_in_view"),
+                                             row.get("frontier_share_target_in_view"), False),
+            "mean_target_angle_deg": relative(row.get("mean_target_angle_deg"),
+                                              row.get("frontier_mean_target_angle_deg"), True)}
+
+
 def score(row: dict, nominal_lap_s: float, bound: float) -> dict:
     """A trial's objective from its frontier row (:func:`frontier.build`) and nominal MPPI's lap time at the same
-    target: the frontier gain when every lap completed within the bound, else ``-(failed laps + excess / bound)``."""
+    target: the frontier gain when every lap completed within the bound and it sees no worse than nominal MPPI at
+    its lap time (:func:`view_shortfall`), else ``-(failed laps + excess / bound + view shortfall)``."""
     failed = row["laps"] - row["laps_completed"]
     change = None if row["lap_time_s"] is None else row["lap_time_s"] / nominal_lap_s - 1.0
     excess = 0.0 if change is None else max(0.0, change - bound)
-    feasible = failed == 0 and excess == 0.0
+    shortfall = view_shortfall(row)
+    feasible = failed == 0 and excess == 0.0 and not any(shortfall.values())
     if feasible:
         value = row["frontier_gain"] if row["frontier_gain"] is not None else 0.0
     else:
-        value = -(failed + excess / bound)
+        value = -(failed + excess / bound + sum(shortfall.values()))
     return {"score": float(value), "feasible": feasible, "gain": row["frontier_gain"],
             "gain_interval": row["frontier_gain_interval"], "bracketed": row["bracketed"],
             "lap_time_s": row["lap_time_s"], "lap_time_change": change, "bound_excess": excess,
-            "avoidable_s": row["avoidable_s"], "laps_completed": row["laps_completed"], "laps": row["laps"]}
+            "avoidable_s": row["avoidable_s"], "laps_completed": row["laps_completed"], "laps": row["laps"],
+            "view_shortfall": shortfall, "vis_below_50_s": row.get("vis_below_50_s"),
+            "share_target_in_view": row.get("share_target_in_view"),
+            "mean_target_angle_deg": row.get("mean_target_angle_deg")}
 
 
 def evaluate(results: dict, cell: grid.Cell, nominal: dict, setup: TuneSetup) -> dict:

@@ -10,8 +10,8 @@ from pathlib import Path
 from pixelmpc_jax.apps import frontier
 from pixelmpc_jax.strict_json import json_safe, write_json_atomic
 
-FIGURES = ("score", "feasible", "gain", "lap_time_s", "lap_time_change", "avoidable_s", "laps_completed", "laps",
-           "wall_time_s")
+FIGURES = ("score", "feasible", "gain", "lap_time_s", "lap_time_change", "avoidable_s", "vis_below_50_s",
+           "share_target_in_view", "mean_target_angle_deg", "laps_completed", "laps", "wall_time_s")
 
 
 def trial_rows(study) -> list[dict]:

@@ -1,6 +1,13 @@
 """Per-lap metrics of closed-loop episodes and their aggregate (mean and two sigma), as the paper reports.
 
-Works on host numpy arrays of one :class:`~pixelmpc_jax.sim.episode.EpisodeLog` (or a batch of them).
+Works on host numpy arrays of one :class:`~pixelmpc_jax.sim.episode.EpisodeLog` (or a batch of them), or on the
+per-tick record a race writes (``ticks_<controller>.npz``: :func:`visibility_metrics` recomputes a lap's
+visibility figures from it).
+
+The visibility measure (:data:`MEASURE`, :func:`visibility_masks`): a gate's low visibility counts at every tick
+it is the target, from the tick the previous gate is passed; the part no attitude avoids is excused, capped per
+gate at the ticks the race's target speed needs to fly through it. The paper's rule (counted only after the gate
+was first seen while being the target) survives only as the ``*_after_seen_s`` columns beside the paper's figures.
 """
 
 from __future__ import annotations
@@ -17,14 +24,17 @@ from pixelmpc_jax.sim.episode import EpisodeLog
 from pixelmpc_jax.timing import CONTROL_DT
 from pixelmpc_jax.world import camera as camera_lib
 
+LOSS_CAUSES = ("excused", "above", "below", "left", "right", "behind", "inside")
 LAP_KEYS = (
     "success", "gates_passed", "lap_time_s", "crash", "time_vis_below_50_s", "time_vis_zero_s",
-    "time_vis_below_50_unavoidable_s",
-    *(f"time_vis_below_50_{cause}_s" for cause in ("above", "below", "left", "right", "behind", "inside")),
+    "time_vis_avoidable_s", *(f"time_vis_below_50_{cause}_s" for cause in LOSS_CAUSES),
+    "time_vis_below_50_after_seen_s", "time_vis_zero_after_seen_s",
     "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
     "mean_angular_acc", "mean_speed", "flight_time_s", "share_target_in_view", "mean_target_angle_deg",
 )
-
+# The visibility measure's name, recorded with every race's results: a result recorded under another measure
+# (the paper's "after first seen" rule of earlier versions) is not current and is flown again.
+MEASURE = "from-target/capped-floor"
 
 def _euler(quaternions: np.ndarray) -> np.ndarray:
     """(S, 4) -> (S, 3) roll, pitch, yaw (numpy mirror of quadrotor.euler_angles)."""
@@ -42,9 +52,13 @@ def total_variation(angles: np.ndarray) -> float:
     return float(np.sum(np.abs(steps)))
 
 
-def low_visibility_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Masks (S,) of the ticks with the target's visibility below 50 % and at 0 %, counted per target gate only
-    after it was first seen (visibility > 0) while being the target, as the paper counts a 'loss'.
+def after_seen_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's rule, kept only for the column beside the paper's figures: masks (S,) of the ticks with the
+    target's visibility below 50 % and at 0 %, counted per target gate only after it was first seen
+    (visibility > 0) while being the target.
+
+    It has a blind spot: a controller that does not see the next gate for a while after passing a gate is never
+    charged for that time. No gain or claim uses it; see :func:`visibility_masks`.
 
     Args:
         visibility: (S,) visibility of the current target at each tick.
@@ -61,12 +75,6 @@ def low_visibility_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np
         below_50[after] = visibility[after] < 0.5
         zero[after] = visibility[after] <= 0.0
     return below_50, zero
-
-
-def visibility_loss_times(visibility: np.ndarray, target: np.ndarray, dt: float = CONTROL_DT) -> tuple[float, float]:
-    """Time (s) with the target's visibility below 50 % and at 0 % (see :func:`low_visibility_ticks`)."""
-    below_50, zero = low_visibility_ticks(visibility, target)
-    return float(np.sum(below_50)) * dt, float(np.sum(zero)) * dt
 
 
 @jax.jit
@@ -89,24 +97,98 @@ def pointed_visibility(gates, positions: jax.Array, camera: camera_lib.Camera) -
     return jax.vmap(one)(gates, positions)
 
 
-def _unavoidable(states: np.ndarray, below_50: np.ndarray, target: np.ndarray, track, camera) -> np.ndarray:
-    """(S,) the ticks of the ``below_50`` mask at which a camera pointed at the target sees under half of it."""
-    if not below_50.any():
-        return below_50
-    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
-    best = np.asarray(pointed_visibility(gates, jnp.asarray(states[:, quadrotor.POS]), camera))
-    return below_50 & (best < 0.5)
+def target_gates(gates, target: np.ndarray):
+    """The target gate of each tick, stacked from the course's ``gates`` (leading axis G). An index past the
+    last gate (every gate passed) names the last: its visibility is recorded as 1 there, so it is never charged."""
+    index = np.clip(np.asarray(target), 0, np.asarray(gates.centre).shape[0] - 1)
+    return jax.tree_util.tree_map(lambda leaf: leaf[index], gates)
 
 
-def unavoidable_loss_time(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, track, camera,
-                          dt: float = CONTROL_DT) -> float:
-    """The part (s) of the time with visibility below 50 % that no attitude could have avoided: ticks at which
-    even a camera pointed at the target gate (:func:`pointed_visibility`) sees less than half of it."""
-    below_50, _ = low_visibility_ticks(visibility, target)
-    return float(np.sum(_unavoidable(states, below_50, target, track, camera))) * dt
+def flown(num_ticks: int, size: int) -> np.ndarray:
+    """(size,) mask of the states reached by the flown ticks, 1..num_ticks (state 0 is the start)."""
+    ticks = np.arange(size)
+    return (ticks >= 1) & (ticks <= num_ticks)
 
 
-LOSS_CAUSES = ("unavoidable", "above", "below", "left", "right", "behind", "inside")
+def target_runs(target: np.ndarray) -> list[tuple[int, int]]:
+    """``[(start, stop)]`` of the runs of ticks with one target gate: a run starts at the tick the previous gate
+    is passed (or the lap's start) and ends where the next gate becomes the target."""
+    edges = np.flatnonzero(np.diff(np.asarray(target))) + 1
+    bounds = np.concatenate([[0], edges, [len(target)]])
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def excused_ticks(candidates: np.ndarray, distance: np.ndarray, target: np.ndarray, target_speed: float,
+                  dt: float = CONTROL_DT) -> np.ndarray:
+    """(S,) the low-visibility ticks the floor excuses: of the ``candidates`` (below 50 % where even a camera
+    pointed at the target sees under half of it), per target gate at most as many as a vehicle at the race's
+    target speed needs to fly straight through that zone, the ones nearest the gate.
+
+    The zone is about the last 2 m before a gate (a pointed camera sees all of a gate from further off, with no
+    occlusion), and its depth is measured per gate as the farthest candidate's distance to the gate's centre.
+    Without the cap a controller that brakes into each gate and sprints between them would move time into the
+    excused zone: with it, lingering there is charged.
+
+    Args:
+        candidates: (S,) bool, the ticks the floor could excuse.
+        distance: (S,) distance from the vehicle to the target gate's centre, m.
+        target: (S,) the target gate's index.
+        target_speed: the race's target speed, m/s.
+    """
+    if not target_speed > 0.0:
+        raise ValueError(f"target_speed must be positive to cap the excused time, got {target_speed!r}")
+    excused = np.zeros(candidates.shape, bool)
+    for start, stop in target_runs(target):
+        ticks = start + np.flatnonzero(candidates[start:stop])
+        if ticks.size == 0:
+            continue
+        cap = int(np.ceil(float(np.max(distance[ticks])) / (target_speed * dt) - 1e-9))
+        nearest = ticks[np.argsort(distance[ticks], kind="stable")[:cap]]
+        excused[nearest] = True
+    return excused
+
+
+def visibility_masks(visibility: np.ndarray, pointed: np.ndarray, target: np.ndarray, distance: np.ndarray,
+                     num_ticks: int, target_speed: float, dt: float = CONTROL_DT) -> dict:
+    """The project's visibility measure over one lap's flown ticks, as masks (S,).
+
+    A gate's low visibility counts at every tick it is the target, from the tick the previous gate is passed
+    (``below_50``, ``zero``: nothing excused). The floor no attitude avoids (:func:`pointed_visibility` under
+    50 %) is excused, capped per gate by :func:`excused_ticks` (``excused``); ``avoidable`` is the rest.
+
+    What a controller could do to lower the avoidable time without seeing more, and why it cannot:
+
+    - not look at the next gate after a passage: every tick a gate is the target counts, seen or not;
+    - linger in the zone close to a gate where the floor excuses: the cap charges what a straight flight at the
+      target speed would not spend there;
+    - park the gate at the image's border (half the outline in view): the mean angle between the optical axis
+      and the target (:func:`view_metrics`) grows, and it is reported beside;
+    - fly slower: the frontier compares at the same lap time, against nominal MPPI flown slower;
+    - crash early or skip a gate: the frontier uses completed laps only, and the tuner demands every lap.
+
+    Args:
+        visibility: (S,) the target's visibility at each state (state 0 is the start).
+        pointed: (S,) the target's visibility from a camera at the same position pointed at its centre.
+        target: (S,) the target gate's index.
+        distance: (S,) distance to the target gate's centre, m.
+        num_ticks: ticks flown; states past it are not counted.
+        target_speed: the race's target speed, m/s (the cap's speed).
+    """
+    counted = flown(num_ticks, len(visibility))
+    below_50 = counted & (visibility < 0.5)
+    zero = counted & (visibility <= 0.0)
+    excused = excused_ticks(below_50 & (pointed < 0.5), distance, target, target_speed, dt)
+    return {"below_50": below_50, "zero": zero, "excused": excused, "avoidable": below_50 & ~excused}
+
+
+def tick_geometry(states: np.ndarray, target: np.ndarray, gates, camera) -> tuple[np.ndarray, np.ndarray]:
+    """(S,) the pointed camera's visibility of the target (:func:`pointed_visibility`) and the distance to its
+    centre, m, at each state."""
+    targets = target_gates(gates, target)
+    positions = np.asarray(states)[:, quadrotor.POS]
+    pointed = np.asarray(pointed_visibility(targets, jnp.asarray(positions, jnp.float32), camera))
+    distance = np.linalg.norm(positions - np.asarray(targets.centre), axis=1)
+    return pointed, distance
 
 
 @jax.jit
@@ -132,7 +214,7 @@ def _target_angles(gates, states: jax.Array, camera: camera_lib.Camera) -> jax.A
     return jax.vmap(one)(gates, states)
 
 
-def view_metrics(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, num_ticks: int, track,
+def view_metrics(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, num_ticks: int, gates,
                  camera) -> dict:
     """The two visibility families of current perception-aware racing work, over a lap's flown ticks:
     ``share_target_in_view``, the share of flight time with any of the target gate's outline in the image
@@ -141,28 +223,27 @@ def view_metrics(states: np.ndarray, visibility: np.ndarray, target: np.ndarray,
     policies)."""
     if num_ticks == 0:
         return {"share_target_in_view": None, "mean_target_angle_deg": None}
-    flown = slice(1, num_ticks + 1)  # the states reached by the flown ticks
-    gates = jax.tree_util.tree_map(lambda leaf: leaf[target], track.gates)
-    angles = np.asarray(_target_angles(gates, jnp.asarray(states), camera))
-    return {"share_target_in_view": float(np.mean(visibility[flown] > 0.0)),
-            "mean_target_angle_deg": float(np.mean(angles[flown]))}
+    counted = flown(num_ticks, len(visibility))
+    angles = np.asarray(_target_angles(target_gates(gates, target), jnp.asarray(states, jnp.float32), camera))
+    return {"share_target_in_view": float(np.mean(visibility[counted] > 0.0)),
+            "mean_target_angle_deg": float(np.mean(angles[counted]))}
 
 
-def loss_causes(states: np.ndarray, below_50: np.ndarray, unavoidable: np.ndarray, target: np.ndarray, track,
+def loss_causes(states: np.ndarray, below_50: np.ndarray, excused: np.ndarray, target: np.ndarray, gates,
                 camera) -> np.ndarray:
     """(S,) int: for each tick of the ``below_50`` mask, why the target gate was not in view, as an index into
     :data:`LOSS_CAUSES` (-1 on the other ticks).
 
-    ``unavoidable`` ticks (no attitude shows half the gate) come first; every other low-visibility tick is
-    classified by where the target gate's centre projects at the true pose: behind the camera, past the top,
-    bottom, left or right border of the image (the axis that is furthest out wins), or inside the image (the
+    ``excused`` ticks (no attitude shows half the gate, within the cap) come first; every other low-visibility
+    tick is classified by where the target gate's centre projects at the true pose: behind the camera, past the
+    top, bottom, left or right border of the image (the axis that is furthest out wins), or inside the image (the
     centre in view but under half of the outline, e.g. a gate seen at a grazing angle).
     """
     causes = np.full(below_50.shape, -1, np.int32)
     if not below_50.any():
         return causes
-    gates = jax.tree_util.tree_map(lambda leaf: leaf[np.asarray(target)], track.gates)
-    uv, in_front = (np.asarray(a) for a in _target_projection(gates, jnp.asarray(states), camera))
+    uv, in_front = (np.asarray(a) for a in _target_projection(target_gates(gates, target),
+                                                               jnp.asarray(states, jnp.float32), camera))
     u_out = np.maximum(-uv[:, 0], uv[:, 0] - 1.0)  # > 0: past the left or right border
     v_out = np.maximum(-uv[:, 1], uv[:, 1] - 1.0)
     side = np.where(uv[:, 0] < 0.5, LOSS_CAUSES.index("left"), LOSS_CAUSES.index("right"))
@@ -170,17 +251,51 @@ def loss_causes(states: np.ndarray, below_50: np.ndarray, unavoidable: np.ndarra
     where = np.where((u_out <= 0) & (v_out <= 0), LOSS_CAUSES.index("inside"), np.where(u_out > v_out, side, vertical))
     where = np.where(in_front, where, LOSS_CAUSES.index("behind"))
     causes[below_50] = where[below_50]
-    causes[below_50 & unavoidable] = LOSS_CAUSES.index("unavoidable")
+    causes[below_50 & excused] = LOSS_CAUSES.index("excused")
     return causes
 
 
-def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None) -> dict:
+def visibility_metrics(states: np.ndarray, visibility: np.ndarray, target: np.ndarray, num_ticks: int,
+                       gates, camera, target_speed: float, dt: float = CONTROL_DT, pointed: np.ndarray | None = None
+                       ) -> dict:
+    """A lap's visibility figures from its per-tick record (what ``ticks_<controller>.npz`` holds): the time
+    below 50 % and at 0 % counted from the target (:func:`visibility_masks`), its avoidable part, its split by
+    cause (:func:`loss_causes`; the causes add up to ``time_vis_below_50_s``), the share of flight time with the
+    target in view and the mean angle to it (:func:`view_metrics`), and the paper's "after first seen" rule
+    (``*_after_seen_s``, for the column beside the paper's figures only).
+
+    Args:
+        states: (S, 10) true states, state 0 the start.
+        visibility: (S,) the target's visibility at each state.
+        target: (S,) the target gate's index.
+        gates: the course's gates as flown (leading axis G).
+        pointed: (S,) :func:`pointed_visibility` of the target, computed here when not given.
+    """
+    states, target = np.asarray(states), np.asarray(target)
+    counted = flown(num_ticks, len(visibility))
+    visibility = np.where(counted, np.asarray(visibility), 1.0)  # unflown ticks never count
+    computed, distance = tick_geometry(states, target, gates, camera)
+    pointed = computed if pointed is None else np.asarray(pointed)
+    masks = visibility_masks(visibility, pointed, target, distance, num_ticks, target_speed, dt)
+    tick_cause = loss_causes(states, masks["below_50"], masks["excused"], target, gates, camera)
+    seen_50, seen_zero = after_seen_ticks(np.where(np.arange(len(visibility)) <= num_ticks, visibility, 1.0), target)
+    return {
+        "time_vis_below_50_s": float(np.sum(masks["below_50"])) * dt,
+        "time_vis_zero_s": float(np.sum(masks["zero"])) * dt,
+        "time_vis_avoidable_s": float(np.sum(masks["avoidable"])) * dt,
+        **{f"time_vis_below_50_{name}_s": float(np.sum(tick_cause == i)) * dt for i, name in enumerate(LOSS_CAUSES)},
+        "time_vis_below_50_after_seen_s": float(np.sum(seen_50)) * dt,
+        "time_vis_zero_after_seen_s": float(np.sum(seen_zero)) * dt,
+        **view_metrics(states, visibility, target, num_ticks, gates, camera),
+    }
+
+
+def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None, target_speed: float | None = None
+                ) -> dict:
     """The metrics of one episode (host arrays or device arrays of an unbatched log).
 
-    Given the lap's ``track`` and ``camera``, the metrics also split off the low-visibility time no attitude
-    could avoid (``time_vis_below_50_unavoidable_s``, see :func:`unavoidable_loss_time`) and split the rest by
-    cause (``time_vis_below_50_<cause>_s``, see :func:`loss_causes`): the unavoidable part and the causes add up
-    to ``time_vis_below_50_s``."""
+    Given the lap's ``track``, ``camera`` and the race's ``target_speed``, the metrics hold the visibility
+    figures of :func:`visibility_metrics`; without them those are None (the flight figures stay)."""
     n = int(log.num_ticks)
     states = np.asarray(log.states)[: n + 1]
     rates = np.asarray(log.body_rates)[: n + 1]
@@ -190,31 +305,17 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
     velocity = states[:, quadrotor.VEL]
     linear_acc = np.linalg.norm(np.diff(velocity, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
     angular_acc = np.linalg.norm(np.diff(rates, axis=0), axis=1) / dt if n > 0 else np.zeros(1)
-    # The masks span the whole fixed-length log, its unflown ticks marked fully visible (so never counted),
-    # and every lap of a run shares one compiled pointed_visibility.
-    target = np.asarray(log.target)
-    visibility = np.where(np.arange(target.shape[0]) <= n, np.asarray(log.visibility), 1.0)
-    low_50, low_zero = low_visibility_ticks(visibility, target)
-    below_50, zero = float(np.sum(low_50)) * dt, float(np.sum(low_zero)) * dt
-    unavoidable = None
-    causes = dict.fromkeys(LOSS_CAUSES[1:])
-    view = {"share_target_in_view": None, "mean_target_angle_deg": None}
-    if track is not None and camera is not None:
-        view = view_metrics(np.asarray(log.states), visibility, target, n, track, camera)
-        all_states = np.asarray(log.states)
-        unavoidable_mask = _unavoidable(all_states, low_50, target, track, camera)
-        unavoidable = float(np.sum(unavoidable_mask)) * dt
-        tick_cause = loss_causes(all_states, low_50, unavoidable_mask, target, track, camera)
-        causes = {name: float(np.sum(tick_cause == i)) * dt for i, name in enumerate(LOSS_CAUSES) if i > 0}
+    view = dict.fromkeys(VISIBILITY_KEYS)
+    if track is not None and camera is not None and target_speed is not None:
+        # the whole fixed-length log, so every lap of a run shares one compiled pointed_visibility
+        view = visibility_metrics(np.asarray(log.states), np.asarray(log.visibility), np.asarray(log.target), n,
+                                  track.gates, camera, target_speed, dt)
     return {
         "success": finished,
         "gates_passed": int(log.gates_passed),
         "lap_time_s": n * dt if finished else None,
         "crash": None if finished else END_NAMES.get(cause, str(cause)),
-        "time_vis_below_50_s": below_50,
-        "time_vis_zero_s": zero,
-        "time_vis_below_50_unavoidable_s": unavoidable,
-        **{f"time_vis_below_50_{name}_s": value for name, value in causes.items()},
+        **view,
         "total_variation_roll": total_variation(euler[:, 0]),
         "total_variation_pitch": total_variation(euler[:, 1]),
         "total_variation_yaw": total_variation(euler[:, 2]),
@@ -222,8 +323,10 @@ def lap_metrics(log: EpisodeLog, dt: float = CONTROL_DT, track=None, camera=None
         "mean_angular_acc": float(np.mean(angular_acc)),
         "mean_speed": float(np.mean(np.linalg.norm(velocity, axis=1))),
         "flight_time_s": n * dt,
-        **view,
     }
+
+
+VISIBILITY_KEYS = tuple(key for key in LAP_KEYS if key.startswith(("time_vis", "share_", "mean_target")))
 
 
 def unbatch(log: EpisodeLog) -> list[EpisodeLog]:
@@ -259,8 +362,10 @@ def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:
     for i, lap in enumerate(laps):
         lap_time = f"{lap['lap_time_s']:.2f}" if lap["lap_time_s"] is not None else "-"
         tv = f"{lap['total_variation_roll']:.1f}/{lap['total_variation_pitch']:.1f}/{lap['total_variation_yaw']:.1f}"
+        below_50, zero = (f"{lap[k]:.2f}" if lap.get(k) is not None else "-"
+                          for k in ("time_vis_below_50_s", "time_vis_zero_s"))
         rows.append(f"{i:>4} {'yes' if lap['success'] else 'no':>3} {lap['gates_passed']:>5} {lap_time:>8} "
-                    f"{lap['crash'] or '-':>12} {lap['time_vis_below_50_s']:>10.2f} {lap['time_vis_zero_s']:>9.2f} "
+                    f"{lap['crash'] or '-':>12} {below_50:>10} {zero:>9} "
                     f"{tv:>20} {lap['mean_linear_acc']:>8.2f} {lap['mean_angular_acc']:>8.2f}")
     if aggregate_row:
         def fmt(key):
@@ -271,7 +376,8 @@ def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:
 
         rows.append("-" * len(header))
         rows.append(f"success rate {aggregate_row['success_rate'] * 100:.0f}% of {aggregate_row['num_laps']}; "
-                    f"lap time {fmt('lap_time_s')} s; vis<50 {fmt('time_vis_below_50_s')} s; "
+                    f"lap time {fmt('lap_time_s')} s; vis<50 {fmt('time_vis_below_50_s')} s "
+                    f"(avoidable {fmt('time_vis_avoidable_s')} s); "
                     f"vis=0 {fmt('time_vis_zero_s')} s (mean +- 2 sigma)")
         split = [(name, (aggregate_row.get(f"time_vis_below_50_{name}_s") or {}).get("mean")) for name in LOSS_CAUSES]
         if all(value is not None for _, value in split):

@@ -1,0 +1,112 @@
+"""The visibility measure cannot be gamed (sim/metrics.visibility_masks): each way a controller could lower the
+avoidable time without seeing more, tried on hand-made laps.
+
+The ways, and where each is closed:
+1. not looking at the next gate after a passage: every tick a gate is the target counts, seen or not;
+2. lingering in the zone close to a gate where the floor excuses: the excused ticks are capped per gate at what a
+   straight flight at the target speed spends there;
+3. parking the gate at the image border (half the outline in view): the mean angle to the target grows;
+4. flying slower, losing laps, or seeing less where the avoidable time does not look: the tuner's constraints
+   (tests/test_tune.py::test_a_gain_bought_by_looking_away_is_infeasible) and the frontier's completed laps.
+"""
+
+import jax
+import numpy as np
+import pytest
+
+from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.sim import metrics as M
+from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
+
+DT = 0.025
+
+
+def masks(visibility, target, pointed=None, distance=None, speed=8.0):
+    visibility = np.asarray(visibility, float)
+    n = len(visibility) - 1
+    pointed = np.ones_like(visibility) if pointed is None else np.asarray(pointed, float)
+    distance = np.full_like(visibility, 10.0) if distance is None else np.asarray(distance, float)
+    return M.visibility_masks(visibility, pointed, np.asarray(target), distance, n, speed, DT)
+
+
+def test_a_next_target_out_of_view_for_a_second_after_the_switch_is_charged_that_second():
+    """Gate 0 in view until it is passed at tick 20; gate 1 unseen for 40 ticks (1 s), then in view. The paper's
+    rule never charges that second (gate 1 was not yet seen while being the target); the measure does."""
+    target = np.r_[np.zeros(21, int), np.ones(80, int)]
+    visibility = np.r_[np.ones(21), np.zeros(40), np.ones(40)]
+    m = masks(visibility, target)
+    assert m["avoidable"].sum() * DT == pytest.approx(1.0)
+    assert np.flatnonzero(m["avoidable"]).tolist() == list(range(21, 61))
+    after_seen, _ = M.after_seen_ticks(visibility, target)
+    assert not after_seen.any()
+
+
+def test_a_target_never_seen_at_all_is_charged_every_tick():
+    m = masks(np.zeros(31), np.zeros(31, int))
+    assert m["below_50"].sum() == 30 and m["zero"].sum() == 30 and m["avoidable"].sum() == 30  # state 0 not flown
+
+
+def test_a_straight_pass_at_the_target_speed_is_excused_whole():
+    """The last 2 m before a gate at 8 m/s (0.2 m a tick): ten ticks, none of them attitude's fault."""
+    distance = np.r_[np.full(11, 10.0), np.linspace(2.0, 0.2, 10)]
+    pointed = np.r_[np.ones(11), np.full(10, 0.3)]
+    visibility = np.r_[np.ones(11), np.full(10, 0.2)]
+    m = masks(visibility, np.zeros(21, int), pointed, distance)
+    assert m["excused"].sum() == 10 and m["avoidable"].sum() == 0
+
+
+def test_lingering_near_a_gate_is_excused_no_more_than_the_cap():
+    """Hovering 1.5 m before a gate for 100 ticks, too close for a pointed camera to see half of it: the floor
+    excuses only the ticks a straight flight at 8 m/s needs for 1.5 m (ceil(1.5 / 0.2) = 8); the rest is charged."""
+    distance = np.r_[10.0, np.full(100, 1.5)]
+    pointed = np.r_[1.0, np.full(100, 0.3)]
+    visibility = np.r_[1.0, np.full(100, 0.3)]
+    m = masks(visibility, np.zeros(101, int), pointed, distance)
+    assert m["excused"].sum() == 8 and m["avoidable"].sum() == 92
+    slower = masks(visibility, np.zeros(101, int), pointed, distance, speed=4.0)
+    assert slower["excused"].sum() == 15  # the cap follows the race's target speed: ceil(1.5 / 0.1)
+
+
+def test_the_cap_is_per_gate_and_excuses_the_ticks_nearest_each_gate():
+    """Two gates, each approached slowly through its excused zone: each is capped on its own, and the excused
+    ticks are the ones nearest the gate."""
+    approach = np.linspace(2.0, 0.1, 20)  # 0.1 m a tick: twice the ticks a straight flight at 8 m/s needs
+    distance = np.r_[10.0, approach, approach]
+    target = np.r_[0, np.zeros(20, int), np.ones(20, int)]
+    low = np.r_[1.0, np.full(40, 0.3)]
+    m = masks(low, target, low, distance)
+    assert m["excused"][1:21].sum() == 10 and m["excused"][21:].sum() == 10
+    assert m["excused"][11:21].all() and not m["excused"][1:11].any()  # the last metre before gate 0
+
+
+def test_ticks_a_pointed_camera_sees_are_never_excused():
+    """Looking away far from a gate (a pointed camera sees all of it) is charged however slowly it is flown."""
+    m = masks(np.r_[1.0, np.zeros(50)], np.zeros(51, int), np.ones(51), np.full(51, 1.0), speed=0.5)
+    assert m["excused"].sum() == 0 and m["avoidable"].sum() == 50
+
+
+def test_unflown_ticks_are_not_counted():
+    visibility = np.r_[1.0, np.zeros(10), np.zeros(10)]
+    m = M.visibility_masks(visibility, np.ones(21), np.zeros(21, int), np.full(21, 10.0), 10, 8.0, DT)
+    assert m["below_50"].sum() == 10
+
+
+def test_a_bad_target_speed_is_refused():
+    with pytest.raises(ValueError, match="target_speed must be positive"):
+        masks(np.ones(3), np.zeros(3, int), speed=0.0)
+
+
+def test_a_gate_parked_at_the_image_border_shows_in_the_mean_angle():
+    """Two hovers 10 m before a gate, one looking at it, one yawed until its centre sits at the image border: both
+    keep half the outline or more in view, so neither has time below 50 %, but the mean angle tells them apart."""
+    track = course_lib.straight_course(num_gates=1, height=3.0, first_gate_x=10.0)
+    camera = camera_lib.default_camera()
+    half_fov = float(np.arctan2(camera.cx, camera.fx))
+    figures = {}
+    for name, yaw in (("centred", 0.0), ("border", 0.95 * half_fov)):
+        states = np.stack([np.asarray(quadrotor.hover_state((0.0, 0.0, 3.0), yaw=yaw))] * 11)
+        visibility = np.asarray(jax.vmap(lambda x: camera_lib.gate_visibility(track.gate(0), x, camera))(states))
+        figures[name] = M.visibility_metrics(states, visibility, np.zeros(11, int), 10, track.gates, camera, 8.0)
+        assert figures[name]["time_vis_below_50_s"] == 0.0 and figures[name]["share_target_in_view"] == 1.0
+    assert figures["border"]["mean_target_angle_deg"] > figures["centred"]["mean_target_angle_deg"] + 20.0
