@@ -425,7 +425,7 @@ def _add_race(sub) -> None:
     flag sets one controller setting (:func:`_setting`)."""
     from pixelmpc_jax.apps.presets import DEFAULT_PRESET, PRESETS
     from pixelmpc_jax.apps.spec import COURSES
-    from pixelmpc_jax.control.mppi import TEMPERATURE_MIN
+    from pixelmpc_jax.control.mppi_checks import TEMPERATURE_MIN
     from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS
     from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
     from pixelmpc_jax.sim.controllers import CONTROLLERS

@@ -151,7 +151,7 @@ def test_torch_rollout_cost_equals_jax(port_setup):
     torch_port, problem, port, X, U = port_setup
     import torch
 
-    from pixelmpc_jax.control.mppi import Prefix, rollout_cost
+    from pixelmpc_jax.control.rollout import Prefix, rollout_cost
 
     config, n_f, dt = problem.config, problem.config.pixel_steps, problem.config.mppi.dt
     controls = Q.hover_control(Q.QuadParams()) + 0.3 * jax.random.normal(jax.random.PRNGKey(9), (4, 80, 4))

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax.apps.waypoint import fly_to_waypoint
-from pixelmpc_jax.control.mppi import MPPIConfig, importance_weights, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.sampling import importance_weights
 from pixelmpc_jax.dynamics import quadrotor as Q
 
 DT = 0.05
@@ -240,7 +241,7 @@ def test_an_integer_state_steps_as_the_float_state():
 def test_prefix_equals_one_time_varying_rollout():
     # A costly extra state (x[4]) that only matters over the first 5 steps: running it only in the prefix
     # must give exactly what one full-horizon rollout with a time switch gives.
-    from pixelmpc_jax.control.mppi import Prefix, rollout_cost, rollout_states
+    from pixelmpc_jax.control.rollout import Prefix, rollout_cost, rollout_states
 
     def full_dynamics(x, u, t, params):
         extra = jnp.where(t < 5, x[4] + DT * jnp.sin(x[0] + u[0]), x[4])
@@ -286,7 +287,7 @@ def test_prefix_equals_one_time_varying_rollout():
 
 def test_batch_cost_gives_the_same_rollout_costs_as_the_one_sample_cost():
     """A BatchCost sees all samples at once; each sample's cost must be its own (no mixing across samples)."""
-    from pixelmpc_jax.control.mppi import BatchCost, rollout_cost, rollout_costs
+    from pixelmpc_jax.control.rollout import BatchCost, rollout_cost, rollout_costs
 
     goal = jnp.asarray([1.0, -0.5])
 
@@ -312,7 +313,7 @@ def test_batch_and_trajectory_costs_give_the_one_sample_costs():
     """A running cost written for one sample (vmapped), for each step's batch (BatchCost) or for every step at once
     (TrajectoryCost) charges every sample the sum a plain loop over the steps gives, with and without a prefix
     whose model and cost differ from the main ones."""
-    from pixelmpc_jax.control.mppi import BatchCost, Prefix, TrajectoryCost, rollout_costs
+    from pixelmpc_jax.control.rollout import BatchCost, Prefix, TrajectoryCost, rollout_costs
 
     goal = jnp.asarray([1.0, -0.5])
 
@@ -381,7 +382,7 @@ def test_sample_weights_and_update_are_the_mppi_equations():
 
 
 def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works():
-    from pixelmpc_jax.control.mppi import TrajectoryCost
+    from pixelmpc_jax.control.rollout import TrajectoryCost
 
     config = MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
     per_sample = TrajectoryCost(lambda X, U, steps, goal: jnp.sum(X, axis=0))  # (N, n): one row per sample, not step

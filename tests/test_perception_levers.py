@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.control import costs
+from pixelmpc_jax.control import costs, sampling
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
@@ -100,11 +100,11 @@ def test_heading_weight_frees_the_heading_but_keeps_the_tilt():
 
 
 def test_coloured_noise_filter_keeps_unit_variance_and_correlates_neighbours():
-    white = mppi_lib.coloured_noise_filter(40, 0.0)
+    white = sampling.coloured_noise_filter(40, 0.0)
     np.testing.assert_array_equal(white, np.eye(40, dtype=np.float32))
     correlations = []
     for beta in (1.0, 2.0):
-        L = mppi_lib.coloured_noise_filter(40, beta).astype(np.float64)
+        L = sampling.coloured_noise_filter(40, beta).astype(np.float64)
         cov = L @ L.T
         np.testing.assert_allclose(np.diag(cov), 1.0, atol=1e-5)
         correlations.append(cov[10, 11])

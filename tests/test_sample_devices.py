@@ -10,14 +10,12 @@ import sys
 import numpy as np
 import pytest
 
-from pixelmpc_jax import host
-from pixelmpc_jax.control import sampling
+from pixelmpc_jax import devices, host
 from pixelmpc_jax.control.mppi import MPPIConfig
 
 SCRIPT = r"""
 import json
-from pixelmpc_jax import host
-from pixelmpc_jax.control import sampling
+from pixelmpc_jax import devices, host
 count = host.split_host_cpu(2)  # before JAX starts
 import jax, jax.numpy as jnp, numpy as np
 from pixelmpc_jax.apps.bench import problems
@@ -27,8 +25,8 @@ from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.world import course as C
 from pixelmpc_jax.sim import env as env_lib
 
-out = {"devices": count, "usable_512": sampling.usable_sample_devices(512),
-       "usable_63": sampling.usable_sample_devices(63)}
+out = {"devices": count, "usable_512": devices.usable_sample_devices(512),
+       "usable_63": devices.usable_sample_devices(63)}
 steps = {}
 for k in (1, 2):
     p = problems.pixelmpc_problem(64, 12, 0.15, sample_devices=k)
@@ -136,9 +134,9 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
     from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
     from pixelmpc_jax.sim.controllers import make_policy
 
-    assert sampling.compiler_options("auto", 1) == sampling.YNNPACK_MATMULS  # the tests run on a CPU
-    assert sampling.compiler_options("auto", 2) is None and sampling.compiler_options("xla", 1) is None
-    assert sampling.compiler_options("ynnpack", 2) == sampling.YNNPACK_MATMULS
+    assert devices.compiler_options("auto", 1) == devices.YNNPACK_MATMULS  # the tests run on a CPU
+    assert devices.compiler_options("auto", 2) is None and devices.compiler_options("xla", 1) is None
+    assert devices.compiler_options("ynnpack", 2) == devices.YNNPACK_MATMULS
     with pytest.raises(ValueError, match="cpu_matmul"):
         MPPIConfig(cpu_matmul="mkl")
     steps = {}
@@ -148,11 +146,11 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
         ctrl = pixelmpc_lib.make_pixelmpc(config)
         state = ctrl.init(jax.random.PRNGKey(0), np.asarray([0.0, 0.0, 0.0, 9.81], np.float32))
         steps[matmul] = ctrl.step(state, problem.x0, problem.params)
-        assert ctrl.compiler_options == sampling.compiler_options(matmul, 1)
+        assert ctrl.compiler_options == devices.compiler_options(matmul, 1)
     (u_x, s_x, i_x), (u_y, s_y, i_y) = steps["xla"], steps["auto"]
     np.testing.assert_allclose(u_y, u_x, atol=1e-5)
     np.testing.assert_allclose(i_y.costs, i_x.costs, rtol=1e-5)
     np.testing.assert_allclose(s_y.plan, s_x.plan, atol=1e-5)
     small = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=12)
     policy = make_policy("pixelmpc", pixelmpc_lib.PixelMPCConfig(mppi=small, t_f=0.15))
-    assert policy.compiler_options == sampling.YNNPACK_MATMULS  # the episode's jit compiles with them
+    assert policy.compiler_options == devices.YNNPACK_MATMULS  # the episode's jit compiles with them

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 
 from pixelmpc_jax.apps.spec import COURSES, RaceSpec
-from pixelmpc_jax.control.sampling import usable_sample_devices
+from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib

@@ -16,9 +16,9 @@ The cost is the racing cost of Eq. (19) plus the pixel cost of Eq. (18), ``c_pix
 counted over the first ``t_f`` seconds of the horizon, only while the detector reports the target, and
 for each predicted state only until it passes the target gate's plane (the target then switches).
 The pixel does not feed back into the robot, so the pixel model runs only over those first
-``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.mppi.Prefix`); the rest of the horizon
+``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.rollout.Prefix`); the rest of the horizon
 rolls out the robot alone. Both costs are then evaluated once over all the predicted states (a
-:class:`~pixelmpc_jax.control.mppi.TrajectoryCost`). The whole step is one compiled function; DOF weights, the
+:class:`~pixelmpc_jax.control.rollout.TrajectoryCost`). The whole step is one compiled function; DOF weights, the
 target pixel and the gates are arguments (new values never recompile), ``t_f``, ``c_pixel`` and sizes are
 configuration.
 """
@@ -36,7 +36,8 @@ from flax import struct
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import Controller, MPPIConfig, Prefix, TrajectoryCost, make_mppi
+from pixelmpc_jax.control.mppi import Controller, MPPIConfig, make_mppi
+from pixelmpc_jax.control.rollout import Prefix, TrajectoryCost
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics import vdof as vdof_lib

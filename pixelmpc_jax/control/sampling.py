@@ -1,31 +1,17 @@
-"""How MPPI draws, weighs and places its samples: time-correlated noise, the importance weights, the samples
-split over devices and the kernels the step compiles to.
+"""How MPPI draws and weighs its samples: time-correlated noise and the importance weights.
 
 * :func:`coloured_noise_filter`: the (T, T) filter that colours white noise along the horizon (1/f^beta).
 * :func:`importance_weights`: the softmax weights of the sample costs, NaN-safe.
-* :func:`sample_shardings`: the samples of one step split over several devices (``MPPIConfig.sample_devices``).
-  Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
-  weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
-  lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
-  device. On a CPU, the host's cores become devices with :func:`pixelmpc_jax.host.split_host_cpu` (before JAX
-  starts): XLA runs
-  one device's program on one core but for its largest kernels, and splitting the samples splits all of the
-  step's work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the noise).
-* :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``MPPIConfig.cpu_matmul``).
+
+Where the samples live (split over devices) is :mod:`pixelmpc_jax.devices`'s concern.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-SAMPLE_AXIS = "samples"
-CPU_MATMULS = ("auto", "xla", "ynnpack")  # MPPIConfig.cpu_matmul
-YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
 
 
 def coloured_noise_filter(horizon: int, exponent: float) -> np.ndarray:
@@ -73,51 +59,3 @@ def importance_weights(costs: jax.Array, temperature: float) -> tuple[jax.Array,
     logits = jnp.where(any_finite, logits, 0.0)
     weights = jax.nn.softmax(logits)
     return jnp.where(any_finite, weights, 0.0), finite
-
-
-class SampleShardings(NamedTuple):
-    """Where one MPPI step's arrays live when its samples are split over devices.
-
-    Attributes:
-        samples: the leading (sample) axis split over the devices, the rest whole.
-        replicated: a whole copy on every device (the plan, x0, the params, the key).
-    """
-
-    samples: jax.sharding.NamedSharding
-    replicated: jax.sharding.NamedSharding
-
-
-def sample_shardings(num_devices: int, num_samples: int) -> SampleShardings:
-    """The shardings of a step whose ``num_samples`` samples are split over the first ``num_devices`` local
-    devices (of the default backend). A ValueError if fewer are present or the samples do not split evenly."""
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
-
-    devices = jax.local_devices()
-    if num_devices > len(devices):
-        raise ValueError(f"sample_devices={num_devices} but only {len(devices)} {devices[0].platform} device(s) are "
-                         f"present (on a CPU, split the host's cores into devices before JAX starts: "
-                         f"pixelmpc_jax.host.split_host_cpu, or the `pixelmpc` command does it)")
-    if num_samples % num_devices:
-        raise ValueError(f"num_samples={num_samples} does not split evenly over sample_devices={num_devices}")
-    mesh = Mesh(np.asarray(devices[:num_devices]), (SAMPLE_AXIS,))
-    return SampleShardings(NamedSharding(mesh, PartitionSpec(SAMPLE_AXIS)), NamedSharding(mesh, PartitionSpec()))
-
-
-def usable_sample_devices(num_samples: int) -> int:
-    """The most local devices, at most all of them, over which ``num_samples`` samples split evenly (1 with one
-    device): what to give ``MPPIConfig.sample_devices`` to use every device for one controller."""
-    count = len(jax.local_devices())
-    return next(k for k in range(count, 0, -1) if num_samples % k == 0)
-
-
-def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
-    """The XLA options a step is compiled with (``jax.jit(..., compiler_options=...)``), for
-    ``MPPIConfig.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
-    splits even a 512 x 128 x 128 product over a CPU's cores (XLA's own kernel runs it on one); "xla" keeps
-    XLA's; "auto" (the default) takes YNNPACK for a step on one CPU device and XLA's where the samples are
-    split over devices already (each core then has its own share). Other platforms ignore the option."""
-    if cpu_matmul not in CPU_MATMULS:
-        raise ValueError(f"cpu_matmul must be one of {CPU_MATMULS}, got {cpu_matmul!r}")
-    if cpu_matmul == "xla" or (cpu_matmul == "auto" and (sample_devices > 1 or jax.default_backend() != "cpu")):
-        return None
-    return dict(YNNPACK_MATMULS)

@@ -35,7 +35,8 @@ import numpy as np
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
-from pixelmpc_jax.control.mppi import BatchCost, coloured_noise_filter, rollout_costs
+from pixelmpc_jax.control.rollout import BatchCost, rollout_costs
+from pixelmpc_jax.control.sampling import coloured_noise_filter
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
 from pixelmpc_jax.learn.dataset import Lap, lap_input
 from pixelmpc_jax.learn.rotation_augment import rotation_homography

@@ -55,6 +55,7 @@ from flax import serialization, struct
 from tqdm.auto import tqdm
 
 from pixelmpc_jax import strict_json, timing
+from pixelmpc_jax.devices import batch_shardings
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.learn import curves, rotation_augment
 from pixelmpc_jax.learn import dataset as dataset_lib
@@ -313,12 +314,6 @@ def data_parallel_devices(batch_size: int) -> int:
     return count
 
 
-def _mesh(num_devices: int):
-    from jax.sharding import Mesh
-
-    return Mesh(np.asarray(jax.devices()[:num_devices]), ("batch",))
-
-
 def _make_iteration(config: TrainConfig, num_devices: int = 1) -> Callable:
     """The loop's compiled step; runs differing only in seed, logging or paths share one compilation."""
     return _cached_iteration(_compile_key(config), num_devices)
@@ -337,11 +332,7 @@ def _cached_iteration(config: TrainConfig, num_devices: int = 1) -> Callable:
     KeyboardInterrupt save it.
     """
     train_step = make_train_step(config)
-    rows = None
-    if num_devices > 1:
-        from jax.sharding import NamedSharding, PartitionSpec
-
-        rows = NamedSharding(_mesh(num_devices), PartitionSpec("batch"))
+    rows = batch_shardings(num_devices).rows if num_devices > 1 else None
 
     @jax.jit
     def iteration(state: TrainState, data: FlowData) -> tuple[TrainState, dict]:
@@ -458,10 +449,7 @@ def train(config: TrainConfig, train_data, test_data=None, resume_from=None) -> 
     record = _run_record(config, host_data)
     num_devices = data_parallel_devices(config.batch_size)
     if num_devices > 1:  # replicate the dataset and the state on every device; the batch is split in the step
-        from jax.sharding import NamedSharding, PartitionSpec
-
-        replicated = NamedSharding(_mesh(num_devices), PartitionSpec())
-        data, state = jax.device_put((data, state), replicated)
+        data, state = jax.device_put((data, state), batch_shardings(num_devices).replicated)
     iteration = _make_iteration(config, num_devices)
     probe_loss = _probe_loss_fn(config, data)
     start = int(state.step)

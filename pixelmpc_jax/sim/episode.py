@@ -4,7 +4,7 @@ Each 1/40 s tick the driver asks the environment for an observation (:mod:`pixel
 and estimate), the policy for a command (:mod:`pixelmpc_jax.sim.policies`), and the environment for the tick
 flown (plant, gate passage, collisions, the episode's end), then writes the tick into preallocated logs. An
 episode is one ``lax.while_loop`` over ticks, so a finished lap stops computing; a batch of episodes (seeds,
-speeds, course perturbations) is a ``vmap`` of it, split over the devices (:mod:`pixelmpc_jax.sim.sharding`),
+speeds, course perturbations) is a ``vmap`` of it, split over the devices (:mod:`pixelmpc_jax.devices`),
 and runs until its last member ends.
 """
 
@@ -17,11 +17,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from pixelmpc_jax.devices import gather_batch, shard_batch
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim.env import Observation, SimState, World
 from pixelmpc_jax.sim.policies import Policy
-from pixelmpc_jax.sim.sharding import gather_batch, shard_batch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,7 +159,7 @@ class Runner(NamedTuple):
 
 def make_runner(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Runner:
     """Compiled runners; ``batch`` splits its episodes over every device present, across processes too
-    (see :func:`~pixelmpc_jax.sim.sharding.shard_batch`), and returns them whole.
+    (see :func:`~pixelmpc_jax.devices.shard_batch`), and returns them whole.
 
     ``single`` compiles with the policy's XLA options (``Policy.compiler_options``: chosen for one controller
     step, e.g. YNNPACK's products for a step on one CPU device, which split each product over the cores).

@@ -24,7 +24,7 @@ from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
-from pixelmpc_jax.control.sampling import usable_sample_devices
+from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 

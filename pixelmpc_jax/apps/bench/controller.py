@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench import problems, roofline
 from pixelmpc_jax.apps.bench.measure import make_row, measure
-from pixelmpc_jax.control.sampling import usable_sample_devices
+from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import course as course_lib

@@ -17,7 +17,8 @@ import jax.numpy as jnp
 from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.mppi import MPPIConfig, TrajectoryCost, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.rollout import TrajectoryCost
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 

@@ -1,0 +1,178 @@
+"""How a computation runs: over which devices, compiled with which options, compiled how many times.
+
+The algorithms (``control/mppi.py``, the episode driver, the trainer) say what to compute; this module says where
+and how it runs, for every layer:
+
+* :func:`sample_shardings`: the samples of one MPPI step split over several devices (``MPPIConfig.sample_devices``).
+  Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
+  weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
+  lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
+  device. On a CPU, the host's cores become devices with :func:`pixelmpc_jax.host.split_host_cpu` (before JAX
+  starts): XLA runs one device's program on one core but for its largest kernels, and splitting the samples
+  splits all of the step's work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the
+  noise). :func:`split_samples` and :func:`replicate` place a step's arrays accordingly.
+* :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``MPPIConfig.cpu_matmul``).
+* :func:`counted_jit`: a jitted function and how many times it has been traced (compiled).
+* :func:`shard_batch`, :func:`gather_batch`: batches of episodes over every device, across processes too;
+  :func:`batch_shardings`: a training batch's rows over the devices.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+SAMPLE_AXIS = "samples"
+BATCH_AXIS = "batch"
+CPU_MATMULS = ("auto", "xla", "ynnpack")  # MPPIConfig.cpu_matmul
+YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
+
+
+# --------------------------------------------------------------------------------------------------
+# One MPPI step's samples over the local devices.
+# --------------------------------------------------------------------------------------------------
+
+
+class SampleShardings(NamedTuple):
+    """Where one MPPI step's arrays live when its samples are split over devices.
+
+    Attributes:
+        samples: the leading (sample) axis split over the devices, the rest whole.
+        replicated: a whole copy on every device (the plan, x0, the params, the key).
+    """
+
+    samples: NamedSharding
+    replicated: NamedSharding
+
+
+def sample_shardings(num_devices: int, num_samples: int) -> SampleShardings:
+    """The shardings of a step whose ``num_samples`` samples are split over the first ``num_devices`` local
+    devices (of the default backend). A ValueError if fewer are present or the samples do not split evenly."""
+    devices = jax.local_devices()
+    if num_devices > len(devices):
+        raise ValueError(f"sample_devices={num_devices} but only {len(devices)} {devices[0].platform} device(s) are "
+                         f"present (on a CPU, split the host's cores into devices before JAX starts: "
+                         f"pixelmpc_jax.host.split_host_cpu, or the `pixelmpc` command does it)")
+    if num_samples % num_devices:
+        raise ValueError(f"num_samples={num_samples} does not split evenly over sample_devices={num_devices}")
+    mesh = Mesh(np.asarray(devices[:num_devices]), (SAMPLE_AXIS,))
+    return SampleShardings(NamedSharding(mesh, PartitionSpec(SAMPLE_AXIS)), NamedSharding(mesh, PartitionSpec()))
+
+
+def usable_sample_devices(num_samples: int) -> int:
+    """The most local devices, at most all of them, over which ``num_samples`` samples split evenly (1 with one
+    device): what to give ``MPPIConfig.sample_devices`` to use every device for one controller."""
+    count = len(jax.local_devices())
+    return next(k for k in range(count, 0, -1) if num_samples % k == 0)
+
+
+def split_samples(samples: jax.Array, shardings: SampleShardings | None) -> jax.Array:
+    """Inside jit: ``samples`` (N, ...) with each device holding (and computing from here on) its own rows;
+    as it is with ``shardings`` None (one device)."""
+    if shardings is None:
+        return samples
+    return jax.lax.with_sharding_constraint(samples, shardings.samples)
+
+
+def replicate(tree, shardings: SampleShardings | None):
+    """``tree`` with a whole copy on every device of ``shardings`` (unless every leaf is there already); as it
+    is with ``shardings`` None (one device)."""
+    if shardings is None or all(getattr(leaf, "sharding", None) == shardings.replicated
+                                for leaf in jax.tree_util.tree_leaves(tree)):
+        return tree
+    return jax.device_put(tree, shardings.replicated)
+
+
+# --------------------------------------------------------------------------------------------------
+# Compiling.
+# --------------------------------------------------------------------------------------------------
+
+
+def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
+    """The XLA options a step is compiled with (``jax.jit(..., compiler_options=...)``), for
+    ``MPPIConfig.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
+    splits even a 512 x 128 x 128 product over a CPU's cores (XLA's own kernel runs it on one); "xla" keeps
+    XLA's; "auto" (the default) takes YNNPACK for a step on one CPU device and XLA's where the samples are
+    split over devices already (each core then has its own share). Other platforms ignore the option."""
+    if cpu_matmul not in CPU_MATMULS:
+        raise ValueError(f"cpu_matmul must be one of {CPU_MATMULS}, got {cpu_matmul!r}")
+    if cpu_matmul == "xla" or (cpu_matmul == "auto" and (sample_devices > 1 or jax.default_backend() != "cpu")):
+        return None
+    return dict(YNNPACK_MATMULS)
+
+
+def counted_jit(fn: Callable, options: dict | None = None) -> tuple[Callable, Callable[[], int]]:
+    """``fn`` jitted with the XLA ``options``, and ``num_compilations() -> int``: how many times it has been
+    traced so far. JAX traces it once per new input signature (shapes, dtypes, static structure), right before
+    compiling that version; a control loop must keep the count at 1."""
+    traces = [0]
+
+    def traced(*args):
+        traces[0] += 1  # Python runs here only while JAX traces: once per new input signature, before compiling
+        return fn(*args)
+
+    return jax.jit(traced, compiler_options=options), lambda: traces[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# Batches of episodes or training rows over every device.
+# --------------------------------------------------------------------------------------------------
+
+
+class BatchShardings(NamedTuple):
+    """Where a data-parallel step's arrays live (training).
+
+    Attributes:
+        rows: the leading (batch) axis split over the devices, the rest whole.
+        replicated: a whole copy on every device (the weights, the optimizer state, the dataset).
+    """
+
+    rows: NamedSharding
+    replicated: NamedSharding
+
+
+def batch_shardings(num_devices: int) -> BatchShardings:
+    """The shardings of a batch split over the first ``num_devices`` JAX devices (of every process)."""
+    mesh = Mesh(np.asarray(jax.devices()[:num_devices]), (BATCH_AXIS,))
+    return BatchShardings(NamedSharding(mesh, PartitionSpec(BATCH_AXIS)), NamedSharding(mesh, PartitionSpec()))
+
+
+def shard_batch(tree, devices=None):
+    """Place a batch (leading axis B on every leaf) across ``devices`` (default: all JAX devices, of every
+    process) with a 1-D ``Mesh`` and ``NamedSharding``, padding B to a multiple of the device count by
+    repeating the last element. Returns ``(sharded tree, B)``; with one device the tree is returned as it is.
+
+    With several processes (``jax.distributed``), every process holds the whole batch (the laps are built
+    from seeds, the same everywhere) and places the rows of its own devices."""
+    devices = list(devices if devices is not None else jax.devices())
+    size = jax.tree_util.tree_leaves(tree)[0].shape[0]
+    if len(devices) <= 1:
+        return tree, size
+    padded = -(-size // len(devices)) * len(devices)
+    if padded != size:
+        tree = jax.tree_util.tree_map(
+            lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - size, axis=0)]), tree)
+    sharding = NamedSharding(Mesh(np.asarray(devices), (BATCH_AXIS,)), PartitionSpec(BATCH_AXIS))
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding), size
+
+    def place(leaf):
+        host = np.asarray(leaf)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree_util.tree_map(place, tree), size
+
+
+def gather_batch(tree):
+    """Bring a batch computed over the devices of several processes back whole to every process (with one
+    process it is returned as it is)."""
+    if jax.process_count() == 1:
+        return tree
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(tree, tiled=True)
