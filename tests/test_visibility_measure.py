@@ -110,3 +110,15 @@ def test_a_gate_parked_at_the_image_border_shows_in_the_mean_angle():
         figures[name] = M.visibility_metrics(states, visibility, np.zeros(11, int), 10, track.gates, camera, 8.0)
         assert figures[name]["time_vis_below_50_s"] == 0.0 and figures[name]["share_target_in_view"] == 1.0
     assert figures["border"]["mean_target_angle_deg"] > figures["centred"]["mean_target_angle_deg"] + 20.0
+
+
+def test_the_avoidable_time_splits_by_the_second_after_the_switch():
+    """Gate 1 unseen for 1.5 s after the switch at tick 10, then in view; gate 0 lost 3 s after the start."""
+    target = np.r_[np.zeros(10, int), np.ones(200, int)]
+    visibility = np.r_[np.ones(10), np.zeros(60), np.ones(140)]
+    visibility[130:140] = 0.0  # 3 s after gate 1 became the target
+    phases = M.switch_phases(target, DT)
+    assert phases[10] == 0 and phases[49] == 0 and phases[50] == 1 and phases[90] == 2 and phases[9] == 0
+    avoidable = masks(visibility, target)["avoidable"]
+    split = [np.sum(avoidable & (phases == i)) for i in range(len(M.PHASES))]
+    assert split == [40, 20, 10]

@@ -29,7 +29,7 @@ import numpy as np
 from pixelmpc_jax.apps import grid
 from pixelmpc_jax.apps.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
-from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES
 from pixelmpc_jax.strict_json import json_safe, write_json_atomic
 from pixelmpc_jax.timing import CONTROL_DT
 
@@ -129,11 +129,14 @@ def summarise(result: dict) -> dict:
     for cause in LOSS_CAUSES:
         key = f"time_vis_below_50_{cause}_s"
         causes[cause] = _stats([lap[key] for lap in done if lap.get(key) is not None])[0]
+    phases = {phase: _stats([lap[f"time_vis_avoidable_{phase}_s"] for lap in done
+                             if lap.get(f"time_vis_avoidable_{phase}_s") is not None])[0] for phase in PHASES}
     return {"lap_time_s": lap_time, "lap_time_two_sigma_s": lap_sigma, "avoidable_s": avoidable,
             "avoidable_two_sigma_s": avoidable_sigma, "vis_below_50_s": vis, "share_target_in_view": in_view,
             "mean_target_angle_deg": angle,
             "success_rate": len(done) / len(laps) if laps else None, "laps": len(laps), "laps_completed": len(done),
-            "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes}
+            "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes,
+            "phases": phases}
 
 
 def _curve(nominal: list[dict], y: str) -> tuple[np.ndarray, np.ndarray]:
@@ -363,6 +366,11 @@ def report(frontier: dict) -> str:
     for p in frontier["nominal"] + frontier["cells"]:
         label = f"nominal {p['speed']:g} m/s" if p["name"].startswith("nominal_") else p["name"]
         lines.append(f"| {label} | " + " | ".join(_f(p["causes"].get(k)) for k in LOSS_CAUSES) + " |")
+    lines += ["", "## When the avoidable time falls, from the tick its gate became the target (s per lap)", "",
+              "| point | first second | 1-2 s | later |", "|---|---|---|---|"]
+    for p in frontier["nominal"] + frontier["cells"]:
+        label = f"nominal {p['speed']:g} m/s" if p["name"].startswith("nominal_") else p["name"]
+        lines.append(f"| {label} | " + " | ".join(_f((p.get("phases") or {}).get(k)) for k in PHASES) + " |")
     m, d = frontier["measured"], frontier["measured"]["device"]
     states = sorted({"ground-truth" if c.get("estimator", "truth") == "truth" else c["estimator"]
                      for c in frontier["cells"]} | {"ground-truth"})

@@ -25,9 +25,13 @@ from pixelmpc_jax.timing import CONTROL_DT
 from pixelmpc_jax.world import camera as camera_lib
 
 LOSS_CAUSES = ("excused", "above", "below", "left", "right", "behind", "inside")
+# when an avoidable tick falls, counted from the tick its gate became the target: in the first second, the
+# second, or later (see :func:`switch_phases`)
+PHASES = ("first_second", "second_second", "later")
 LAP_KEYS = (
     "success", "gates_passed", "lap_time_s", "crash", "time_vis_below_50_s", "time_vis_zero_s",
     "time_vis_avoidable_s", *(f"time_vis_below_50_{cause}_s" for cause in LOSS_CAUSES),
+    *(f"time_vis_avoidable_{phase}_s" for phase in PHASES),
     "time_vis_below_50_after_seen_s", "time_vis_zero_after_seen_s",
     "total_variation_roll", "total_variation_pitch", "total_variation_yaw", "mean_linear_acc",
     "mean_angular_acc", "mean_speed", "flight_time_s", "share_target_in_view", "mean_target_angle_deg",
@@ -181,6 +185,17 @@ def visibility_masks(visibility: np.ndarray, pointed: np.ndarray, target: np.nda
     return {"below_50": below_50, "zero": zero, "excused": excused, "avoidable": below_50 & ~excused}
 
 
+def switch_phases(target: np.ndarray, dt: float = CONTROL_DT) -> np.ndarray:
+    """(S,) int index into :data:`PHASES` of each tick: whether it lies in the first second after its gate became
+    the target (the tick the previous gate was passed, or the start), in the second one, or later."""
+    phases = np.zeros(len(target), np.int32)
+    second = round(1.0 / dt)
+    for start, stop in target_runs(target):
+        since = np.arange(stop - start)
+        phases[start:stop] = np.where(since < second, 0, np.where(since < 2 * second, 1, 2))
+    return phases
+
+
 def tick_geometry(states: np.ndarray, target: np.ndarray, gates, camera) -> tuple[np.ndarray, np.ndarray]:
     """(S,) the pointed camera's visibility of the target (:func:`pointed_visibility`) and the distance to its
     centre, m, at each state."""
@@ -260,7 +275,8 @@ def visibility_metrics(states: np.ndarray, visibility: np.ndarray, target: np.nd
                        ) -> dict:
     """A lap's visibility figures from its per-tick record (what ``ticks_<controller>.npz`` holds): the time
     below 50 % and at 0 % counted from the target (:func:`visibility_masks`), its avoidable part, its split by
-    cause (:func:`loss_causes`; the causes add up to ``time_vis_below_50_s``), the share of flight time with the
+    cause (:func:`loss_causes`; the causes add up to ``time_vis_below_50_s``) and of the avoidable time by when
+    it falls after its gate became the target (:func:`switch_phases`), the share of flight time with the
     target in view and the mean angle to it (:func:`view_metrics`), and the paper's "after first seen" rule
     (``*_after_seen_s``, for the column beside the paper's figures only).
 
@@ -278,12 +294,15 @@ def visibility_metrics(states: np.ndarray, visibility: np.ndarray, target: np.nd
     pointed = computed if pointed is None else np.asarray(pointed)
     masks = visibility_masks(visibility, pointed, target, distance, num_ticks, target_speed, dt)
     tick_cause = loss_causes(states, masks["below_50"], masks["excused"], target, gates, camera)
+    phase = switch_phases(target, dt)
     seen_50, seen_zero = after_seen_ticks(np.where(np.arange(len(visibility)) <= num_ticks, visibility, 1.0), target)
     return {
         "time_vis_below_50_s": float(np.sum(masks["below_50"])) * dt,
         "time_vis_zero_s": float(np.sum(masks["zero"])) * dt,
         "time_vis_avoidable_s": float(np.sum(masks["avoidable"])) * dt,
         **{f"time_vis_below_50_{name}_s": float(np.sum(tick_cause == i)) * dt for i, name in enumerate(LOSS_CAUSES)},
+        **{f"time_vis_avoidable_{name}_s": float(np.sum(masks["avoidable"] & (phase == i))) * dt
+           for i, name in enumerate(PHASES)},
         "time_vis_below_50_after_seen_s": float(np.sum(seen_50)) * dt,
         "time_vis_zero_after_seen_s": float(np.sum(seen_zero)) * dt,
         **view_metrics(states, visibility, target, num_ticks, gates, camera),
