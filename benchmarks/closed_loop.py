@@ -3,11 +3,13 @@ the compiled episode's wall time per tick flown.
 
     python benchmarks/closed_loop.py [--mode full|quick|smoke] [--repeats 3]
 
-A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/closed_loop.py``), which runs it from
-an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.closed_loop``.
+A thin script: the same as ``pixelmpc bench closed-loop`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/bench/closed_loop.py``).
 """
 
-from pixelmpc_jax.apps.bench.closed_loop import main
+import sys
+
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["bench", "closed-loop", *sys.argv[1:]]))

@@ -2,11 +2,13 @@
 
     python benchmarks/mppi_step.py [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
 
-A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/mppi_step.py``), which runs it from
-an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.mppi_step``.
+A thin script: the same as ``pixelmpc bench mppi-step`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/bench/mppi_step.py``).
 """
 
-from pixelmpc_jax.apps.bench.mppi_step import main
+import sys
+
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["bench", "mppi-step", *sys.argv[1:]]))

@@ -2,11 +2,13 @@
 
     python benchmarks/particle_filter_step.py [--particles 6400] [--repeats 50]
 
-A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/particle_filter_step.py``), which runs it from
-an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.particle_filter_step``.
+A thin script: the same as ``pixelmpc bench pf-step`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/bench/particle_filter_step.py``).
 """
 
-from pixelmpc_jax.apps.bench.particle_filter_step import main
+import sys
+
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["bench", "pf-step", *sys.argv[1:]]))

@@ -2,11 +2,13 @@
 
     python benchmarks/render_throughput.py [--batch 8 32] [--repeats 10] [--supersample 3]
 
-A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/render_throughput.py``), which runs it from
-an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.render_throughput``.
+A thin script: the same as ``pixelmpc bench render`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/bench/render_throughput.py``).
 """
 
-from pixelmpc_jax.apps.bench.render_throughput import main
+import sys
+
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["bench", "render", *sys.argv[1:]]))

@@ -1,12 +1,14 @@
-"""The runtime harness (the same as ``pixelmpc bench``): bench.json, bench.md and scaling.png.
+"""The runtime harness: bench.json, bench.md and scaling.png.
 
     python benchmarks/suite.py --out DIR [--quick | --smoke]
 
-A thin script: the code lives in the package (``pixelmpc_jax/apps/bench/suite.py``), which runs it from
-an installed copy, away from this checkout, as ``python -m pixelmpc_jax.apps.bench.suite``.
+A thin script: the same as ``pixelmpc bench suite`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/bench/suite.py``).
 """
 
-from pixelmpc_jax.apps.bench.suite import main
+import sys
+
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["bench", "suite", *sys.argv[1:]]))

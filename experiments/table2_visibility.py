@@ -8,29 +8,14 @@ at its pace (8.5 m/s, where our nominal lap matches the paper's), with the ``bes
 Writes REPORT.md (ours beside the paper's), results.json, summary.json, visibility.png, smoothness.png.
 Interrupted runs resume: finished cells are kept. The frontier gains need a frontier run (``pixelmpc reproduce``
 reads them off its ``frontier`` part).
+
+A thin script: the same as ``pixelmpc experiment table2`` (its ``--help`` lists every option); the code lives in the
+package (``pixelmpc_jax/apps/experiments/paper.py``).
 """
 
-import argparse
-from pathlib import Path
+import sys
 
-from pixelmpc_jax.apps.paper import visibility_experiment
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("experiments/results/table2"))
-    parser.add_argument("--laps", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=200, help="seed of the first lap (default 200)")
-    parser.add_argument("--pixel-model", choices=("dof", "projection"), default="dof")
-    parser.add_argument("--quick", action="store_true", help="nominal MPPI and the presets at the pace only")
-    args = parser.parse_args(argv)
-    if args.laps <= 0 or args.seed < 0:
-        parser.error("--laps must be positive and --seed non-negative")
-    rows = visibility_experiment(args.out, laps=args.laps, pixel_model=args.pixel_model, quick=args.quick,
-                                 seed=args.seed)
-    print((args.out / "REPORT.md").read_text())
-    return rows
-
+from pixelmpc_jax.cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(["experiment", "table2", *sys.argv[1:]]))

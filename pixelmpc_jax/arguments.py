@@ -10,9 +10,9 @@ import os
 from pathlib import Path
 
 SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
+TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
+T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer pixel-cost horizon t_f acts as 2 s)
 GUARD = "guard:"  # the dest of a race flag that sets one of the particle filter's guards: GUARD + its field
-
-
 
 
 def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
@@ -57,7 +57,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def widths(text: str) -> tuple[int, ...]:
+    """An argparse type: a network's hidden layer widths, comma-separated integers in [1, 4096] (``32,32``)."""
+    parts = [part.strip() for part in text.split(",")]
+    if not all(part.isdigit() and 1 <= int(part) <= 4096 for part in parts):
+        raise argparse.ArgumentTypeError(f"expected comma-separated widths, each an integer in [1, 4096], "
+                                         f"got {text!r}")
+    return tuple(int(part) for part in parts)
+
+
 seed = int_in(0, SEED_MAX)
+target_speed = float_in(0.0, TARGET_SPEED_MAX, lo_open=True, unit="m/s")  # a race's target speed
 
 
 def unwritable_reason(out: Path) -> str | None:
@@ -109,6 +119,15 @@ def dataset_dir(path: str) -> Path:
     if not (root / "manifest.json").is_file():
         raise argparse.ArgumentTypeError(f"no DOF dataset at {path!r}: manifest.json is missing ({hint})")
     return root
+
+
+def grid_dir(path: str) -> Path:
+    """An argparse type: a grid's output folder (one holding the ``results.json`` its cells write)."""
+    folder = Path(path)
+    if not (folder / "results.json").is_file():
+        reason = "the directory does not exist" if not folder.is_dir() else "it holds no results.json"
+        raise argparse.ArgumentTypeError(f"no grid at {path!r}: {reason}")
+    return folder
 
 
 def weights_file(path: str) -> Path:
@@ -208,10 +227,12 @@ def with_faults(args, spec):
 
 
 def course(text: str) -> str:
-    """A course: "alphapilot", "straight", or an existing course file (its contents are checked before anything
-    runs, once the process is set up: reading it makes JAX arrays)."""
-    if text in ("alphapilot", "straight"):
+    """A course: one known by name (:data:`~pixelmpc_jax.world.course.COURSES`) or an existing course file (its
+    contents are checked before anything runs, once the process is set up: reading it makes JAX arrays)."""
+    from pixelmpc_jax.world.course import COURSES
+
+    if text in COURSES:
         return text
     if not Path(text).is_file():
-        raise argparse.ArgumentTypeError(f"no course {text!r}: choose alphapilot or straight, or give a course file")
+        raise argparse.ArgumentTypeError(f"no course {text!r}: choose {' or '.join(COURSES)}, or give a course file")
     return text

@@ -20,15 +20,17 @@ from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.arguments import SEED_MAX
+from pixelmpc_jax.commands.bench import add_bench
+from pixelmpc_jax.commands.experiment import add_experiment
+from pixelmpc_jax.commands.tune import add_tune
+from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
-FLOAT32_MAX = 3.4028234663852886e38
-RACE_T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer t_f acts as 2 s)
-RACE_SPEED_MAX = 50.0  # m/s; the vehicle's top speed is about 19 m/s (thrust 36.98 N against drag 0.1 |v| v)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
-SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce", "tune")  # the commands that split the CPU into devices by default
+# the commands that split the CPU into devices by default
+SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce", "tune", "experiment")
 SETTING = "setting:"  # the dest of a race flag that sets a controller setting: SETTING + its field (see _setting)
 
 
@@ -54,7 +56,7 @@ def _cmd_version(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from pixelmpc_jax.apps.waypoint import run_demo
+    from pixelmpc_jax.apps.racing.waypoint import run_demo
 
     summary = run_demo(args.distance, args.seconds, args.samples, args.seed, args.out)
     return 0 if summary["final_error_m"] < 0.5 else EXIT_FAILED
@@ -86,7 +88,7 @@ def _setting(p: argparse.ArgumentParser, flag: str, field: str, help: str, **kwa
 
 def _preset_setting(preset: str, field: str):
     """A controller setting of a preset (building a preset creates no JAX array: no backend starts)."""
-    from pixelmpc_jax.apps.presets import preset as preset_spec
+    from pixelmpc_jax.apps.racing.presets import preset as preset_spec
 
     value = preset_spec(preset).config
     for name in field.split("."):
@@ -114,8 +116,8 @@ def _race_spec(args):
     """The race the arguments ask for: the preset, each flag given overriding one field (a ValueError names a
     setting the library refuses), and the DOF weights of a weights file (None for packaged weights, which the
     spec names), which enter the spec as their fingerprint."""
-    from pixelmpc_jax.apps.presets import preset
-    from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+    from pixelmpc_jax.apps.racing.presets import preset
+    from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
 
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
     fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
@@ -144,7 +146,7 @@ def _packaged_variants() -> dict:
 def _check_race(args) -> None:
     """Build the race and its controllers before anything runs: a ValueError names a setting the library refuses,
     and a missing or damaged weights file is refused."""
-    from pixelmpc_jax.apps.race import make_course
+    from pixelmpc_jax.apps.racing.race import make_course
 
     spec = _race_spec(args)[0]
     make_course(spec.course)  # a course file's bad field is named here
@@ -166,7 +168,7 @@ def _race_dof(weights: str, pixel_model: str):
 
 def _cmd_race(args) -> int:
     from pixelmpc_jax import host
-    from pixelmpc_jax.apps import compare
+    from pixelmpc_jax.apps.racing import compare
 
     if not args.no_compile_cache:
         host.use_compilation_cache()
@@ -215,13 +217,23 @@ def _cmd_collect(args) -> int:
     return EXIT_INTERRUPTED if manifest.get("interrupted") else 0
 
 
-def _cmd_train(args) -> int:
-    from pixelmpc_jax.learn.train import TrainConfig, run_train
+def _train_settings(args, model: str) -> dict:
+    """The model config's fields the train flags set: those of every model (dest ``model:`` + field) and those of
+    ``model`` alone (dest ``dof:`` or ``vdof:`` + field), as given (a flag left out keeps the config's default)."""
+    prefixes = ("model:", f"{model}:")
+    return {dest.partition(":")[2]: value for dest, value in vars(args).items()
+            if dest.startswith(prefixes) and value is not None}
 
-    config = TrainConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                         seed=args.seed, loss=args.loss, input=args.input, rotation_augment=args.rotation_augment,
-                         rotation_augment_fraction=args.rotation_augment_fraction)
-    record = run_train(args.data, out_dir=args.out, config=config, resume=args.resume, ship=args.ship)
+
+def _cmd_train(args) -> int:
+    from pixelmpc_jax.learn.dof_spec import DOFConfig
+    from pixelmpc_jax.learn.train import TrainConfig, run_train
+    from pixelmpc_jax.learn.vdof_spec import VDOFConfig
+
+    model = {"dof": DOFConfig, "vdof": VDOFConfig}[args.model](**_train_settings(args, args.model))
+    config = TrainConfig(model=model, seed=args.seed, progress=not args.no_progress)
+    out = args.out if args.out is not None else Path(f"runs/{args.model}_train")
+    record = run_train(args.data, out_dir=out, config=config, resume=args.resume, ship=args.ship)
     return EXIT_INTERRUPTED if record.get("interrupted") else 0
 
 
@@ -240,15 +252,8 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
-def _cmd_bench(args) -> int:
-    from pixelmpc_jax.apps.bench.suite import run_bench
-
-    run_bench(args.out, quick=args.quick)
-    return 0
-
-
 def _cmd_reproduce(args) -> int:
-    from pixelmpc_jax.apps.reproduce import reproduce
+    from pixelmpc_jax.apps.experiments.reproduce import reproduce
 
     reproduce([args.parts] if isinstance(args.parts, str) else args.parts, args.out, quick=args.quick)
     print(f"report: {args.out / 'REPORT.md'}")
@@ -265,8 +270,14 @@ def _seed_range(args) -> str | None:
     return None
 
 
-def _turned_rows_need_flown_input(args) -> str | None:
-    if args.rotation_augment > 0 and args.input != "flown":
+def _check_train(args) -> str | None:
+    """A flag of another model than ``--model`` names is refused (its dest is that model's, ``dof:`` or ``vdof:``
+    + the config field, the flag's name); turned rows need the flown input."""
+    for dest, value in vars(args).items():
+        model, _, field = dest.partition(":")
+        if model in ("dof", "vdof") and model != args.model and value is not None:
+            return f"argument --{field.replace('_', '-')}: applies to --model {model} only"
+    if (getattr(args, "dof:rotation_augment") or 0.0) > 0 and getattr(args, "dof:input") != "flown":
         return "argument --rotation-augment: needs --input flown (it turns the rate flown over the frame)"
     return None
 
@@ -278,14 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 done; 1 the run completed but failed (no lap succeeded, the demo missed its "
                "waypoint); 2 bad input (one line names it); 130 interrupted (what finished is saved).",
     )
-    from pixelmpc_jax.apps.tune_cli import add_tune
-
     _add_process_flags(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     p = sub.add_parser("version", help="print the package, JAX version and devices")
     p.set_defaults(func=_cmd_version)
-    for add in (_add_demo, _add_render, _add_collect, _add_train, _add_evaluate, _add_bench, _add_reproduce,
-                _add_race, _add_course, add_tune):
+    for add in (_add_demo, _add_render, _add_collect, _add_train, _add_evaluate, add_bench, _add_reproduce,
+                _add_race, _add_course, add_tune, add_experiment):
         add(sub)
     return parser
 
@@ -301,12 +310,12 @@ def _add_process_flags(parser: argparse.ArgumentParser) -> None:
     from pixelmpc_jax.host import HOST_CPU_DEVICES_MAX  # imports JAX, starts no backend
 
     parser.add_argument("--cpu-devices", type=arg.int_in(1, 1024), default=None, metavar="N",
-                        help="split the CPU into N JAX devices (default for race, bench and reproduce: one per "
-                             f"core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller splits its "
-                             "samples over them and batches of laps spread over them: XLA runs one device's "
-                             "program on one core")
-    parser.add_argument("--release-memory", action="store_true", help="leave glibc's defaults (race, bench and "
-                        "reproduce otherwise keep freed memory for the next step: no page faults at large N)")
+                        help="split the CPU into N JAX devices (default for race, bench, reproduce, tune and "
+                             f"experiment: one per core, at most {HOST_CPU_DEVICES_MAX}; else 1). A lap's controller "
+                             "splits its samples over them and batches of laps spread over them: XLA runs one "
+                             "device's program on one core")
+    parser.add_argument("--release-memory", action="store_true", help="leave glibc's defaults (the commands that "
+                        "split the CPU otherwise keep freed memory for the next step: no page faults at large N)")
 
 
 def _add_demo(sub) -> None:
@@ -349,32 +358,70 @@ def _add_collect(sub) -> None:
     p.set_defaults(func=_cmd_collect, validate=_seed_range)
 
 
-def _add_train(sub) -> None:
-    """``pixelmpc train``: DOF training."""
-    from pixelmpc_jax.learn.dataset import INPUTS
-    from pixelmpc_jax.learn.train import LOSSES
+def _model_flag(p, model: str, field: str, help: str, **kwargs) -> None:
+    """A train flag named after a field of the model config it sets (``--box-cue`` sets ``box_cue``): ``model``
+    "model" for a field every model has, else "dof" or "vdof" (the other model refuses it). Left out, the field
+    keeps the config's default."""
+    if "choices" not in kwargs:
+        kwargs.setdefault("metavar", field.upper())
+    p.add_argument(f"--{field.replace('_', '-')}", dest=f"{model}:{field}", default=None, help=help, **kwargs)
 
-    p = sub.add_parser("train", help="train the DOF network on a collected dataset (resumable)")
+
+def _add_train(sub) -> None:
+    """``pixelmpc train``: a pixel model's training, the DOF's or vdof's, through the one pipeline."""
+    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
+    from pixelmpc_jax.learn.dataset import INPUTS
+    from pixelmpc_jax.learn.dof_spec import LOSSES, DOFConfig
+    from pixelmpc_jax.learn.vdof_spec import BOX_CUES, BOX_LOSSES, VDOFConfig
+
+    dof, vdof = DOFConfig(), VDOFConfig()
+    p = sub.add_parser("train", help="train a pixel model (the DOF or vdof) on a collected dataset (resumable)")
+    p.add_argument("--model", choices=("dof", "vdof"), default="dof",
+                   help="dof: the paper's DOF on every pixel's Farneback flow (default); vdof: the velocity-and-depth "
+                        "pixel model on the gate detector's frame-to-frame motion (the best preset's)")
     p.add_argument("--data", type=arg.dataset_dir, required=True, help="dataset directory from `pixelmpc collect`")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/dof_train"))
-    p.add_argument("--steps", type=arg.positive_int, default=20000)
-    p.add_argument("--batch-size", type=arg.positive_int, default=4096, help="pixels per step (default 4096)")
-    p.add_argument("--learning-rate", type=arg.float_in(0.0, 1.0, lo_open=True), default=1e-3,
-                   help="Adam's learning rate, in (0, 1] (default 1e-3)")
+    p.add_argument("--out", type=arg.writable_dir, default=None, help="output directory (default runs/MODEL_train)")
+    _model_flag(p, "model", "steps", type=arg.positive_int,
+                help=f"Adam steps (vdof: of its one-step stage; default: dof {dof.steps}, vdof {vdof.steps})")
+    _model_flag(p, "model", "batch_size", type=arg.positive_int,
+                help=f"rows per step (dof: pixels, vdof: detections; default: dof {dof.batch_size}, vdof "
+                     f"{vdof.batch_size})")
+    _model_flag(p, "model", "learning_rate", type=arg.float_in(0.0, 1.0, lo_open=True),
+                help=f"Adam's peak learning rate, in (0, 1] (default: dof {dof.learning_rate:g}, vdof "
+                     f"{vdof.learning_rate:g})")
     p.add_argument("--seed", type=arg.seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.msgpack")
-    p.add_argument("--loss", choices=LOSSES, default=LOSSES[0],
-                   help="polar: the paper's MSE on (l, theta) (default); endpoint: squared flow-vector error")
-    p.add_argument("--input", choices=INPUTS, default=INPUTS[0],
-                   help="the network's control input: command, the paper's (the rates commanded at the frame's "
-                        "tick, default), or flown (the rates flown over the frame: what the MPC's model means)")
-    p.add_argument("--rotation-augment", type=arg.float_in(0.0, 6.0, unit="rad/s"), default=0.0, metavar="SIGMA",
-                   help="turn training rows by an extra body rate of std SIGMA rad/s, label and rate changed "
-                        "exactly (needs --input flown; default 0: off, the paper's)")
-    p.add_argument("--rotation-augment-fraction", type=arg.float_in(0.0, 1.0), default=1.0, metavar="P",
-                   help="share of the rows turned, in [0, 1] (default 1)")
     p.add_argument("--ship", action="store_true", help="also copy the weights into the installed package")
-    p.set_defaults(func=_cmd_train, validate=_turned_rows_need_flown_input)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g = p.add_argument_group("--model dof only")
+    _model_flag(g, "dof", "loss", choices=LOSSES,
+                help="polar: the paper's MSE on (l, theta) (default); endpoint: squared flow-vector error")
+    _model_flag(g, "dof", "input", choices=INPUTS,
+                help="the network's control input: command, the paper's (the rates commanded at the frame's "
+                     "tick, default), or flown (the rates flown over the frame: what the MPC's model means)")
+    _model_flag(g, "dof", "rotation_augment", type=arg.float_in(0.0, 6.0, unit="rad/s"), metavar="SIGMA",
+                help="turn training rows by an extra body rate of std SIGMA rad/s, label and rate changed "
+                     "exactly (needs --input flown; default 0: off, the paper's)")
+    _model_flag(g, "dof", "rotation_augment_fraction", type=arg.float_in(0.0, 1.0), metavar="P",
+                help="share of the rows turned, in [0, 1] (default 1)")
+    g = p.add_argument_group("--model vdof only")
+    _model_flag(g, "vdof", "hidden_sizes", type=arg.widths, metavar="W,W",
+                help=f"hidden widths of g(uv), comma-separated (default {','.join(map(str, vdof.hidden_sizes))})")
+    _model_flag(g, "vdof", "box_loss", choices=BOX_LOSSES,
+                help=f"the box size's rate scored absolute or relative (s_dot / s) (default {vdof.box_loss})")
+    _model_flag(g, "vdof", "box_cue", choices=BOX_CUES,
+                help=f"s: the detected box's apparent size, or that per the gate's size (default {vdof.box_cue})")
+    _model_flag(g, "vdof", "rollout_steps", type=arg.int_in(0, 1000), metavar="K",
+                help=f"K of the rollout fine-tuning stage, 0: none (default {vdof.rollout_steps})")
+    _model_flag(g, "vdof", "rollout_train_steps", type=arg.int_in(0, 10_000_000),
+                help=f"Adam steps of the rollout stage, 0: none (default {vdof.rollout_train_steps})")
+    _model_flag(g, "vdof", "rollout_learning_rate", type=arg.float_in(0.0, 1.0, lo_open=True),
+                help=f"the rollout stage's peak learning rate (default {vdof.rollout_learning_rate:g})")
+    _model_flag(g, "vdof", "rollout_batch_size", type=arg.positive_int,
+                help=f"windows per step of the rollout stage (default {vdof.rollout_batch_size})")
+    _model_flag(g, "vdof", "comparison_dof", choices=sorted(PACKAGED_VARIANTS),
+                help=f"the packaged DOF the held-out figures are reported beside (default {vdof.comparison_dof})")
+    p.set_defaults(func=_cmd_train, validate=_check_train)
 
 
 def _add_evaluate(sub) -> None:
@@ -389,17 +436,9 @@ def _add_evaluate(sub) -> None:
     p.set_defaults(func=_cmd_evaluate, precheck=_check_weights)
 
 
-def _add_bench(sub) -> None:
-    """``pixelmpc bench``: the runtime harness."""
-    p = sub.add_parser("bench", help="runtime harness: Table I, controller scaling, peers, matmul roofline")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/bench"))
-    p.add_argument("--quick", action="store_true", help="paper-size controller rows and the pytorch-mppi peer only")
-    p.set_defaults(func=_cmd_bench)
-
-
 def _add_reproduce(sub) -> None:
     """``pixelmpc reproduce``: the paper's experiments."""
-    from pixelmpc_jax.apps.reproduce import CHOICES
+    from pixelmpc_jax.apps.experiments.reproduce import CHOICES
 
     p = sub.add_parser("reproduce", help="run the paper's experiments and benchmark into one report (resumable)")
     # default "all", not ["all"]: argparse checks a list default against the choices as one value, and fails
@@ -423,13 +462,13 @@ def _add_course(sub) -> None:
 def _add_race(sub) -> None:
     """``pixelmpc race``: laps in the closed loop. The race's own flags set a RaceSpec field; each controller
     flag sets one controller setting (:func:`_setting`)."""
-    from pixelmpc_jax.apps.presets import DEFAULT_PRESET, PRESETS
-    from pixelmpc_jax.apps.spec import COURSES
-    from pixelmpc_jax.control.mppi_checks import TEMPERATURE_MIN
+    from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS
+    from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
     from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS
     from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
     from pixelmpc_jax.sim.controllers import CONTROLLERS
     from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
+    from pixelmpc_jax.world.course import COURSES
 
     p = sub.add_parser("race", help="PixelMPC beside nominal MPPI on the AlphaPilot course, in the closed loop")
     start = p.add_mutually_exclusive_group()
@@ -465,8 +504,8 @@ def _add_race(sub) -> None:
                         "~/.cache/pixelmpc-jax, so a second run starts faster)")
     _setting(p, "--pixel-model", "pixel_model", "PixelMPC's pixel model: the DOF network or the PAMPC-style "
              "projection of the known gate", choices=PIXEL_MODELS)
-    _setting(p, "--t-f", "t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {RACE_T_F_MAX_S:g}] (the MPC horizon)",
-             type=arg.float_in(0.0, RACE_T_F_MAX_S, unit="s"))
+    _setting(p, "--t-f", "t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC horizon)",
+             type=arg.float_in(0.0, arg.T_F_MAX_S, unit="s"))
     _setting(p, "--c-pixel", "c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]", type=arg.float_in(0.0, 1e30))
     _setting(p, "--pixel-cost", "pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image centre, "
              "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
@@ -481,8 +520,8 @@ def _add_race(sub) -> None:
     _setting(p, "--temperature", "mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
              type=arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX))
     _setting(p, "--samples", "mppi.num_samples", "MPPI samples per step, in [1, 2^20]", type=arg.int_in(1, 2**20))
-    p.add_argument("--speed", type=arg.float_in(0.0, RACE_SPEED_MAX, lo_open=True, unit="m/s"), default=None,
-                   help=f"target speed, m/s, in (0, {RACE_SPEED_MAX:g}] (default: the preset's; best 8.5, the "
+    p.add_argument("--speed", type=arg.target_speed, default=None,
+                   help=f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best 8.5, the "
                         "paper's pace; paper 14, the paper's label)")
     p.add_argument("--laps", type=arg.positive_int, default=None, help="laps per controller (default 1)")
     p.add_argument("--seed", type=arg.seed, default=None, help=f"seed of the first lap, in [0, {SEED_MAX}]; lap i "
@@ -493,7 +532,7 @@ def _add_race(sub) -> None:
     p.add_argument("--perturb", action="store_true", default=None,
                    help="perturb the gates per lap within the AlphaPilot bounds")
     p.add_argument("--max-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=None,
-                   help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default 60)")
+                   help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default {LAP_TIME_LIMIT_S:g})")
     _setting(p, "--model-latency", "model_latency_ticks", "ticks of actuation latency the controller's model "
              "predicts across, in [0, 3] (0: none)", type=arg.int_in(0, 3))
     _setting(p, "--disturbance-observer", "disturbance_time_constant_s", "s: the controller's model learns an "
@@ -502,11 +541,12 @@ def _add_race(sub) -> None:
     p.set_defaults(func=_cmd_race, validate=_seed_range, precheck=_check_race)
 
 
-def _command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+def _command_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+    """The parser of the (sub-)command ``args`` ran: ``pixelmpc race``'s, ``pixelmpc experiment table2``'s."""
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
-            return action.choices[command]
-    raise LookupError(command)
+            return _command_parser(action.choices[getattr(args, action.dest)], args)
+    return parser
 
 
 def _make_output_dirs(args, command_parser: argparse.ArgumentParser) -> None:
@@ -530,9 +570,9 @@ def _one_line(err: BaseException, limit: int = 600) -> str:
 
 def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
     """Run the command ``argv`` (default: the process's arguments). With ``split_cpu`` (the ``pixelmpc``
-    command), race, bench and reproduce split the CPU into one device per core unless ``--cpu-devices`` says
-    otherwise, and keep freed memory (``host.keep_host_memory``) unless ``--release-memory``; called from
-    Python, only ``--cpu-devices`` splits (and only before JAX has started)."""
+    command), race, bench, reproduce, tune and experiment split the CPU into one device per core unless
+    ``--cpu-devices`` says otherwise, and keep freed memory (``host.keep_host_memory``) unless
+    ``--release-memory``; called from Python, only ``--cpu-devices`` splits (and only before JAX has started)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
@@ -544,7 +584,7 @@ def main(argv: list[str] | None = None, split_cpu: bool = False) -> int:
         host.split_host_cpu(args.cpu_devices)
         if split_cpu and args.command in SPLIT_CPU_COMMANDS and not args.release_memory:
             host.keep_host_memory()
-    command_parser = _command_parser(parser, args.command)
+    command_parser = _command_parser(parser, args)
     if threading.current_thread() is threading.main_thread():
         from pixelmpc_jax import host
 

@@ -265,7 +265,7 @@ def test_smoke_run_has_the_closed_loop_rows(smoke_run):
 
 def test_loop_row_refuses_an_unknown_runner():
     from pixelmpc_jax.apps.bench.closed_loop import loop_row
-    from pixelmpc_jax.apps.spec import RaceSpec
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
 
     with pytest.raises(ValueError, match="runner"):
         loop_row(RaceSpec(), runner="threads")

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from pixelmpc_jax import cli
-from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
 from pixelmpc_jax.control.costs import RacingCostConfig
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 
@@ -68,7 +68,7 @@ def test_race_rejects_bad_arguments_before_running(argv, message, capsys):
 
 
 def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
-    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.apps.racing import race
     from pixelmpc_jax.sim import metrics
 
     calls = {"n": 0}
@@ -94,7 +94,7 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
 def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
     """Every race flag lands in the RaceSpec (each controller flag in its field of the configuration); execution
     flags beside it."""
-    from pixelmpc_jax.apps import compare
+    from pixelmpc_jax.apps.racing import compare
 
     seen = {}
 
@@ -119,7 +119,7 @@ def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
 
 
 def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_path):
-    from pixelmpc_jax.apps import compare, presets
+    from pixelmpc_jax.apps.racing import compare, presets
 
     seen = {}
     monkeypatch.setattr(compare, "run_compare", lambda spec, controllers, **kwargs: seen.update(
@@ -141,7 +141,7 @@ def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_
 
 def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
     """3 laps in batches of 2: both batches reach the vmapped runner with 2 lanes; the copy is dropped."""
-    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.apps.racing import race
 
     shapes = []
     make_runner = race.episode_lib.make_runner
@@ -171,7 +171,7 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
     in the spec); a missing file is refused before anything runs."""
     import jax
 
-    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.apps.racing import race
     from pixelmpc_jax.dynamics import dof
 
     seen = {}
@@ -208,7 +208,8 @@ def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):
         dof.load_packaged_dof("best")
 
 
-@pytest.mark.parametrize("argv, kept", [(["race"], True), (["--release-memory", "bench"], False), (["demo"], False)])
+@pytest.mark.parametrize("argv, kept", [(["race"], True), (["--release-memory", "bench", "suite"], False),
+                                        (["demo"], False)])
 def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not_to(argv, kept, monkeypatch):
     """`pixelmpc race|bench|reproduce` has glibc keep freed memory before the command starts (here it is stopped
     right after); --release-memory and the other commands leave the allocator alone."""
@@ -226,7 +227,7 @@ def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not
 
 
 def test_a_generated_course_file_is_a_race_course_keyed_by_its_contents(tmp_path, capsys):
-    from pixelmpc_jax.apps import race
+    from pixelmpc_jax.apps.racing import race
 
     first, second = tmp_path / "a" / "course.json", tmp_path / "b.json"
     assert cli.main(["course", "--seed", "3", "--out", str(first)]) == 0

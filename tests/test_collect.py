@@ -16,6 +16,7 @@ from pixelmpc_jax.learn import collect as C
 from pixelmpc_jax.learn import dataset as D
 from pixelmpc_jax.learn import train as T
 from pixelmpc_jax.learn.dataset import FlowData
+from pixelmpc_jax.learn.dof_spec import DOFConfig
 from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.sim import policies
 
@@ -227,11 +228,11 @@ def test_old_datasets_without_flown_rates_load_train_and_resume(tiny_dir, tmp_pa
             np.testing.assert_array_equal(D.load_dataset(old, split, input=input).u,
                                           D.load_dataset(tiny_dir, split, input=input).u)
     assert D.load_laps(old, "train")[0].info["w_flown_source"] == "states"
-    config = T.TrainConfig(steps=3, batch_size=64, log_every=1, checkpoint_every=0, probe_size=64,
-                           progress=False, input="flown")
+    config = T.TrainConfig(DOFConfig(steps=3, batch_size=64, probe_size=64, input="flown"), log_every=1,
+                           checkpoint_every=0, progress=False)
     params, history = T.train(config, D.load_dataset(old, "train", input="flown"),
                               D.load_dataset(old, "test", input="flown"))
-    assert history["step"] == [1, 2, 3] and np.isfinite(history["test_aee_px"])
+    assert history["step"] == [1, 2, 3] and np.isfinite(history["results"]["test_aee_px"])
     # Collecting into it again with the config it was made with reuses it (the new fields at their defaults).
     before = {p.name: p.stat().st_mtime_ns for p in old.glob("lap_*.npz")}
     manifest = C.collect(old, TINY, progress=False)

@@ -1,4 +1,4 @@
-"""The main job: PixelMPC beside nominal MPPI (apps/compare.py), the presets, and the two visibility families of
+"""The main job: PixelMPC beside nominal MPPI (apps/racing/compare.py), the presets, and the two visibility families of
 the lap metrics (the share of time with the target in view, the angle to it)."""
 
 import dataclasses
@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import compare, presets, race
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing import compare, presets, race
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import metrics
@@ -103,7 +103,8 @@ def test_the_presets():
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
     assert best.config.pixel_model == "vdof" and best.key() != paper.key()
     # best flies the tuned trial it names (the best within +5 %), exactly as the search recorded it
-    tuned = json.loads((Path(presets.__file__).parents[2] / "experiments/results/tune/best_bound5.json").read_text())
+    record = Path(__file__).resolve().parent.parent / "experiments" / "results" / "tune" / "best_bound5.json"
+    tuned = json.loads(record.read_text())
     trial = RaceSpec.from_record(tuned).replace(laps=1, seed=0)
     assert trial.key() != best.key()  # with the clearance to the frames, which the search did not set
     racing = dataclasses.replace(trial.config.racing, vehicle_radius=presets.BEST_VEHICLE_RADIUS_M)

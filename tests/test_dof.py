@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.dynamics import dof, network_weights, quadrotor
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +37,7 @@ def _samples(n: int, seed: int = 0):
 
 
 def test_parameter_count_is_34690(dof_params):
-    assert dof.num_trainable_params(dof_params) == 34_690
+    assert network_weights.num_trainable_params(dof_params) == 34_690
     kernels = [dof_params.weights[f"Dense_{k}"]["kernel"].shape for k in range(4)]
     assert kernels == [(10, 128), (128, 128), (128, 128), (128, 2)]
     assert dof.LAYER_SIZES == (10, 128, 128, 128, 2)
@@ -204,7 +204,7 @@ def test_every_packaged_variant_loads_and_its_record_says_how_it_was_trained():
     assert set(dof.PACKAGED_VARIANTS) == set(expected)
     for variant, (input_, sigma) in expected.items():
         params, record = dof.load_checkpoint(dof.PACKAGED_VARIANTS[variant])
-        assert dof.num_trainable_params(params) == 34_690
+        assert network_weights.num_trainable_params(params) == 34_690
         assert dof.checkpoint_variant(record)["input"] == input_, variant
         assert record.get("train_config", {}).get("rotation_augment", 0.0) == sigma, variant
         leaves = jax.tree_util.tree_leaves(dof.load_packaged_dof(variant))

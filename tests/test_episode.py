@@ -226,8 +226,8 @@ def test_aggregate_mean_two_sigma_and_success_rate():
 @pytest.mark.slow
 @pytest.mark.parametrize("speed", [14.0, 16.0])
 def test_nominal_mppi_completes_alphapilot_laps(speed):
-    from pixelmpc_jax.apps.race import run_laps
-    from pixelmpc_jax.apps.spec import RaceSpec
+    from pixelmpc_jax.apps.racing.race import run_laps
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
 
     results = run_laps(RaceSpec("mppi", speed=speed, laps=10, seed=0), progress=False)
     assert results["aggregate"]["success_rate"] >= 0.9

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pixelmpc_jax.apps import estimation as E
+from pixelmpc_jax.apps.experiments import estimation as E
 from pixelmpc_jax.sim import metrics
 
 
@@ -63,7 +63,7 @@ def test_summary_counts_successes_failures_and_covariance_maxima():
 def test_courses_by_name():
     import pytest
 
-    from pixelmpc_jax.apps.race import make_course
+    from pixelmpc_jax.apps.racing.race import make_course
 
     assert make_course("alphapilot").num_gates == 11
     straight = make_course("straight")
@@ -76,7 +76,7 @@ def test_courses_by_name():
 def test_cpu_cells_fly_in_small_batches():
     import jax
 
-    from pixelmpc_jax.apps import grid
+    from pixelmpc_jax.apps.racing import grid
 
     assert jax.default_backend() == "cpu"
     assert grid.default_batch_size(25) == grid.CPU_BATCH < 25

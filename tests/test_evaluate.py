@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from pixelmpc_jax.dynamics import dof, vdof
+from pixelmpc_jax.dynamics import dof, network_weights, vdof
 from pixelmpc_jax.learn import aee
 from pixelmpc_jax.learn import collect as C
 from pixelmpc_jax.learn import dataset as D
@@ -91,7 +91,7 @@ def test_aee_figures_are_the_aee_modules(results, tiny_dir, shipped):
 
 def test_shipped_weights_load_and_predict_finite_flows(shipped):
     assert E.shipped_weights_path().stat().st_size < 200_000  # parameters + normalisation only
-    assert dof.num_trainable_params(shipped) == 34_690
+    assert network_weights.num_trainable_params(shipped) == 34_690
     key_q, key_uv, key_u = jax.random.split(jax.random.key(0), 3)
     q = jax.random.normal(key_q, (64, 4))
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
@@ -134,7 +134,8 @@ def test_read_weights_dispatches_on_the_files_format(tmp_path, shipped):
     kind, params, record = E.read_weights(vdof.PACKAGED_VDOF)
     assert kind == "vdof" and isinstance(params, vdof.VDOFParams) and vdof.box_cue_of(record) == "apparent"
     kind, params, record = E.read_weights(E.shipped_weights_path())
-    assert kind == "dof" and dof.num_trainable_params(params) == dof.num_trainable_params(shipped)
+    assert kind == "dof"
+    assert network_weights.num_trainable_params(params) == network_weights.num_trainable_params(shipped)
     assert dof.checkpoint_variant(record)["input"] == "command"
     garbage = tmp_path / "garbage.msgpack"
     garbage.write_bytes(b"\x00not msgpack at all")
@@ -152,7 +153,8 @@ def test_run_evaluate_of_a_vdof_file_writes_the_dof_evaluations_figures(tiny_dir
     assert json.loads((tmp_path / "dof_eval.json").read_text()) == res
     assert (tmp_path / "vdof_multistep.png").stat().st_size > 10_000
     _, dof_res = results  # the shipped DOF's evaluation of the same laps
-    assert res["model"] == "vdof" and res["num_parameters"] == vdof.num_trainable_params(vdof.load_packaged_vdof())
+    assert res["model"] == "vdof"
+    assert res["num_parameters"] == network_weights.num_trainable_params(vdof.load_packaged_vdof())
     turned = res["comparison_dof"]
     assert turned["variant"] == "turned" and turned["dof_input"] == "flown"
     for figures, name in ((res, "vdof"), (turned, "dof")):

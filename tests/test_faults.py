@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax import cli
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.perception import detector as detector_lib

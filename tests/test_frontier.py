@@ -1,6 +1,5 @@
 """The speed frontier: interpolation and gain, strict JSON, report and plot, the CLI, a tiny flight."""
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -8,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import frontier as F
-from pixelmpc_jax.apps import grid
+from pixelmpc_jax import cli
+from pixelmpc_jax.apps.experiments import frontier as F
+from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.racing import grid
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES, MEASURE
 
 
@@ -96,7 +97,7 @@ def test_paper_pace_interpolates_the_speed_on_the_lap_time():
 def test_frontier_json_is_strict_and_the_report_and_plot_are_written(tmp_path):
     frontier = hand_made()
     frontier["cells"][0]["two_sigma_nan"] = math.nan  # a non-finite value must not reach the file
-    F.write(frontier, tmp_path)
+    skeleton.write(F.frontier_experiment((6.0, 8.0, 10.0), CELLS, 2, 0), frontier, [], tmp_path)
 
     def reject(name):
         raise ValueError(f"non-strict JSON constant {name}")
@@ -135,34 +136,26 @@ def test_an_interrupted_run_writes_what_finished_and_raises_again(tmp_path, monk
     assert "Not yet run" in (tmp_path / "REPORT.md").read_text()
 
 
-def load_cli():
-    path = Path(__file__).resolve().parent.parent / "experiments" / "visibility_frontier.py"
-    spec = importlib.util.spec_from_file_location("visibility_frontier", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.parametrize("args", [["--laps", "0"], ["--speeds", "8", "nan"], ["--speeds", "8", "-1"],
-                                  ["--speeds", "8", "inf"], ["--speeds", "8"], ["--seed", "-1"]])
+                                  ["--speeds", "8", "inf"], ["--speeds", "8"], ["--seed", "-1"],
+                                  ["--course", "monza"], ["--cells", "best"]])
 def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, capsys):
     with pytest.raises(SystemExit) as exc:
-        load_cli().main(["--out", str(tmp_path / "out"), *args])
+        cli.main(["experiment", "frontier", "--out", str(tmp_path / "out"), *args])
     assert exc.value.code == 2
     assert not (tmp_path / "out").exists()
     assert "error:" in capsys.readouterr().err
 
 
-def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch):
-    cli = load_cli()
+def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch, capsys):
     seen = {}
 
     def stop(speeds, cells, out, laps, seed, course=None):
         seen.update(speeds=speeds, cells=cells, laps=laps)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli.frontier_lib, "run_frontier", stop)
-    assert cli.main(["--out", str(tmp_path), "--quick"]) == 130
+    monkeypatch.setattr(F, "run_frontier", stop)
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path), "--quick"]) == 130
     assert seen["speeds"] == F.QUICK_SPEEDS and seen["laps"] == 4
     assert [c.spec.config.pixel_cost for c in seen["cells"]] == ["border"] * 2
     assert {c.spec.config.pixel_model for c in seen["cells"]} == {"projection", "dof"}
@@ -172,8 +165,9 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
 def test_reproduce_shares_the_frontier_cells_with_the_tables():
     """The frontier part flies the nominal points at the paper's paces and the presets at its pace: the very races
     of Tables II/III at the pace, so those tables copy them (by key) rather than fly them again."""
-    from pixelmpc_jax.apps import paper, presets
-    from pixelmpc_jax.apps import reproduce as R
+    from pixelmpc_jax.apps.experiments import paper
+    from pixelmpc_jax.apps.experiments import reproduce as R
+    from pixelmpc_jax.apps.racing import presets
 
     assert R.resolve_parts(["frontier"]) == ["frontier"] and "frontier" in R.RUNNERS and "frontier" in R.TITLES
     assert set(presets.PAPER_PACE_SPEEDS.values()) - {10.3} <= set(F.DEFAULT_SPEEDS)

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import race
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing import race
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.platform_info import cpu_signature
 

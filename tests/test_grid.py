@@ -9,8 +9,8 @@ import jax
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import grid, race
-from pixelmpc_jax.apps.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
+from pixelmpc_jax.apps.racing import grid, race
+from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.sim.metrics import MEASURE
@@ -117,7 +117,8 @@ def test_the_committed_results_stay_valid_for_a_default_run(folder):
 def test_the_apps_cells_find_their_committed_results():
     """The cells the reproduce parts and the frontier define now are the ones their committed results answer, so a
     resumed `pixelmpc reproduce all --out experiments/results/reproduce` keeps them."""
-    from pixelmpc_jax.apps import frontier, paper, presets, reproduce
+    from pixelmpc_jax.apps.experiments import frontier, paper, reproduce
+    from pixelmpc_jax.apps.racing import presets
 
     runs = {"reproduce/frontier": ([frontier.nominal_cell(v) for v in frontier.DEFAULT_SPEEDS]
                                    + list(frontier.preset_cells(presets.PAPER_PACE_SPEED)), 10, reproduce.SEED),

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps.waypoint import fly_to_waypoint
+from pixelmpc_jax.apps.racing.waypoint import fly_to_waypoint
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.sampling import importance_weights
 from pixelmpc_jax.dynamics import quadrotor as Q

@@ -42,7 +42,8 @@ def test_importing_the_library_the_apps_and_the_cli_parser_starts_no_jax_backend
     code = ("import pixelmpc_jax.cli as cli\ncli.build_parser()\n"
             "import pixelmpc_jax.sim.episode, pixelmpc_jax.sim.env, pixelmpc_jax.sim.policies\n"
             "import pixelmpc_jax.devices, pixelmpc_jax.control.pixelmpc\n"
-            "import pixelmpc_jax.apps.race, pixelmpc_jax.apps.grid, pixelmpc_jax.apps.reproduce\n"
+            "import pixelmpc_jax.apps.racing.race, pixelmpc_jax.apps.racing.grid\n"
+            "import pixelmpc_jax.apps.experiments.reproduce\n"
             "import pixelmpc_jax.apps.bench.suite\n"
             "from jax._src import xla_bridge\nprint(sorted(xla_bridge._backends))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
@@ -376,10 +377,10 @@ def test_a_library_error_reaching_the_command_is_one_line(tmp_path, capsys):
 
 
 def test_output_folders_are_made_after_checking_every_argument(tmp_path, capsys, monkeypatch):
-    import pixelmpc_jax.apps.reproduce
+    import pixelmpc_jax.apps.experiments.reproduce
 
     seen = {}
-    monkeypatch.setattr(pixelmpc_jax.apps.reproduce, "reproduce",
+    monkeypatch.setattr(pixelmpc_jax.apps.experiments.reproduce, "reproduce",
                         lambda parts, out, quick: seen.setdefault("out_exists", Path(out).is_dir()))
     out = tmp_path / "a" / "b"
     assert _run_cli(["reproduce", "--out", str(out), "--quick"], capsys)[0] == 0
@@ -400,7 +401,7 @@ def _fake_race(monkeypatch, success: bool, interrupted: bool):
     ``interrupted``."""
     from types import SimpleNamespace
 
-    from pixelmpc_jax.apps import compare, race
+    from pixelmpc_jax.apps.racing import compare, race
     from pixelmpc_jax.sim.ticks import GATE_FIELDS
 
     def fly_batches(prepared):
@@ -447,12 +448,12 @@ def test_interrupted_collect_and_train_exit_130(tmp_path, capsys, monkeypatch):
 
 
 def test_an_interrupt_the_library_passes_on_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
-    import pixelmpc_jax.apps.reproduce
+    import pixelmpc_jax.apps.experiments.reproduce
 
     def interrupted(parts, out, quick):
         raise KeyboardInterrupt("interrupted: 2 cell(s) not finished; run again to resume")
 
-    monkeypatch.setattr(pixelmpc_jax.apps.reproduce, "reproduce", interrupted)
+    monkeypatch.setattr(pixelmpc_jax.apps.experiments.reproduce, "reproduce", interrupted)
     code, err = _run_cli(["reproduce", "--out", str(tmp_path)], capsys)
     assert code == 130 and _one_line(err) == "pixelmpc: interrupted"
 
@@ -467,8 +468,8 @@ def test_the_missing_dataset_hint_names_a_command_that_exists(tmp_path, capsys):
 
 
 def test_an_interrupted_grid_keeps_its_finished_cells_and_raises(tmp_path, monkeypatch):
-    from pixelmpc_jax.apps import grid, race
-    from pixelmpc_jax.apps.spec import RaceSpec
+    from pixelmpc_jax.apps.racing import grid, race
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
 
     def run_laps(spec, **kwargs):
         interrupted = spec.speed > 10.0  # the second cell is interrupted after one of its two laps

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pixelmpc_jax.apps import reproduce as R
+from pixelmpc_jax.apps.experiments import reproduce as R
 
 
 def test_aliases_expand_in_canonical_order_without_repeats():
@@ -72,7 +72,7 @@ def test_cli_rejects_an_unknown_part():
 def test_a_resumed_grid_part_reports_the_wall_time_of_all_its_cells(tmp_path):
     import json
 
-    from pixelmpc_jax.apps import reproduce as R
+    from pixelmpc_jax.apps.experiments import reproduce as R
 
     assert R._part_wall_time(tmp_path, 12.0) == 12.0  # no grid in the folder: this run's time
     (tmp_path / "results.json").write_text(json.dumps({"a": {"wall_time_s": 100.0}, "b": {"wall_time_s": 200.0}}))
@@ -83,7 +83,7 @@ def test_a_resumed_grid_part_reports_the_wall_time_of_all_its_cells(tmp_path):
 def test_the_report_opens_with_the_presets_and_the_measured_pace(tmp_path):
     """The overview prints our nominal lap at each recorded pace beside the paper's, and where this run's own
     frontier puts the paper's lap (linear between the nominal points)."""
-    from pixelmpc_jax.apps.presets import PAPER_PACE_SPEEDS
+    from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEEDS
 
     nominal = [{"speed": 8.0, "lap_time_s": 33.0, "lap_time_two_sigma_s": 1.0},
                {"speed": PAPER_PACE_SPEEDS[14.0], "lap_time_s": 31.0, "lap_time_two_sigma_s": 0.5},

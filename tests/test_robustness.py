@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from pixelmpc_jax.apps import grid, race
-from pixelmpc_jax.apps import robustness as R
-from pixelmpc_jax.apps.presets import PAPER_PACE_SPEED
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.experiments import robustness as R
+from pixelmpc_jax.apps.racing import grid, race
+from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, Faults, fault_level
 

@@ -19,7 +19,7 @@ from pixelmpc_jax import devices, host
 count = host.split_host_cpu(2)  # before JAX starts
 import jax, jax.numpy as jnp, numpy as np
 from pixelmpc_jax.apps.bench import problems
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import episode as E
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.world import course as C

@@ -78,15 +78,17 @@ TRAIN_SCRIPT = r"""
 import json
 import jax, numpy as np
 from pixelmpc_jax.learn import train as T
+from pixelmpc_jax.learn.dataset import FlowData
+from pixelmpc_jax.learn.dof_spec import DOFConfig
 rng = np.random.default_rng(0)
 n, W, H = 16, 16, 12
 q = rng.normal(size=(n, 4)).astype(np.float32); q /= np.linalg.norm(q, axis=1, keepdims=True)
 u = rng.normal(size=(n, 4)).astype(np.float32)
 flow = rng.normal(size=(n, H, W, 2)).astype(np.float16)
-config = T.TrainConfig(steps=6, batch_size=256, learning_rate=1e-3, schedule="constant", log_every=1,
-                       checkpoint_every=0, width=W, height=H, dt=0.025, probe_size=64, eval_chunk_pixels=512,
-                       progress=False)
-params, history = T.train(config, T.FlowData(q, u, flow))
+model = DOFConfig(steps=6, batch_size=256, learning_rate=1e-3, schedule="constant", width=W, height=H, dt=0.025,
+                  probe_size=64, eval_chunk_pixels=512)
+config = T.TrainConfig(model, log_every=1, checkpoint_every=0, progress=False)
+params, history = T.train(config, FlowData(q, u, flow))
 leaves = [np.asarray(x).ravel().tolist() for x in jax.tree_util.tree_leaves(params.weights)]
 print(json.dumps({"devices": jax.device_count(), "split": T.data_parallel_devices(256), "loss": history["loss"],
                   "weights": leaves}))

@@ -1,5 +1,6 @@
-"""DOF training (Algorithm 1): targets, loss, a seeded run that learns, determinism, checkpoints, resume, and
-the `pixelmpc train` entry point."""
+"""The learning pipeline (learn/train.py) with the DOF (learn/dof_spec.py, Algorithm 1): targets, loss, a seeded run
+that learns, determinism, checkpoints, resume, the `pixelmpc train` entry point, and the weights the pipeline gives
+pinned to those of the trainers it replaced."""
 
 from __future__ import annotations
 
@@ -7,23 +8,27 @@ import dataclasses
 import functools
 import importlib
 import json
+from pathlib import Path
 
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import traverse_util
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import dof, quadrotor
-from pixelmpc_jax.learn import aee
+from pixelmpc_jax.learn import aee, dof_spec
 from pixelmpc_jax.learn import train as train_mod
 from pixelmpc_jax.learn.dataset import FlowData
-from pixelmpc_jax.learn.train import Batch, TrainConfig
+from pixelmpc_jax.learn.dof_spec import Batch, DOFConfig
+from pixelmpc_jax.learn.train import TrainConfig
 from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.world import camera as camera_lib
 
 W, H, DT = 32, 24, 1.0 / 40.0
+PINNED = Path(__file__).parent / "data" / "train_pinned.npz"
 
 
 def rotational_flow_data(n_frames: int, seed: int) -> FlowData:
@@ -56,22 +61,13 @@ def test_data():
 
 
 def small_config(**overrides) -> TrainConfig:
-    base = dict(
-        steps=300,
-        batch_size=512,
-        learning_rate=3e-3,
-        schedule="constant",
-        log_every=50,
-        checkpoint_every=0,
-        width=W,
-        height=H,
-        dt=DT,
-        probe_size=2048,
-        eval_chunk_pixels=4096,
-        progress=False,
-    )
-    base.update(overrides)
-    return TrainConfig(**base)
+    """The loop's and the DOF's settings of a small run, each override set where its field lives."""
+    model = dict(steps=300, batch_size=512, learning_rate=3e-3, schedule="constant", width=W, height=H, dt=DT,
+                 probe_size=2048, eval_chunk_pixels=4096)
+    loop = dict(log_every=50, checkpoint_every=0, progress=False)
+    for name, value in overrides.items():
+        (loop if name in {f.name for f in dataclasses.fields(TrainConfig)} else model)[name] = value
+    return TrainConfig(model=DOFConfig(**model), **loop)
 
 
 @pytest.fixture(scope="module")
@@ -87,15 +83,15 @@ def trained(train_data, test_data):
 def test_flow_to_polar_hand_cases():
     # one image width per second to the right; two image heights per second upwards (v down).
     flow = jnp.asarray([[W * DT, 0.0], [0.0, -2 * H * DT]])
-    l, theta = train_mod.flow_to_polar(flow, W, H, DT)
+    l, theta = dof_spec.flow_to_polar(flow, W, H, DT)
     np.testing.assert_allclose(l, [1.0, 2.0], rtol=1e-6)
     np.testing.assert_allclose(theta, [0.0, -np.pi / 2], atol=1e-6)
     np.testing.assert_allclose(flow_lib.polar_to_flow(l, theta, W, H, DT), flow, atol=1e-5)
 
 
 def test_training_uses_the_one_polar_conversion_the_tick_and_the_image_size():
-    assert train_mod.flow_to_polar is flow_lib.flow_to_polar
-    config = TrainConfig()
+    assert dof_spec.flow_to_polar is flow_lib.flow_to_polar
+    config = DOFConfig()
     assert config.dt == timing.CONTROL_DT
     assert (config.width, config.height) == (camera_lib.PAPER_WIDTH, camera_lib.PAPER_HEIGHT)
 
@@ -114,17 +110,17 @@ def test_loss_wraps_the_angle_and_ignores_direction_of_zero_flow():
     s2 = 2.0
     # pi - 0.01 vs -pi + 0.01: 0.02 rad apart, not 2 pi - 0.02.
     p, b = _batch_with_prediction(params, 1.0, np.pi - 0.01, 1.0, -np.pi + 0.01)
-    loss, parts = train_mod.dof_loss(p.weights, p, b, None)
+    loss, parts = dof_spec.dof_loss(p.weights, p, b, None)
     np.testing.assert_allclose(loss, 2 * (1 - np.cos(0.02)) / s2, rtol=1e-3)
     assert float(loss) < 1e-3
     # The angle of a zero flow costs nothing; its magnitude still does.
     p, b = _batch_with_prediction(params, 0.5, 2.0, 0.0, 0.0)
-    loss, parts = train_mod.dof_loss(p.weights, p, b, None)
+    loss, parts = dof_spec.dof_loss(p.weights, p, b, None)
     assert float(parts["loss_theta"]) == 0.0
     np.testing.assert_allclose(parts["loss_l"], 0.25 / 1.25, rtol=1e-6)
     # Small errors: the loss is the squared endpoint error / rms(l)^2.
     p, b = _batch_with_prediction(params, 1.0, 0.01, 1.0, 0.0)
-    loss, _ = train_mod.dof_loss(p.weights, p, b, None)
+    loss, _ = dof_spec.dof_loss(p.weights, p, b, None)
     np.testing.assert_allclose(loss, (2 * np.sin(0.005)) ** 2 / s2, rtol=1e-3)
 
 
@@ -132,7 +128,7 @@ def test_endpoint_loss_is_the_flow_vector_error_and_its_minimiser_is_the_mean_ve
     params = dof.init_dof_params(jax.random.key(0), output_std=[1.0, 1.0])
     # (l_hat, theta_hat) = (1, 0) against (1, pi/2): the vectors are (1, 0) and (0, 1), |error|^2 = 2.
     p, b = _batch_with_prediction(params, 1.0, 0.0, 1.0, np.pi / 2)
-    loss, _ = train_mod.dof_loss(p.weights, p, b, None, "endpoint")
+    loss, _ = dof_spec.dof_loss(p.weights, p, b, None, "endpoint")
     np.testing.assert_allclose(loss, 2.0 / 2.0, rtol=1e-5)  # / rms(l)^2 = 1 + 1
     # Two equally likely flows for the same input, (2, 1) and (-2, 1) (a translation of unknown sign plus a
     # common shift): the endpoint loss is lowest at their mean (0, 1), the polar loss is not.
@@ -144,7 +140,7 @@ def test_endpoint_loss_is_the_flow_vector_error_and_its_minimiser_is_the_mean_ve
 
     def loss_at(kind, l_hat, theta_hat):  # the output through the last bias, so the loss scale stays rms 1
         weights = {**zero, "Dense_3": {**zero["Dense_3"], "bias": jnp.stack([l_hat, theta_hat])}}
-        return train_mod.dof_loss(weights, params, batch, None, kind)[0]
+        return dof_spec.dof_loss(weights, params, batch, None, kind)[0]
 
     lh, th = np.meshgrid(np.linspace(0.0, 3.0, 61), np.linspace(-np.pi, np.pi, 73), indexing="ij")
     lh, th = jnp.asarray(lh.ravel(), jnp.float32), jnp.asarray(th.ravel(), jnp.float32)
@@ -159,21 +155,21 @@ def test_endpoint_loss_is_the_flow_vector_error_and_its_minimiser_is_the_mean_ve
 
 
 def test_normalisation_constants(train_data):
-    c = train_mod.normalisation_constants(train_data, W, H, DT, chunk_frames=5)
+    c = dof_spec.normalisation_constants(train_data, W, H, DT, chunk_frames=5)
     np.testing.assert_allclose(c["input_mean"][:4], train_data.q.mean(0), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(c["input_mean"][4:6], [0.5, 0.5], atol=1e-6)
     np.testing.assert_allclose(c["input_std"][4], np.sqrt((W**2 - 1) / 12) / W, rtol=1e-5)
-    l, _ = train_mod.flow_to_polar(jnp.asarray(train_data.flow), W, H, DT)
+    l, _ = dof_spec.flow_to_polar(jnp.asarray(train_data.flow), W, H, DT)
     np.testing.assert_allclose(c["output_mean"][0], np.mean(l), rtol=1e-4)
     np.testing.assert_allclose(c["output_std"][0], np.std(l), rtol=1e-3)
 
 
 def test_bad_data_and_config_raise(train_data):
     with pytest.raises(ValueError, match=r"flow must have shape \(F, H, W, 2\) = \(64, 153, 204, 2\)"):
-        train_mod.train(TrainConfig(steps=1, progress=False), train_data)  # 32 x 24 frames, paper size expected
+        train_mod.train(TrainConfig(DOFConfig(steps=1), progress=False), train_data)  # 32 x 24, paper size expected
     params = dof.init_dof_params(jax.random.key(0))
     with pytest.raises(AssertionError, match="shape"):  # (B, 1) targets would broadcast against (B,) outputs
-        train_mod.dof_loss(params.weights, params, Batch(jnp.zeros((3, 10)), jnp.ones((3, 1)), jnp.ones((3, 1))), None)
+        dof_spec.dof_loss(params.weights, params, Batch(jnp.zeros((3, 10)), jnp.ones((3, 1)), jnp.ones((3, 1))), None)
     with pytest.raises(ValueError, match="schedule"):
         small_config(schedule="linear")
     bad_flow = train_data.flow.copy()
@@ -191,14 +187,16 @@ def test_training_learns_and_beats_zero_flow(trained, test_data):
     params, history = trained
     assert history["probe_loss"][-1] < 0.5 * history["probe_loss"][0]
     assert history["probe_loss"][-1] < 0.1
-    assert history["step"] == [50, 100, 150, 200, 250, 300]
+    assert history["step"] == [50, 100, 150, 200, 250, 300] and history["stage"] == ["flow"] * 6
+    assert history["probe_step"] == [0, 50, 100, 150, 200, 250, 300]
     assert not history["interrupted"]
     zero = aee.zero_flow_aee(*test_data)
-    assert history["test_zero_flow_aee_px"] == pytest.approx(zero)
-    assert history["test_aee_px"] < 0.6 * zero
-    np.testing.assert_allclose(
-        aee.evaluate_aee(params, *test_data, W, H, DT), history["test_aee_px"], rtol=1e-5
-    )
+    results = history["results"]
+    assert results["test_zero_flow_aee_px"] == pytest.approx(zero)
+    assert results["test_aee_px"] < 0.6 * zero
+    np.testing.assert_allclose(aee.evaluate_aee(params, *test_data, W, H, DT), results["test_aee_px"], rtol=1e-5)
+    assert dof_spec.summary(results) == (f"held-out AEE {results['test_aee_px']:.2f} px/frame (zero flow "
+                                         f"{zero:.2f})") and dof_spec.summary(None) == "no held-out AEE"
 
 
 def test_same_seed_same_params(train_data):
@@ -217,7 +215,7 @@ def test_resume_continues_from_saved_step(train_data, tmp_path):
     full, _ = train_mod.train(small_config(steps=40, log_every=10), train_data)
     train_mod.train(small_config(steps=20, log_every=10, checkpoint_path=str(path)), train_data)
     _, config = dof.load_checkpoint(path)
-    assert config["step"] == 20 and config["train_config"]["steps"] == 20 and "command" in config
+    assert config["step"] == 20 and config["train_config"]["model"]["steps"] == 20 and "command" in config
     resumed, history = train_mod.train(small_config(steps=40, log_every=10), train_data, resume_from=path)
     assert history["step"] == [10, 20, 30, 40]
     chex.assert_trees_all_equal(full, resumed)
@@ -225,23 +223,20 @@ def test_resume_continues_from_saved_step(train_data, tmp_path):
 
 def test_keyboard_interrupt_saves_and_returns(train_data, tmp_path, monkeypatch):
     config = small_config(steps=40, log_every=10, checkpoint_path=str(tmp_path / "run.msgpack"))
-    real = train_mod._make_iteration(config)
+    real = train_mod.train_chunk
     calls = []
 
-    def interrupted_after_seven(cfg, num_devices=1):
-        def iteration(state, data):
-            if len(calls) == 7:
-                raise KeyboardInterrupt
-            calls.append(1)
-            return real(state, data)
+    def interrupted_after_three(*args, **kwargs):  # Ctrl-C during the fourth chunk of 10 steps
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args, **kwargs)
 
-        return iteration
-
-    monkeypatch.setattr(train_mod, "_make_iteration", interrupted_after_seven)
+    monkeypatch.setattr(train_mod, "train_chunk", interrupted_after_three)
     params, history = train_mod.train(config, train_data)
-    assert history["interrupted"]
+    assert history["interrupted"] and "results" not in history
     saved, record = dof.load_checkpoint(config.checkpoint_path)
-    assert record["step"] == 7
+    assert record["step"] == 30 and history["step"] == [10, 20, 30]
     chex.assert_trees_all_equal(params, saved)
     monkeypatch.undo()
     _, history = train_mod.train(config, train_data, resume_from=config.checkpoint_path)
@@ -258,16 +253,15 @@ def test_weights_only_checkpoint_cannot_resume(train_data, tmp_path):
 def test_input_variant_is_validated_and_recorded_in_the_checkpoint(train_data, tmp_path):
     with pytest.raises(ValueError, match="input"):
         small_config(input="gyro")
-    assert TrainConfig().input == "command"  # the paper's by default
+    assert DOFConfig().input == "command"  # the paper's by default
     path = tmp_path / "flown.msgpack"
     train_mod.train(small_config(steps=2, log_every=1, checkpoint_path=str(path), input="flown",
                                  loss="endpoint"), train_data)
     _, record = dof.load_checkpoint(path)
-    assert record["train_config"]["input"] == "flown"
-    assert record["variant"] == {"input": "flown", "loss": "endpoint", "layer_sizes": [10, 128, 128, 128, 2]}
+    assert record["model"] == "dof" and record["train_config"]["model"]["input"] == "flown"
+    assert {k: record["variant"][k] for k in ("input", "loss", "layer_sizes")} == \
+        {"input": "flown", "loss": "endpoint", "layer_sizes": [10, 128, 128, 128, 2]}
     assert dof.checkpoint_variant(record) == {"input": "flown", "loss": "endpoint"}
-    # the same compiled step serves both inputs (the input is only what the data's u means)
-    assert train_mod._compile_key(small_config(input="flown")) == train_mod._compile_key(small_config())
 
 
 def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
@@ -275,9 +269,9 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
 
     write_dataset(tmp_path / "data", frames=(6, 4))
     out = tmp_path / "out"
-    config = TrainConfig(steps=3, batch_size=64, progress=False, loss="endpoint", input="flown")
+    config = TrainConfig(DOFConfig(steps=3, batch_size=64, loss="endpoint", input="flown"), progress=False)
     record = train_mod.run_train(tmp_path / "data", out, config)
-    assert record["steps_done"] == 3 and not record["interrupted"]
+    assert record["model"] == "dof" and record["steps_done"] == 3 and not record["interrupted"]
     assert record["variant"]["input"] == "flown" and record["variant"]["loss"] == "endpoint"
     assert np.isfinite(record["results"]["test_aee_px"])
     _, saved = dof.load_checkpoint(out / "dof_weights.msgpack")
@@ -290,33 +284,34 @@ def test_run_train_writes_the_weights_their_record_and_the_history(tmp_path):
         assert callable(getattr(importlib.import_module(module), name)), call
     # the recorded run_train call carries the whole config: every setting but those set from the data and out_dir
     call = record["calls"][-1]
-    repeated = eval(call[call.index("TrainConfig("):-1], {"TrainConfig": TrainConfig})
-    derived = ("width", "height", "dt", "checkpoint_path", "progress")
-    assert {k: v for k, v in dataclasses.asdict(repeated).items() if k not in derived} == \
-        {k: v for k, v in record["train_config"].items() if k not in derived}
-    assert repeated.steps == 3 and repeated.loss == "endpoint" and repeated.input == "flown"
+    repeated = eval(call[call.index("TrainConfig("):-1], {"TrainConfig": TrainConfig, "DOFConfig": DOFConfig})
+    repeated = dataclasses.replace(repeated, model=repeated.model.with_data(json.loads(
+        (tmp_path / "data" / "manifest.json").read_text())), checkpoint_path=None, progress=False)
+    assert json.loads(json.dumps(dataclasses.asdict(repeated))) == record["train_config"]
+    assert repeated.model.steps == 3 and repeated.model.loss == "endpoint" and repeated.model.input == "flown"
 
 
 def test_run_train_takes_the_image_size_and_dt_from_the_data(tmp_path):
     from test_dataset import write_dataset
 
     write_dataset(tmp_path / "data", frames=(3,))  # train lap only
-    config = TrainConfig(steps=3, batch_size=64, progress=False, loss="endpoint", width=7, height=5, dt=1.0)
+    config = TrainConfig(DOFConfig(steps=3, batch_size=64, loss="endpoint", width=7, height=5, dt=1.0),
+                         progress=False)
     record = train_mod.run_train(tmp_path / "data", tmp_path / "out", config)
     manifest = json.loads((tmp_path / "data" / "manifest.json").read_text())
-    assert [record["train_config"]["width"], record["train_config"]["height"]] == manifest["image_size_wh"]
-    assert record["train_config"]["dt"] == manifest["frame_dt_s"]
-    assert record["train_config"]["checkpoint_path"] is None and record["results"]["test_aee_px"] is None
+    model = record["train_config"]["model"]
+    assert [model["width"], model["height"]] == manifest["image_size_wh"] and model["dt"] == manifest["frame_dt_s"]
+    assert record["train_config"]["checkpoint_path"] is None and record["results"] == {}
 
 
 
 def test_rotation_augment_is_validated():
     with pytest.raises(ValueError, match="input='flown'"):
-        TrainConfig(rotation_augment=1.0, input="command")
+        DOFConfig(rotation_augment=1.0, input="command")
     with pytest.raises(ValueError, match="rotation_augment"):
-        TrainConfig(rotation_augment=-1.0, input="flown")
+        DOFConfig(rotation_augment=-1.0, input="flown")
     with pytest.raises(ValueError, match="rotation_augment"):
-        TrainConfig(rotation_augment=1.0, rotation_augment_fraction=1.5, input="flown")
+        DOFConfig(rotation_augment=1.0, rotation_augment_fraction=1.5, input="flown")
 
 
 def test_turned_rows_carry_the_flow_of_their_rate():
@@ -327,8 +322,8 @@ def test_turned_rows_carry_the_flow_of_their_rate():
     q = np.tile(np.asarray([[1.0, 0.0, 0.0, 0.0]], np.float32), (frames, 1))
     u = np.tile(np.asarray([[0.0, 0.0, 0.0, 9.8]], np.float32), (frames, 1))
     data = FlowData(jnp.asarray(q), jnp.asarray(u), jnp.zeros((frames, H, W, 2), jnp.float16))
-    config = TrainConfig(input="flown", rotation_augment=1.5, rotation_augment_fraction=1.0)
-    batch = train_mod.sample_batch(data, jax.random.key(0), 2048, config)
+    config = DOFConfig(input="flown", rotation_augment=1.5, rotation_augment_fraction=1.0)
+    batch = dof_spec.sample_batch(data, jax.random.key(0), 2048, config)
     uv, w = batch.features[:, 4:6], batch.features[:, 6:9]
     np.testing.assert_allclose(np.std(np.asarray(w), axis=0), 1.5, rtol=0.1)
     np.testing.assert_allclose(batch.features[:, 9], 9.8)
@@ -344,10 +339,116 @@ def test_turned_rows_carry_the_flow_of_their_rate():
 
 
 def test_training_with_turned_rows_runs_and_records_it(train_data, tmp_path):
-    config = TrainConfig(steps=3, batch_size=64, log_every=1, probe_size=64, progress=False, input="flown",
-                         width=W, height=H, rotation_augment=1.0, rotation_augment_fraction=0.5,
-                         checkpoint_path=str(tmp_path / "ckpt.msgpack"))
+    config = small_config(steps=3, batch_size=64, log_every=1, probe_size=64, input="flown", rotation_augment=1.0,
+                          rotation_augment_fraction=0.5, checkpoint_path=str(tmp_path / "ckpt.msgpack"))
     params, history = train_mod.train(config, train_data)
     assert history["step"][-1] == 3 and np.all(np.isfinite(history["loss"]))
     _, record = dof.load_checkpoint(tmp_path / "ckpt.msgpack")
-    assert record["train_config"]["rotation_augment"] == 1.0
+    assert record["train_config"]["model"]["rotation_augment"] == 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# The weights the pipeline gives, pinned.
+# --------------------------------------------------------------------------------------------------
+
+
+def fingerprint(weights) -> dict[str, np.ndarray]:
+    """Per leaf (its path): the sum, the root sum of squares and the projections on 4 seeded random directions
+    (float64): any change of what training computes moves them far beyond float rounding."""
+    prints = {}
+    for path, leaf in traverse_util.flatten_dict(weights).items():
+        x = np.asarray(leaf, np.float64).ravel()
+        directions = np.random.default_rng(x.size).standard_normal((4, x.size))
+        prints["/".join(path)] = np.concatenate([[x.sum(), np.sqrt(x @ x)], directions @ x])
+    return prints
+
+
+def assert_pinned(weights, name: str) -> None:
+    """``weights`` match the fingerprints ``name`` in :data:`PINNED`, to float tolerance (relative 1e-4 of each
+    leaf's norm: rounding differs across CPUs and XLA versions; a changed computation moves them by order 1)."""
+    pinned = np.load(PINNED)
+    prints = fingerprint(weights)
+    assert sorted(prints) == sorted(k.split("/", 1)[1] for k in pinned.files if k.split("/", 1)[0] == name)
+    for path, value in prints.items():
+        expected = pinned[f"{name}/{path}"]
+        np.testing.assert_allclose(value, expected, rtol=1e-4, atol=1e-4 * expected[1], err_msg=f"{name}/{path}")
+
+
+@pytest.mark.parametrize("name, variant", [
+    ("dof", {}),
+    ("dof_turned", dict(loss="endpoint", input="flown", rotation_augment=1.0, rotation_augment_fraction=0.5)),
+])
+def test_the_pipeline_trains_the_dof_as_the_trainer_it_replaced(name, variant):
+    """30 seeded steps on fixed frames give the weights today's pipeline replaced (learn/train.py of commit
+    bf10cee: ``TrainConfig(steps=30, batch_size=256, learning_rate=3e-3, log_every=10, checkpoint_every=0, width=32,
+    height=24, dt=1/40, probe_size=256, eval_chunk_pixels=4096, **variant)`` on ``rotational_flow_data(24, seed=3)``)
+    recorded (bit for bit equal there on this CPU; the file holds their fingerprints)."""
+    model = DOFConfig(steps=30, batch_size=256, learning_rate=3e-3, width=W, height=H, dt=DT, probe_size=256,
+                      eval_chunk_pixels=4096, **variant)
+    params, _ = train_mod.train(TrainConfig(model, log_every=10, checkpoint_every=0, progress=False),
+                                rotational_flow_data(24, seed=3))
+    assert_pinned(params.weights, name)
+
+
+# --------------------------------------------------------------------------------------------------
+# `pixelmpc train --model dof|vdof`.
+# --------------------------------------------------------------------------------------------------
+
+
+def _train_cli(argv, tmp_path, capsys, monkeypatch) -> tuple[int, str, list]:
+    """(exit code, stderr, the run_train calls) of ``pixelmpc train --data DIR argv`` with run_train faked."""
+    from pixelmpc_jax import cli
+
+    data = tmp_path / "data"
+    data.mkdir(exist_ok=True)
+    (data / "manifest.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(train_mod, "run_train", lambda *a, **k: calls.append((a, k)) or {"interrupted": False})
+    try:
+        code = cli.main(["train", "--data", str(data), *argv])
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr().err, calls
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--box-cue", "per_gate_size"], "argument --box-cue: applies to --model vdof only"),
+    (["--model", "vdof", "--loss", "endpoint"], "argument --loss: applies to --model dof only"),
+    (["--model", "vdof", "--rotation-augment", "1"], "argument --rotation-augment: applies to --model dof only"),
+    (["--model", "vdof", "--hidden-sizes", "32,0"], "argument --hidden-sizes: expected comma-separated widths"),
+    (["--model", "vdof", "--rollout-steps", "-1"], "argument --rollout-steps: must be an integer in [0, 1000]"),
+    (["--rotation-augment", "1"], "argument --rotation-augment: needs --input flown"),
+    (["--model", "cnn"], "argument --model: invalid choice: 'cnn'"),
+])
+def test_train_refuses_bad_input_in_one_line_before_anything_runs(argv, message, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    code, err, calls = _train_cli([*argv, "--out", str(out)], tmp_path, capsys, monkeypatch)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and message in lines[0], err
+    assert not calls and not out.exists()
+
+
+def test_train_flags_make_the_model_config(tmp_path, capsys, monkeypatch):
+    """--model dof (the default) keeps today's defaults and output folder; --model vdof takes every option of the
+    old vdof trainer as a flag; the loop's seed and progress bar are the same flags for both."""
+    from pixelmpc_jax.learn.vdof_spec import VDOFConfig
+
+    code, _, calls = _train_cli([], tmp_path, capsys, monkeypatch)
+    (data_dir,), kwargs = calls[0]
+    assert code == 0 and kwargs["config"] == TrainConfig(DOFConfig()) and str(kwargs["out_dir"]) == "runs/dof_train"
+    argv = ["--steps", "5", "--batch-size", "64", "--learning-rate", "0.01", "--seed", "3", "--no-progress",
+            "--input", "flown", "--loss", "endpoint", "--rotation-augment", "1", "--rotation-augment-fraction", "0.5"]
+    code, _, calls = _train_cli(argv, tmp_path, capsys, monkeypatch)
+    assert calls[0][1]["config"] == TrainConfig(DOFConfig(steps=5, batch_size=64, learning_rate=0.01, input="flown",
+                                                          loss="endpoint", rotation_augment=1.0,
+                                                          rotation_augment_fraction=0.5), seed=3, progress=False)
+    argv = ["--model", "vdof", "--steps", "7", "--hidden-sizes", "16,8", "--box-loss", "absolute", "--box-cue",
+            "per_gate_size", "--rollout-steps", "0", "--rollout-train-steps", "9", "--rollout-learning-rate", "0.002",
+            "--rollout-batch-size", "8", "--comparison-dof", "flown", "--resume", "--ship", "--out", str(tmp_path)]
+    code, _, calls = _train_cli(argv, tmp_path, capsys, monkeypatch)
+    assert code == 0 and calls[0][1]["config"] == TrainConfig(VDOFConfig(
+        steps=7, hidden_sizes=(16, 8), box_loss="absolute", box_cue="per_gate_size", rollout_steps=0,
+        rollout_train_steps=9, rollout_learning_rate=0.002, rollout_batch_size=8, comparison_dof="flown"))
+    assert calls[0][1]["resume"] and calls[0][1]["ship"] and calls[0][1]["out_dir"] == tmp_path
+    code, _, calls = _train_cli(["--model", "vdof"], tmp_path, capsys, monkeypatch)
+    assert calls[0][1]["config"].model == VDOFConfig() and str(calls[0][1]["out_dir"]) == "runs/vdof_train"

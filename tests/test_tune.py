@@ -8,10 +8,12 @@ import time
 import pytest
 
 from pixelmpc_jax import cli
-from pixelmpc_jax.apps import grid, tune
-from pixelmpc_jax.apps.presets import preset
-from pixelmpc_jax.apps.spec import RaceSpec
-from pixelmpc_jax.apps.tune_space import SPACES, SpaceError, load_space, with_settings
+from pixelmpc_jax.apps.experiments import frontier
+from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing.presets import preset
+from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.apps.tuning import search
+from pixelmpc_jax.apps.tuning.space import SPACES, SpaceError, load_space, with_settings
 from pixelmpc_jax.sim.metrics import MEASURE
 
 # nominal MPPI on the stub's seeds: (lap time s, avoidable s) per target speed
@@ -30,12 +32,12 @@ def flown(cell: grid.Cell, laps: list[dict], seed: int = 0) -> dict:
             "seed": seed, "dof_weights_sha256": race.dof_fingerprint(), "wall_time_s": 1.0, "measure": MEASURE}
 
 
-def setup(laps: int = 2, space=None) -> tune.TuneSetup:
-    space = load_space("best", preset("best")) if space is None else space
-    return tune.TuneSetup("best", tuple(space.values()), tuple(NOMINAL), laps=laps, seed=0)
+def setup(laps: int = 2, space=None) -> search.TuneSetup:
+    space = load_space("hand-tuned", preset("best")) if space is None else space
+    return search.TuneSetup("best", tuple(space.values()), tuple(NOMINAL), laps=laps, seed=0)
 
 
-def nominal_results(s: tune.TuneSetup) -> dict:
+def nominal_results(s: search.TuneSetup) -> dict:
     return {cell.name: flown(cell, [lap(*NOMINAL[cell.spec.speed])] * s.laps) for cell in s.nominal_cells()}
 
 
@@ -46,21 +48,22 @@ def trial_cell(**settings) -> grid.Cell:
 def test_the_objective_of_known_laps_is_the_hand_computed_frontier_gain():
     s = setup()
     # laps of 33 s: nominal frontier between (32 s, 4.0) and (34 s, 2.0) gives 3.0 s; the cell's 0.75 s -> 4.0
-    outcome = tune.evaluate(flown(trial_cell(), [lap(33.0, 1.0), lap(33.0, 0.5)]), trial_cell(), nominal_results(s), s)
+    outcome = search.evaluate(flown(trial_cell(), [lap(33.0, 1.0), lap(33.0, 0.5)]), trial_cell(), nominal_results(s),
+                              s)
     assert outcome["feasible"] and outcome["score"] == pytest.approx(4.0, rel=1e-12)
     assert outcome["gain"] == pytest.approx(4.0) and outcome["lap_time_change"] == pytest.approx(33 / 32 - 1)
     assert outcome["laps_completed"] == 2 and outcome["avoidable_s"] == pytest.approx(0.75)
     # no avoidable time: divided by one control tick (0.025 s), as frontier.build does
-    floored = tune.evaluate(flown(trial_cell(), [lap(33.0, 0.0)] * 2), trial_cell(), nominal_results(s), s)
+    floored = search.evaluate(flown(trial_cell(), [lap(33.0, 0.0)] * 2), trial_cell(), nominal_results(s), s)
     assert floored["score"] == pytest.approx(3.0 / 0.025)
 
 
 def test_a_failed_lap_is_penalised_below_every_feasible_score_and_never_nan():
     s = setup()
-    feasible = tune.evaluate(flown(trial_cell(), [lap(33.9, 1.0)] * 2), trial_cell(), nominal_results(s), s)
-    one_lost = tune.evaluate(flown(trial_cell(), [lap(33.0, 0.1), lap(success=False)]), trial_cell(),
+    feasible = search.evaluate(flown(trial_cell(), [lap(33.9, 1.0)] * 2), trial_cell(), nominal_results(s), s)
+    one_lost = search.evaluate(flown(trial_cell(), [lap(33.0, 0.1), lap(success=False)]), trial_cell(),
                              nominal_results(s), s)
-    all_lost = tune.evaluate(flown(trial_cell(), [lap(success=False)] * 2), trial_cell(), nominal_results(s), s)
+    all_lost = search.evaluate(flown(trial_cell(), [lap(success=False)] * 2), trial_cell(), nominal_results(s), s)
     assert feasible["feasible"] and feasible["score"] > 0
     assert not one_lost["feasible"] and one_lost["score"] == -1.0 and one_lost["laps_completed"] == 1
     assert all_lost["score"] == -2.0 and all_lost["lap_time_s"] is None
@@ -70,8 +73,8 @@ def test_a_failed_lap_is_penalised_below_every_feasible_score_and_never_nan():
 def test_a_lap_time_over_the_bound_is_penalised_by_how_far_it_is_over():
     s = setup()
     # nominal at 8.5 m/s: 32 s; the bound 10 % allows 35.2 s
-    over = tune.evaluate(flown(trial_cell(), [lap(36.0, 0.1)] * 2), trial_cell(), nominal_results(s), s)
-    far_over = tune.evaluate(flown(trial_cell(), [lap(40.0, 0.1)] * 2), trial_cell(), nominal_results(s), s)
+    over = search.evaluate(flown(trial_cell(), [lap(36.0, 0.1)] * 2), trial_cell(), nominal_results(s), s)
+    far_over = search.evaluate(flown(trial_cell(), [lap(40.0, 0.1)] * 2), trial_cell(), nominal_results(s), s)
     assert not over["feasible"] and over["bound_excess"] == pytest.approx(36 / 32 - 1.1)
     assert over["score"] == pytest.approx(-(36 / 32 - 1.1) / 0.1)
     assert far_over["score"] < over["score"] < 0
@@ -84,17 +87,17 @@ def test_a_gain_bought_by_looking_away_is_infeasible():
     nominal = {name: {**res, "laps": [{**entry, "share_target_in_view": 0.9, "mean_target_angle_deg": 20.0}
                                       for entry in res["laps"]]} for name, res in nominal_results(s).items()}
     honest = {"share_target_in_view": 0.95, "mean_target_angle_deg": 15.0}
-    seeing = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest}] * 2), trial_cell(), nominal, s)
+    seeing = search.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest}] * 2), trial_cell(), nominal, s)
     assert seeing["feasible"] and seeing["score"] == pytest.approx(6.0)
-    away = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "share_target_in_view": 0.81}] * 2),
+    away = search.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "share_target_in_view": 0.81}] * 2),
                          trial_cell(), nominal, s)
     assert not away["feasible"] and away["score"] == pytest.approx(-0.1)  # 0.09 short of 0.9
-    bordered = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "mean_target_angle_deg": 30.0}] * 2),
+    bordered = search.evaluate(flown(trial_cell(), [{**lap(33.0, 0.5), **honest, "mean_target_angle_deg": 30.0}] * 2),
                              trial_cell(), nominal, s)
     assert not bordered["feasible"] and bordered["score"] == pytest.approx(-0.5)  # 10 deg over 20
     # the raw time below 50 %: nominal's at 33 s is 5.5 s (7.0 and 4.0 s laps of 32 and 34 s, with 1 s excused
     # in the stub's laps at 0.5 s each); a trial with 2 s avoidable and 6 s excused has more raw time
-    raw = tune.evaluate(flown(trial_cell(), [{**lap(33.0, 2.0, unavoidable=6.0), **honest}] * 2), trial_cell(),
+    raw = search.evaluate(flown(trial_cell(), [{**lap(33.0, 2.0, unavoidable=6.0), **honest}] * 2), trial_cell(),
                         nominal, s)
     assert not raw["feasible"] and raw["view_shortfall"]["vis_below_50_s"] > 0
 
@@ -126,7 +129,7 @@ def test_the_space_file_gets_one_clear_line_per_bad_entry(tmp_path, capsys):
     good = {k: bad[k] for k in ("mppi.noise_exponent", "mppi.num_samples")}
     path.write_text(json.dumps(good))
     assert load_space(str(path), preset("best"))["mppi.num_samples"].integer
-    assert set(load_space("best", preset("best"))) == set(SPACES["best"])
+    assert set(load_space("hand-tuned", preset("best"))) == set(SPACES["hand-tuned"])
 
 
 class StubFly:
@@ -161,13 +164,13 @@ def test_a_killed_search_resumes_without_flying_finished_trials_again(tmp_path):
     s = setup()
     first = StubFly(stop_at=4)
     with pytest.raises(KeyboardInterrupt):
-        tune.run_tune(s, tmp_path, trials=5, fly=first, progress=False)
+        search.run_tune(s, tmp_path, trials=5, fly=first, progress=False)
     rows = trials(tmp_path)
     assert [r["state"] for r in rows] == ["COMPLETE"] * 3 + ["FAIL", "WAITING"]  # the stopped trial queued again
     assert rows[4]["retry_of"] == 3 and rows[4]["params"] == rows[3]["params"]
     second = StubFly()
-    study = tune.run_tune(s, tmp_path, trials=5, fly=second, progress=False)
-    assert tune.completed(study) == 5
+    study = search.run_tune(s, tmp_path, trials=5, fly=second, progress=False)
+    assert search.completed(study) == 5
     assert second.cells == ["trial_0004", "trial_0005"]  # no nominal cell, no finished trial flown again
     assert len(first.cells) + len(second.cells) == 3 + 3 + 1 + 2  # nominal, 3 trials, the stopped one, 2 more
     rows = trials(tmp_path)
@@ -178,9 +181,9 @@ def test_a_killed_search_resumes_without_flying_finished_trials_again(tmp_path):
     assert saved == with_settings(preset("best"), best["params"]).replace(laps=s.laps, seed=s.seed)
     assert (tmp_path / "tune.png").stat().st_size > 0 and (tmp_path / "trials.csv").read_text().count("\n") == 7
     # asked again for 5, nothing runs; another setup in the same study is refused
-    assert tune.completed(tune.run_tune(s, tmp_path, trials=5, fly=StubFly(stop_at=1), progress=False)) == 5
+    assert search.completed(search.run_tune(s, tmp_path, trials=5, fly=StubFly(stop_at=1), progress=False)) == 5
     with pytest.raises(ValueError, match="another setup"):
-        tune.run_tune(tune.TuneSetup("best", s.space, tuple(NOMINAL), laps=3), tmp_path, 5, fly=StubFly())
+        search.run_tune(search.TuneSetup("best", s.space, tuple(NOMINAL), laps=3), tmp_path, 5, fly=StubFly())
 
 
 @pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the test asks for the dead trial outside optimize
@@ -188,29 +191,29 @@ def test_a_trial_whose_process_died_is_failed_and_flown_again(tmp_path, monkeypa
     import optuna
 
     s = setup()
-    monkeypatch.setattr(tune, "open_study", functools.partial(tune.open_study, heartbeat_s=1, grace_s=1))
+    monkeypatch.setattr(search, "open_study", functools.partial(search.open_study, heartbeat_s=1, grace_s=1))
     storage = f"sqlite:///{tmp_path / 'study.db'}"
-    study = tune.open_study(storage, "tune", s)
+    study = search.open_study(storage, "tune", s)
     dead = study.ask({p.name: optuna.distributions.FloatDistribution(p.low, p.high, log=p.log) for p in s.space})
     study._storage.record_heartbeat(dead._trial_id)  # its process wrote one heartbeat, then died
     time.sleep(2.1)
     fly = StubFly()
-    study = tune.run_tune(s, tmp_path, trials=2, fly=fly, progress=False)
+    study = search.run_tune(s, tmp_path, trials=2, fly=fly, progress=False)
     states = {t.number: t.state.name for t in study.trials}
-    assert states[0] == "FAIL" and tune.completed(study) == 2
+    assert states[0] == "FAIL" and search.completed(study) == 2
     retried = [t for t in study.trials if t.system_attrs.get("failed_trial") == 0]
     assert len(retried) == 1 and retried[0].params == dead.params
 
 
 def test_validation_flies_the_best_trial_beside_the_preset_and_copies_what_was_flown(tmp_path):
     s = setup()
-    study = tune.run_tune(s, tmp_path / "tune", trials=2, fly=StubFly(), progress=False)
+    study = search.run_tune(s, tmp_path / "tune", trials=2, fly=StubFly(), progress=False)
     earlier = tmp_path / "heldout"  # a grid that already flew nominal MPPI at 8.5 m/s on the held-out seeds
-    at_target = tune.frontier.nominal_cell(8.5)
+    at_target = frontier.nominal_cell(8.5)
     earlier.mkdir()
     (earlier / "results.json").write_text(json.dumps({"nominal_8.5": flown(at_target, [lap(32.0, 4.0)] * 3, 100)}))
     fly = StubFly()
-    record = tune.validate(study, s, tmp_path / "tune", seed=100, laps=3, fly=fly, reuse=[earlier])
+    record = search.validate(study, s, tmp_path / "tune", seed=100, laps=3, fly=fly, reuse=[earlier])
     assert record["copied"] == {"nominal_8.5": f"{earlier.name}/nominal_8.5"}  # no path of the machine
     assert [row["label"].split()[0] for row in record["rows"]] == ["tuned", "best", "nominal"]
     assert record["rows"][2]["gain"] == pytest.approx(1.0) and record["rows"][2]["lap_time_change"] == 0.0
@@ -219,7 +222,7 @@ def test_validation_flies_the_best_trial_beside_the_preset_and_copies_what_was_f
 
 
 def test_race_config_flies_a_saved_record_and_flags_still_override(monkeypatch, tmp_path, capsys):
-    from pixelmpc_jax.apps import compare
+    from pixelmpc_jax.apps.racing import compare
 
     saved = with_settings(preset("best"), {"c_pixel": 1.2e7, "mppi.temperature": 300.0, "t_f": 0.8})
     path = tmp_path / "best.json"

@@ -1,18 +1,25 @@
-"""The velocity-and-depth DOF (dynamics/vdof.py) and its trainer (learn/vdof_train.py): the box size, the model's
-structure and transformations, checkpoints, the rows from the detector, and a few training steps."""
+"""The velocity-and-depth DOF (dynamics/vdof.py), its data (learn/vdof_data.py) and its training through the one
+pipeline (learn/vdof_spec.py, learn/train.py): the box size, the model's structure and transformations, checkpoints,
+the rows from the detector, a few training steps in both stages, resume across them, and the weights pinned to
+those of the trainer the pipeline replaced."""
 
 from __future__ import annotations
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import serialization
+from test_train import assert_pinned
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
 from pixelmpc_jax.learn import dataset as dataset_lib
-from pixelmpc_jax.learn import vdof_train
+from pixelmpc_jax.learn import train as train_mod
+from pixelmpc_jax.learn import vdof_data
+from pixelmpc_jax.learn.train import TrainConfig
+from pixelmpc_jax.learn.vdof_spec import VDOFConfig, VDOFData
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
@@ -206,7 +213,7 @@ def _hand_made_lap(track, frames: int = 40):
 def test_rows_are_finite_differences_of_the_detector(world):
     track, camera = world
     states, w_flown, target = _hand_made_lap(track)
-    rows = vdof_train.lap_rows(track, camera, states, w_flown, target)
+    rows = vdof_data.lap_rows(track, camera, states, w_flown, target)
     p, found, box_size = [], [], jax.jit(vdof.box_size)
     for x, gate_id in zip(states, target, strict=True):
         det = detector_lib.detect_from_geometry(track.gate(int(gate_id)), jnp.asarray(x), camera)
@@ -230,8 +237,8 @@ def test_rows_from_the_detections_a_lap_file_stores_equal_those_from_its_states(
     states, w_flown, target = _hand_made_lap(track)
     stored = collect.lap_detections(env_lib.make_world(track, camera=camera), states, target)
     assert stored["gate_corners"].shape == (len(states), 4, 2) and stored["gate_found"].dtype == bool
-    from_file = vdof_train.lap_rows(track, camera, states, w_flown, target, detections=stored)
-    from_states = vdof_train.lap_rows(track, camera, states, w_flown, target)
+    from_file = vdof_data.lap_rows(track, camera, states, w_flown, target, detections=stored)
+    from_states = vdof_data.lap_rows(track, camera, states, w_flown, target)
     np.testing.assert_array_equal(from_file.x, from_states.x)
     # two compilations of the same detector: the box size's shoelace area cancels, so a few float32 ulps of the
     # corners show in s at 1e-4 relative, and in its finite difference over 0.025 s
@@ -247,9 +254,9 @@ def _as_lap(states, w_flown, target) -> dataset_lib.Lap:
 def test_rollout_windows_follow_the_detector(world):
     track, camera = world
     states, w_flown, target = _hand_made_lap(track)
-    windows = vdof_train.load_windows([_as_lap(states, w_flown, target)], track, camera, steps=5)
+    windows = vdof_data.load_windows([_as_lap(states, w_flown, target)], track, camera, steps=5)
     windows = jax.tree_util.tree_map(np.asarray, windows)
-    p, found, _ = (np.asarray(a) for a in vdof_train.lap_detections(track, camera, states, target))
+    p, found, _ = (np.asarray(a) for a in vdof_data.lap_detections(track, camera, states, target))
     assert windows.x.shape[1:] == (5, 10) and windows.p.shape[1:] == (6, 3)
     starts = np.nonzero(found[:-1] & found[1:] & (target[:-1] == target[1:]))[0]
     assert windows.p.shape[0] == starts.size
@@ -264,33 +271,67 @@ def test_rollout_windows_follow_the_detector(world):
     assert not np.all(windows.mask)  # windows reaching the target change end there
 
 
-def test_a_few_training_steps_lower_the_loss_in_both_stages(world):
+@pytest.fixture(scope="module")
+def hand_made_data(world) -> VDOFData:
+    """The hand-made lap's rows and 5-step windows, as the pipeline trains on them."""
     track, camera = world
     states, w_flown, target = _hand_made_lap(track)
-    rows = vdof_train.lap_rows(track, camera, states, w_flown, target)
-    windows = vdof_train.load_windows([_as_lap(states, w_flown, target)], track, camera, steps=5)
-    config = vdof_train.VDOFTrainConfig(hidden_sizes=SMALL, steps=100, batch_size=32, log_every=50, rollout_steps=5,
-                                        rollout_train_steps=100, rollout_batch_size=16, progress=False)
-    params, history = vdof_train.train(config, rows, rows, windows, None)
-    assert history["stage"] == ["one_step"] * 3 + ["rollout"] * 3
-    assert history["step"] == [0, 50, 100, 100, 150, 200]
-    assert history["train_loss"][2] < 0.5 * history["train_loss"][0]  # the one-step MSE
-    assert history["train_loss"][-1] < history["train_loss"][3]  # the rollout loss
-    assert history["test_loss"][1] is not None and history["test_loss"][-1] is None
+    lap = _as_lap(states, w_flown, target)
+    rows = vdof_data.lap_rows(track, camera, states, w_flown, target)
+    return VDOFData(rows, vdof_data.load_windows([lap], track, camera, steps=5), [lap])
+
+
+def _small(steps: int = 100, rollout_train_steps: int = 100, log_every: int = 50, **loop) -> TrainConfig:
+    model = VDOFConfig(hidden_sizes=SMALL, steps=steps, batch_size=32, rollout_steps=5,
+                       rollout_train_steps=rollout_train_steps, rollout_batch_size=16)
+    return TrainConfig(model, log_every=log_every, checkpoint_every=0, progress=False, **loop)
+
+
+def test_a_few_training_steps_lower_the_loss_in_both_stages(hand_made_data):
+    params, history = train_mod.train(_small(), hand_made_data)
+    assert history["stage"] == ["one_step"] * 2 + ["rollout"] * 2 and history["step"] == [50, 100, 150, 200]
+    assert history["probe_stage"] == ["one_step"] * 3 + ["rollout"] * 3
+    assert history["probe_step"] == [0, 50, 100, 100, 150, 200]
+    probe = history["probe_loss"]
+    assert probe[2] < 0.5 * probe[0]  # the one-step MSE over every row
+    assert probe[-1] < probe[3]  # the rollout loss over every window
+    assert history["test_probe_loss"] == [None] * 6 and "results" not in history
     assert vdof.hidden_sizes_of(params.weights) == SMALL
+    # held-out rows without held-out windows: the one-step stage's probe has them, the rollout stage's not
+    held_out = hand_made_data._replace(windows=None)
+    one_step, rollout = _small().model.spec().stage_data(hand_made_data, held_out, 0)
+    assert one_step.test_probe is not None and rollout.test_probe is None
 
 
-def test_multistep_windows_are_shared_by_both_models(world):
-    """A model that never moves the pixel has the still pixel's error, for vdof and the DOF on the same windows."""
-    track, camera = world
-    lap = _as_lap(*_hand_made_lap(track))
-    zero = lambda tree: jax.tree_util.tree_map(jnp.zeros_like, tree)  # noqa: E731
-    still_vdof = vdof.init_vdof_params(jax.random.key(0), SMALL)
-    still_vdof = still_vdof.replace(weights=zero(still_vdof.weights))
-    still_dof = dof.init_dof_params(jax.random.key(0))
-    still_dof = still_dof.replace(weights=zero(still_dof.weights))
-    result = vdof_train.multistep_errors(still_vdof, still_dof, [lap], track, camera, horizons=(2, 5))
-    for k in ("2", "5"):
-        entry = result["by_horizon"][k]
-        assert entry["windows"] > 0
-        np.testing.assert_allclose([entry["vdof_px"], entry["dof_px"]], entry["still_px"], rtol=1e-5)
+@pytest.mark.parametrize("chunks", [3, 4], ids=["at the stage boundary", "inside the rollout stage"])
+def test_resume_across_the_stages_equals_an_uninterrupted_run(hand_made_data, tmp_path, monkeypatch, chunks):
+    """Interrupted after ``chunks`` chunks of 20 steps (60 one-step + 40 rollout steps in all), saved, resumed: the
+    weights of the uninterrupted run, bit for bit (the rollout stage's own Adam state starts fresh at step 60)."""
+    full, _ = train_mod.train(_small(60, 40, 20), hand_made_data)
+    path = tmp_path / "vdof_checkpoint.msgpack"
+    config = _small(60, 40, 20, checkpoint_path=str(path))
+    real, calls = train_mod.train_chunk, []
+
+    def interrupted(*args, **kwargs):
+        if len(calls) == chunks:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "train_chunk", interrupted)
+    _, history = train_mod.train(config, hand_made_data)
+    assert history["interrupted"] and vdof.read_vdof_checkpoint(path).config["step"] == 20 * chunks
+    monkeypatch.undo()
+    resumed, history = train_mod.train(config, hand_made_data, resume_from=path)
+    assert history["step"] == [20, 40, 60, 80, 100] and not history["interrupted"]
+    chex.assert_trees_all_equal(full, resumed)
+
+
+def test_the_pipeline_trains_vdof_as_the_trainer_it_replaced(hand_made_data):
+    """60 one-step and 40 rollout steps on the hand-made lap give the weights the trainer the pipeline replaced
+    (learn/vdof_train.py of commit bf10cee: ``VDOFTrainConfig(hidden_sizes=(16, 16), steps=60, batch_size=32,
+    log_every=20, rollout_steps=5, rollout_train_steps=40, rollout_batch_size=16)``, ``train(config, rows, None,
+    windows, None)``) recorded (bit for bit equal there on this CPU; tests/data/train_pinned.npz holds their
+    fingerprints, test_train.assert_pinned)."""
+    params, _ = train_mod.train(_small(60, 40, 20), hand_made_data)
+    assert_pinned(params.weights, "vdof")

@@ -13,7 +13,7 @@ from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.dynamics import dof, quadrotor, vdof
 from pixelmpc_jax.learn import control_response as R
 from pixelmpc_jax.learn import dataset as dataset_lib
-from pixelmpc_jax.learn import vdof_eval, vdof_train
+from pixelmpc_jax.learn import vdof_data, vdof_eval
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
@@ -75,7 +75,7 @@ def test_a_still_vdof_has_the_still_pixels_errors(world, lap, models):
                                           "flown")
     ms = figures["vdof"]["multistep"]
     np.testing.assert_allclose(ms["mean_px"], ms["zero_motion_mean_px"], rtol=1e-6)
-    p, found, inside = (np.asarray(a) for a in vdof_train.lap_detections(track, camera, lap.states, lap.target))
+    p, found, inside = (np.asarray(a) for a in vdof_data.lap_detections(track, camera, lap.states, lap.target))
     starts = np.nonzero(found[:-1] & inside[:-1] & found[1:] & inside[1:])[0]
     rel = np.abs(p[starts, 2] - p[starts + 1, 2]) / p[starts + 1, 2]
     assert figures["box_size_rel_err_at"]["1"]["count"] == starts.size
@@ -84,11 +84,27 @@ def test_a_still_vdof_has_the_still_pixels_errors(world, lap, models):
     assert one_step["vdof_px"] == pytest.approx(one_step["still_px"], rel=1e-6) and one_step["still_px"] > 0.5
 
 
+def test_multistep_windows_are_shared_by_both_models(world, lap):
+    """Models that never move the pixel have the still pixel's error, vdof and the DOF on the same windows."""
+    track, camera = world
+    zero = lambda tree: jax.tree_util.tree_map(jnp.zeros_like, tree)  # noqa: E731
+    still_vdof = vdof.init_vdof_params(jax.random.key(0), (16, 16))
+    still_dof = dof.init_dof_params(jax.random.key(0))
+    windows = vdof_eval.multistep_window_errors(still_vdof.replace(weights=zero(still_vdof.weights)),
+                                                still_dof.replace(weights=zero(still_dof.weights)), [lap], track,
+                                                camera, 5, DT)
+    valid = windows["valid"]
+    assert valid[:, 4].sum() > 0 and np.array_equal(windows["dof"]["valid"], valid)
+    for name in ("vdof", "dof"):
+        np.testing.assert_allclose(windows[name]["err"][valid], windows[name]["err_zero"][valid], rtol=1e-5,
+                                   atol=1e-6)
+
+
 def test_target_aee_is_the_error_on_vdofs_label_rows(world, lap, models):
-    """On vdof_train.lap_rows' rows: |dt p_dot_predicted - dt p_dot_label| of the centre, in px at the camera's size."""
+    """On vdof_data.lap_rows' rows: |dt p_dot_predicted - dt p_dot_label| of the centre, in px at the camera's size."""
     track, camera = world
     vdof_params, dof_params = models
-    rows = vdof_train.lap_rows(track, camera, lap.states, lap.w_flown, lap.target, DT)
+    rows = vdof_data.lap_rows(track, camera, lap.states, lap.w_flown, lap.target, DT)
     u = np.c_[rows.w, np.zeros(len(rows.w))].astype(np.float32)
     p_dot = np.asarray(jax.vmap(vdof.pixel_state_velocity, in_axes=(None, 0, 0, 0))(vdof_params, rows.x, rows.p, u))
     scale = np.asarray([camera.width, camera.height])
@@ -131,7 +147,7 @@ def test_vdof_ranking_starts_from_the_detected_box_state_and_costs_its_pixel(wor
                                         velocity_fn=projecting, pixel_model="vdof")
     assert res["states"] == 4 and res["q25"] == pytest.approx(1.0, abs=1e-3)
     starts = R._ranking_starts([lap], track, camera, 10, R.pixel_state_model("vdof").initial)
-    p, _, _ = vdof_train.lap_detections(track, camera, lap.states, lap.target)
+    p, _, _ = vdof_data.lap_detections(track, camera, lap.states, lap.target)
     np.testing.assert_allclose(np.stack([p0 for _, _, p0 in starts]), np.asarray(p)[[0, 10, 20, 30]], atol=1e-6)
     with pytest.raises(ValueError, match="pixel_model"):
         R.pixel_cost_rank_correlation(None, [lap], track, camera, num_samples=8, pixel_model="projection")

@@ -3,7 +3,7 @@
 import jax.numpy as jnp
 import numpy as np
 
-from pixelmpc_jax.apps.video import PREDICTED, annotated_frames, write_onboard_video
+from pixelmpc_jax.apps.racing.video import PREDICTED, annotated_frames, write_onboard_video
 from pixelmpc_jax.sim.episode import EpisodeLog
 from pixelmpc_jax.world import course as C
 

@@ -12,9 +12,9 @@ is self-contained. Every model function is written for one sample and batched by
 per-sample path has no value-dependent Python branching, so ``vmap`` turns the dense layers into
 matmuls (the MPPI inner loop: 512 samples x 40 steps per tick).
 
-Checkpoints are single msgpack files (``flax.serialization``), the format the package ships its
-weights in (``data/*.msgpack``): arrays are stored as raw bytes (bit-exact round trips), no pickle is
-involved (loading an untrusted file cannot run code), and the header (architecture, normalisation,
+Checkpoints are single msgpack files (:mod:`network_weights`, shared with vdof), the format the package
+ships its weights in (``data/*.msgpack``): arrays are stored as raw bytes (bit-exact round trips), no pickle
+is involved (loading an untrusted file cannot run code), and the header (architecture, normalisation,
 training config) sits in the same file.
 """
 
@@ -30,9 +30,9 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization, struct
+from flax import struct
 
-from pixelmpc_jax import strict_json
+from pixelmpc_jax.dynamics import network_weights
 
 INPUT_NAMES = ("qw", "qx", "qy", "qz", "u", "v", "wx", "wy", "wz", "thrust")
 OUTPUT_NAMES = ("l", "theta")
@@ -125,11 +125,6 @@ def init_dof_params(
         output_mean=_constant(output_mean, np.zeros(OUTPUT_DIM), OUTPUT_DIM, "output_mean"),
         output_std=_constant(output_std, np.ones(OUTPUT_DIM), OUTPUT_DIM, "output_std"),
     )
-
-
-def num_trainable_params(dof_params: DOFParams) -> int:
-    """Number of trainable scalars (weights and biases; the normalisation constants are not trained)."""
-    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(dof_params.weights)))
 
 
 def dof_features(q: jax.Array, uv: jax.Array, u: jax.Array) -> jax.Array:
@@ -230,89 +225,31 @@ class DOFCheckpoint(NamedTuple):
 
 def _architecture_of(dof_params: DOFParams) -> dict:
     """The architecture the weights' shapes imply (so a mismatched file is caught however written)."""
-    weights = dof_params.weights
-    try:
-        names = sorted(weights, key=lambda n: int(str(n).split("_")[-1]))
-        kernels = [np.shape(weights[n]["kernel"]) for n in names]
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"weights are not a DOFNetwork params tree: {err!r}") from err
-    if not kernels or any(len(k) != 2 for k in kernels):
-        raise ValueError(f"weights are not a DOFNetwork params tree: kernel shapes {kernels}")
+    kernels = network_weights.dense_kernel_shapes(dof_params.weights, "DOFNetwork")
     arch = architecture()
     arch["layer_sizes"] = [int(kernels[0][0])] + [int(k[1]) for k in kernels]
     return arch
 
 
-def to_numpy_tree(tree):
-    """State dict with arrays as numpy (msgpack stores them as raw bytes); strings stay strings."""
-
-    def leaf(x):
-        return x if isinstance(x, str | bytes) else np.asarray(x)
-
-    return jax.tree_util.tree_map(leaf, serialization.to_state_dict(tree))
-
-
 def save_checkpoint(path, dof_params: DOFParams, config: Mapping, *, extra: Mapping | None = None) -> None:
-    """Write ``dof_params`` and ``config`` to one msgpack file, atomically (``strict_json.write_atomic``).
+    """Write ``dof_params`` and ``config`` to one weights file (:func:`network_weights.write_file`), atomically.
 
     The file records the format and version, the architecture (layer sizes, activation, dropout; read
     from the weights' shapes), the normalisation constants (inside the params), and ``config`` (a
     JSON-serialisable dict: the training config and command). ``extra`` holds pytrees a trainer needs
     to resume (optimizer state, step, key data); they are stored as flax state dicts of numpy arrays.
     """
-    write_checkpoint_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, _architecture_of(dof_params), config, {
-        "dof_params": to_numpy_tree(dof_params),
-        "extra": {str(k): to_numpy_tree(v) for k, v in (extra or {}).items()},
+    network_weights.write_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, _architecture_of(dof_params), config, {
+        "dof_params": network_weights.to_numpy_tree(dof_params),
+        "extra": {str(k): network_weights.to_numpy_tree(v) for k, v in (extra or {}).items()},
     })
-
-
-def write_checkpoint_file(path, file_format: str, version: int, architecture: Mapping, config: Mapping,
-                          trees: Mapping) -> None:
-    """One msgpack file, written atomically (``strict_json.write_atomic``): the ``file_format``, its ``version``,
-    the ``architecture`` and ``config`` (JSON-serialisable dicts) as JSON, and ``trees`` (state dicts of numpy
-    arrays, :func:`to_numpy_tree`) as they are. Shared by the pixel models' checkpoints."""
-    try:
-        config_json = strict_json.dumps(dict(config), sort_keys=True)
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"config must be a JSON-serialisable dict: {err}") from err
-    payload = {"format": file_format, "format_version": version,
-               "architecture": strict_json.dumps(dict(architecture), sort_keys=True), "config": config_json,
-               **trees}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = serialization.msgpack_serialize(payload)
-    strict_json.write_atomic(path, lambda f: f.write(data))
-
-
-def _diff(expected: dict, found: dict) -> list[str]:
-    keys = sorted(set(expected) | set(found))
-    return [
-        f"{k}: expected {expected.get(k, '<missing>')!r}, found {found.get(k, '<missing>')!r}"
-        for k in keys
-        if expected.get(k, "<missing>") != found.get(k, "<missing>")
-    ]
 
 
 def read_checkpoint(path) -> DOFCheckpoint:
     """Read and validate a checkpoint file; raises ``ValueError`` for a corrupt, truncated, foreign or
     mismatched-architecture file, naming what differs (expected vs found)."""
     path = Path(path)
-    data = path.read_bytes()
-    try:
-        payload = serialization.msgpack_restore(data)
-    except Exception as err:  # msgpack raises several unrelated types on bad bytes
-        detail = str(err) if len(str(err)) <= 100 else type(err).__name__  # (some errors quote the bad bytes)
-        raise ValueError(
-            f"{path}: not a readable DOF checkpoint (corrupted or truncated, {len(data)} bytes): {detail}"
-        ) from err
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise ValueError(
-            f"{path}: not a DOF checkpoint: format expected {CHECKPOINT_FORMAT!r}, found {found!r}"
-        )
-    version = payload.get("format_version")
-    if version != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: format_version expected {CHECKPOINT_VERSION}, found {version!r}")
+    payload = network_weights.read_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, "DOF")
     try:
         found_arch = json.loads(payload["architecture"])
         config = json.loads(payload["config"])
@@ -320,26 +257,10 @@ def read_checkpoint(path) -> DOFCheckpoint:
         extra = payload.get("extra", {}) or {}
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{path}: DOF checkpoint header is damaged: {err!r}") from err
-    differences = _diff(architecture(), found_arch)
+    differences = network_weights.architecture_differences(architecture(), found_arch)
     if differences:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(differences))
-    template = init_dof_params(jax.random.key(0))
-    try:
-        dof_params = serialization.from_state_dict(template, state)
-    except Exception as err:
-        raise ValueError(f"{path}: DOF parameters do not match the architecture: {err!r}") from err
-    shape_diffs = [
-        f"{jax.tree_util.keystr(p)}: expected float32{np.shape(t)}, found {np.asarray(f).dtype}{np.shape(f)}"
-        for (p, t), f in zip(
-            jax.tree_util.tree_leaves_with_path(template),
-            jax.tree_util.tree_leaves(dof_params),
-            strict=True,
-        )
-        if np.shape(t) != np.shape(f) or np.asarray(f).dtype != np.float32
-    ]
-    if shape_diffs:
-        raise ValueError(f"{path}: architecture mismatch: " + "; ".join(shape_diffs))
-    dof_params = jax.tree_util.tree_map(jnp.asarray, dof_params)
+    dof_params = network_weights.restore_params(path, init_dof_params(jax.random.key(0)), state, "DOF")
     return DOFCheckpoint(dof_params=dof_params, config=config, extra=extra)
 
 

@@ -22,7 +22,7 @@ Every quantity enters normalised (``VDOFParams``'s constants, set from the train
 saturated at ``box_max`` (the largest seen in training) before it multiplies, so a rollout that drives ``s``
 up (the drone flying at the gate, ``s_dot ~ s^2``) grows it at most linearly and stays finite.
 
-Checkpoints are single msgpack files (``flax.serialization``), as :mod:`dof`'s: format name and version,
+Checkpoints are single msgpack files (:mod:`network_weights`, as :mod:`dof`'s): format name and version,
 the architecture (checked on load against the weights' shapes), the normalisation constants and the
 training record, written atomically.
 """
@@ -32,16 +32,16 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization, struct
+from flax import struct
 
-from pixelmpc_jax.dynamics import dof, quadrotor
+from pixelmpc_jax.dynamics import network_weights, quadrotor
 
 PIXEL_STATE_NAMES = ("u", "v", "s")
 PIXEL_STATE_DIM = 3
@@ -142,19 +142,10 @@ def init_vdof_params(key: jax.Array, hidden_sizes: tuple[int, ...] = HIDDEN_SIZE
 
 def hidden_sizes_of(weights) -> tuple[int, ...]:
     """The hidden widths the weights' kernel shapes imply (static: read from shapes, not values)."""
-    try:
-        names = sorted(weights, key=lambda n: int(str(n).split("_")[-1]))
-        kernels = [np.shape(weights[n]["kernel"]) for n in names]
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"weights are not an InteractionNetwork params tree: {err!r}") from err
-    if not kernels or any(len(k) != 2 for k in kernels) or kernels[0][0] != 2 or kernels[-1][1] != OUTPUT_DIM:
+    kernels = network_weights.dense_kernel_shapes(weights, "InteractionNetwork")
+    if kernels[0][0] != 2 or kernels[-1][1] != OUTPUT_DIM:
         raise ValueError(f"weights are not an InteractionNetwork params tree: kernel shapes {kernels}")
     return tuple(int(k[1]) for k in kernels[:-1])
-
-
-def num_trainable_params(params: VDOFParams) -> int:
-    """Number of trainable scalars (the normalisation constants are not trained)."""
-    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params.weights)))
 
 
 def interaction(params: VDOFParams, uv: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
@@ -204,7 +195,7 @@ def pixel_state_velocity(params: VDOFParams, x: jax.Array, p: jax.Array, u: jax.
 def initial_pixel_state(centre: jax.Array, corners: jax.Array, gate_size: float | jax.Array = 1.0) -> jax.Array:
     """The pixel state ``[u, v, s]`` (3,) of one detection: its centre (2,) and :func:`box_size` of its corners
     (4, 2) divided by ``gate_size`` (1 for the apparent size; the opening's ``sqrt(width * height)`` in metres
-    for weights trained with ``box_cue="per_gate_size"``, see ``learn.vdof_train``)."""
+    for weights trained with ``box_cue="per_gate_size"``, see ``learn.vdof_spec``)."""
     centre = jnp.asarray(centre)
     return jnp.concatenate([centre, (box_size(corners) / gate_size)[None].astype(centre.dtype)])
 
@@ -221,67 +212,56 @@ def architecture(hidden_sizes: tuple[int, ...] = HIDDEN_SIZES) -> dict:
             "pixel_state": list(PIXEL_STATE_NAMES)}
 
 
-def save_vdof(path, params: VDOFParams, config: Mapping) -> None:
-    """Write ``params`` and ``config`` (a JSON-serialisable record: how they were made) to one msgpack file,
-    atomically (``strict_json.write_atomic``)."""
-    dof.write_checkpoint_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION,
-                              architecture(hidden_sizes_of(params.weights)), config,
-                              {"params": dof.to_numpy_tree(params)})
+class VDOFCheckpoint(NamedTuple):
+    """Everything in a vdof weights file: the parameters, the record of how they were made, and ``extra``
+    (state-dict pytrees a trainer stored to resume: optimizer state, step, key; ``{}`` if none)."""
+
+    params: VDOFParams
+    config: dict
+    extra: dict
 
 
-def _read_payload(path: Path) -> dict:
-    data = path.read_bytes()
-    try:
-        payload = serialization.msgpack_restore(data)
-    except Exception as err:  # msgpack raises several unrelated types on bad bytes
-        detail = " ".join(str(err).split()) if len(str(err)) <= 100 else type(err).__name__
-        raise ValueError(f"{path}: not a readable vdof checkpoint (corrupted or truncated, {len(data)} bytes): "
-                         f"{detail}") from err
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-        raise ValueError(f"{path}: not a vdof checkpoint: format expected {CHECKPOINT_FORMAT!r}, found {found!r}")
-    if payload.get("format_version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: format_version expected {CHECKPOINT_VERSION}, "
-                         f"found {payload.get('format_version')!r}")
-    return payload
+def save_vdof(path, params: VDOFParams, config: Mapping, *, extra: Mapping | None = None) -> None:
+    """Write ``params`` and ``config`` (a JSON-serialisable record: how they were made) to one weights file
+    (:func:`network_weights.write_file`), atomically; ``extra``: pytrees a trainer needs to resume."""
+    trees = {"params": network_weights.to_numpy_tree(params)}
+    if extra:
+        trees["extra"] = {str(k): network_weights.to_numpy_tree(v) for k, v in extra.items()}
+    architecture_record = architecture(hidden_sizes_of(params.weights))
+    network_weights.write_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, architecture_record, config, trees)
 
 
-def load_vdof(path) -> tuple[VDOFParams, dict]:
-    """``(params, config)`` from a file written by :func:`save_vdof`, bit-exact; ``ValueError`` (one line, naming
-    what is wrong) for a corrupted, truncated, foreign or mismatched file."""
+def read_vdof_checkpoint(path) -> VDOFCheckpoint:
+    """Read and validate a file written by :func:`save_vdof`, bit-exact; ``ValueError`` (one line, naming what is
+    wrong) for a corrupted, truncated, foreign or mismatched file."""
     path = Path(path)
-    payload = _read_payload(path)
+    payload = network_weights.read_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, "vdof")
     try:
         found = json.loads(payload["architecture"])
         config = json.loads(payload["config"])
         state = payload["params"]
+        extra = payload.get("extra", {}) or {}
         hidden = tuple(int(h) for h in found["hidden_sizes"])
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{path}: vdof checkpoint header is damaged: {err!r}") from err
-    expected = architecture(hidden)
-    diffs = [f"{k}: expected {expected.get(k)!r}, found {found.get(k, '<missing>')!r}"
-             for k in sorted(set(expected) | set(found)) if expected.get(k) != found.get(k, "<missing>")]
+    diffs = network_weights.architecture_differences(architecture(hidden), found)
     if diffs:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(diffs))
-    template = init_vdof_params(jax.random.key(0), hidden)
-    try:
-        params = serialization.from_state_dict(template, state)
-    except Exception as err:
-        raise ValueError(f"{path}: vdof parameters do not match the architecture: {err!r}") from err
-    bad = [f"{jax.tree_util.keystr(p)}: expected float32{np.shape(t)}, found {np.asarray(f).dtype}{np.shape(f)}"
-           for (p, t), f in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree_util.tree_leaves(params),
-                                strict=True)
-           if np.shape(t) != np.shape(f) or np.asarray(f).dtype != np.float32]
-    if bad:
-        raise ValueError(f"{path}: architecture mismatch: " + "; ".join(bad))
-    return jax.tree_util.tree_map(jnp.asarray, params), config
+    params = network_weights.restore_params(path, init_vdof_params(jax.random.key(0), hidden), state, "vdof")
+    return VDOFCheckpoint(params, config, extra)
+
+
+def load_vdof(path) -> tuple[VDOFParams, dict]:
+    """``(params, config)`` from a file written by :func:`save_vdof` (:func:`read_vdof_checkpoint`)."""
+    checkpoint = read_vdof_checkpoint(path)
+    return checkpoint.params, checkpoint.config
 
 
 def box_cue_of(config: Mapping) -> str:
     """What the checkpoint's ``s`` means, from its record: "apparent" (:func:`box_size` of the detected corners) or
     "per_gate_size" (that over the target opening's ``sqrt(width * height)`` in metres: pass it as
     :func:`initial_pixel_state`'s ``gate_size``). Records without the field are "apparent"."""
-    return str((config.get("train_config") or {}).get("box_cue", "apparent"))
+    return str((config.get("model_config") or config.get("train_config") or {}).get("box_cue", "apparent"))
 
 
 PACKAGED_VDOF = Path(__file__).resolve().parent.parent / "data" / "vdof_weights.msgpack"
@@ -290,6 +270,6 @@ PACKAGED_VDOF = Path(__file__).resolve().parent.parent / "data" / "vdof_weights.
 def load_packaged_vdof() -> VDOFParams:
     """The vdof weights shipped inside the package (``data/vdof_weights.msgpack``), when they are there."""
     if not PACKAGED_VDOF.exists():
-        raise FileNotFoundError(f"{PACKAGED_VDOF}: the package ships no vdof weights; train them with `python -m "
-                                f"pixelmpc_jax.learn.vdof_train` and copy vdof_weights.msgpack there")
+        raise FileNotFoundError(f"{PACKAGED_VDOF}: the package ships no vdof weights; train them with `pixelmpc "
+                                f"train --model vdof --ship`")
     return load_vdof(PACKAGED_VDOF)[0]

@@ -29,7 +29,7 @@ import numpy as np
 from flax import serialization
 
 from pixelmpc_jax import strict_json, timing
-from pixelmpc_jax.dynamics import dof, vdof
+from pixelmpc_jax.dynamics import dof, network_weights, vdof
 from pixelmpc_jax.learn import collect as collect_lib
 from pixelmpc_jax.learn import control_response, curves
 from pixelmpc_jax.learn import dataset as dataset_lib
@@ -325,7 +325,7 @@ def evaluate(dof_params: dof.DOFParams | None = None, data_dir=None, out_dir="ru
                                                            progress=progress)
 
     results = {
-        "num_parameters": dof.num_trainable_params(dof_params),
+        "num_parameters": network_weights.num_trainable_params(dof_params),
         "dof_input": input,
         **accuracy,
         "rotation_response": rotation,

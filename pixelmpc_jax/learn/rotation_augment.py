@@ -85,7 +85,7 @@ def augment_batch(key: jax.Array, w: jax.Array, pixel_px: jax.Array, flow_px: ja
 def turn_training_rows(key: jax.Array, u: jax.Array, i: jax.Array, j: jax.Array, flow_px: jax.Array,
                        config) -> tuple[jax.Array, jax.Array]:
     """Training rows (control input ``u`` (B, 4) = flown rates and thrust, pixel column ``i`` and row ``j``
-    (B,), label flow (B, 2) px/frame) turned as ``config`` (a ``train.TrainConfig``: ``rotation_augment``,
+    (B,), label flow (B, 2) px/frame) turned as ``config`` (a ``dof_spec.DOFConfig``: ``rotation_augment``,
     ``rotation_augment_fraction``, ``width``, ``height``, ``dt``) says, for the default camera at that size."""
     camera = camera_lib.default_camera(wh=(config.width, config.height))
     pixel_px = jnp.stack([i + 0.5, j + 0.5], axis=-1).astype(jnp.float32)

@@ -16,7 +16,7 @@ dataset's test laps (the same windows, frames, states and samples):
   with the model's pixel and with the exact projection (:func:`control_response.pixel_cost_rank_correlation`,
   the DOF evaluation's settings).
 * ``target_aee_px``: the one-step error (px/frame at the camera's size) of the target pixel's motion against the
-  detector's frame-to-frame motion of the target centre (vdof's training label, ``vdof_train.lap_rows``' rows).
+  detector's frame-to-frame motion of the target centre (vdof's training label, ``vdof_data.lap_rows``' rows).
 
 Not reported: the flow-field AEE (vdof predicts the target's pixel state, not a flow field) and the in-view
 fraction of the gate's corners (vdof predicts the centre and the box size, not the corners: that needs a corner
@@ -34,8 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import strict_json
-from pixelmpc_jax.dynamics import dof, quadrotor, vdof
-from pixelmpc_jax.learn import control_response, curves, vdof_train
+from pixelmpc_jax.dynamics import dof, network_weights, quadrotor, vdof
+from pixelmpc_jax.learn import control_response, curves, vdof_data
 from pixelmpc_jax.learn import dataset as dataset_lib
 
 COMPARISON_DOF = "turned"
@@ -80,12 +80,12 @@ def target_one_step_errors(vdof_params, dof_params, laps: list[dataset_lib.Lap],
                            box_cue: str = "apparent", dof_input: str = "flown") -> dict:
     """The one-step error of the target pixel's motion (px/frame at the camera's size) against the detector's
     motion of the target centre between consecutive frames, on vdof's label rows (every frame whose target gate
-    is detected at it and at the next, ``vdof_train.lap_rows``): vdof given the flown rates, the DOF its
+    is detected at it and at the next, ``vdof_data.lap_rows``): vdof given the flown rates, the DOF its
     ``dof_input``; with the error of a still pixel and vdof's one-step box-size relative error."""
     scale = np.asarray([camera.width, camera.height], np.float64)
     err_vdof, err_dof, still, box = [], [], [], []
     for lap in laps:
-        p, found, _ = (np.asarray(a) for a in vdof_train.lap_detections(
+        p, found, _ = (np.asarray(a) for a in vdof_data.lap_detections(
             track, camera, jnp.asarray(lap.states), jnp.asarray(lap.target), box_cue))
         rows = np.nonzero(found[:-1] & found[1:] & (lap.target[:-1] == lap.target[1:]))[0]  # lap_rows' rows
         step_vdof, step_dof = (np.asarray(a, np.float64) for a in _one_step_motion(
@@ -115,13 +115,28 @@ def _at(summary: dict, steps) -> dict:
                      "count": summary["count"][k - 1]} for k in steps if k <= len(summary["steps"])}
 
 
+def multistep_window_errors(vdof_params, dof_params, laps: list[dataset_lib.Lap], track, camera, horizon: int,
+                            dt: float, box_cue: str = "apparent", dof_input: str = "flown") -> dict:
+    """The multi-step prediction of vdof and the DOF on the same windows, defined as the DOF evaluation defines
+    them (:func:`control_response.multistep_windows`: every start tick whose target gate is detected with its
+    centre in the image, counted up to k while it stays so): vdof rolled from the detected ``[centre, s]`` with
+    the flown rates, the DOF from the centre with its input ``dof_input``. Per start (rows) and k = 1..horizon:
+    ``vdof`` and ``dof`` (the windows' arrays), ``box_rel`` (vdof's box size relative error), ``valid``."""
+    model = control_response.pixel_state_model("vdof", box_cue)
+    w_vdof = control_response.multistep_windows(model, vdof_params, laps, track, camera, horizon, dt, VDOF_INPUT)
+    w_dof = control_response.multistep_windows(control_response.pixel_state_model("dof"), dof_params, laps, track,
+                                               camera, horizon, dt, dof_input)
+    pred, truth = w_vdof["pred"][..., 2], w_vdof["truth"][..., 2]
+    return {"vdof": w_vdof, "dof": w_dof, "valid": w_vdof["valid"],
+            "box_rel": np.abs(pred - truth) / np.maximum(truth, 1e-6)}
+
+
 def multistep_figures(vdof_params, dof_params, laps: list[dataset_lib.Lap], track, camera, horizon: int, dt: float,
                       box_cue: str, dof_input: str) -> dict:
-    """The multi-step prediction of vdof and the DOF on the same windows (``vdof_train.multistep_window_errors``)
+    """The multi-step prediction of vdof and the DOF on the same windows (:func:`multistep_window_errors`)
     as the DOF evaluation reports it (``multistep``, ``multistep_at``) per model, and vdof's box-size relative
     error at the ``multistep_at`` steps (``box_size_rel_err_at``: mean, median, count)."""
-    windows = vdof_train.multistep_window_errors(vdof_params, dof_params, laps, track, camera, horizon, dt, box_cue,
-                                                 dof_input)
+    windows = multistep_window_errors(vdof_params, dof_params, laps, track, camera, horizon, dt, box_cue, dof_input)
     out = {}
     for name, model_input in (("vdof", VDOF_INPUT), ("dof", dof_input)):
         w = windows[name]
@@ -173,7 +188,7 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
 
     results = {
         "model": "vdof",
-        "num_parameters": vdof.num_trainable_params(vdof_params),
+        "num_parameters": network_weights.num_trainable_params(vdof_params),
         "hidden_sizes": list(vdof.hidden_sizes_of(vdof_params.weights)),
         "vdof_input": VDOF_INPUT,
         "box_cue": box_cue,
@@ -184,7 +199,7 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
         "rotation_response": rotation["vdof"],
         "pixel_cost_rank_correlation": ranking["vdof"],
         "comparison_dof": {"variant": dof_variant, "weights": _shown_path(dof_path), "dof_input": dof_input,
-                           "num_parameters": dof.num_trainable_params(dof_params),
+                           "num_parameters": network_weights.num_trainable_params(dof_params),
                            "target_aee_px": one_step["dof_px"], **multistep["dof"],
                            "rotation_response": rotation["dof"], "pixel_cost_rank_correlation": ranking["dof"]},
         "not_reported": NOT_REPORTED,

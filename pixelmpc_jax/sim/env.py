@@ -112,7 +112,7 @@ class EnvConfig:
         faults: what the world does beyond the nominal model (:mod:`pixelmpc_jax.sim.faults`; none by default).
     """
 
-    max_time_s: float = 60.0
+    max_time_s: float = timing.LAP_TIME_LIMIT_S
     progress_window_m: float = 30.0
     missed_gate_margin_m: float = 6.0
     detector: str = "geometry"

@@ -34,6 +34,7 @@ from pixelmpc_jax.world.track import (
 )
 
 COURSE_FILE = Path(__file__).resolve().parent.parent / "data" / "alphapilot_course.json"
+COURSES = ("alphapilot", "straight")  # the courses known by name (the packaged file, straight_course); else a file
 
 _TOP_LEVEL_FIELDS = {"about", "race", "gates", "camera", "vehicle"}
 _RACE_FIELDS = {"gate_order", "init_pose", "timeout_s", "gate_frame_width_m", "perturbation_bounds_note"}

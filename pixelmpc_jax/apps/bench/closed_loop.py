@@ -6,7 +6,7 @@ The episode (:func:`~pixelmpc_jax.sim.episode.make_runner`) is compiled ahead of
 is recorded apart), then run ``repeats`` times on the same world and key, each call blocked until ready. The
 lap is the same every repeat; each repeat gives one per-tick time: its wall time / the ticks it flew.
 
-    python benchmarks/closed_loop.py [--mode full|quick|smoke] [--repeats 3]
+    pixelmpc bench closed-loop [--mode full|quick|smoke] [--repeats 3]
 
 The harness (``pixelmpc bench``) writes these rows into bench.json with ``group`` "loop".
 """
@@ -19,10 +19,10 @@ import jax
 import numpy as np
 
 from pixelmpc_jax import timing
-from pixelmpc_jax.apps import race
 from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing import race
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
 from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
@@ -30,6 +30,7 @@ from pixelmpc_jax.sim import episode as episode_lib
 
 GROUP = "loop"
 TICK_TARGET_MS = 1e3 * timing.CONTROL_DT  # 25 ms: one tick of wall time per tick flown is real time
+MODES = ("full", "quick", "smoke")  # loop_rows: one AlphaPilot lap; its first 2.5 s; tiny sizes
 RUNNERS = ("single", "batch")  # Runner.single(world, key); Runner.batch of one lap, as ``pixelmpc race`` runs it
 
 
@@ -123,10 +124,11 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     and PixelMPC once more in the vmapped runner (a batch of one lap); "quick": the first 2.5 s of the lap,
     3 repeats; "smoke": N=16, T=8, t_f=0.1 s, 0.25 s (10 ticks), 2 repeats.
     """
-    if mode not in ("full", "quick", "smoke"):
-        raise ValueError(f"mode must be full, quick or smoke, got {mode!r}")
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
     repeats = repeats or (2 if mode == "smoke" else 3)
-    base = RaceSpec(controller="pixelmpc", max_time_s={"full": 60.0, "quick": 2.5, "smoke": 0.25}[mode])
+    max_time_s = {"full": timing.LAP_TIME_LIMIT_S, "quick": 2.5, "smoke": 0.25}[mode]
+    base = RaceSpec(controller="pixelmpc", max_time_s=max_time_s)
     if mode == "smoke":
         base = base.replace(config=PixelMPCConfig(mppi=paper_mppi_config(num_samples=16, horizon=8), t_f=0.1))
     devices = usable_sample_devices(base.config.mppi.num_samples)
@@ -139,16 +141,11 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     return rows
 
 
-def main(argv=None) -> list[dict]:
-    import argparse
+def run_closed_loop(mode: str = "quick", repeats: int | None = None) -> list[dict]:
+    """The closed-loop rows (:func:`loop_rows`), printed one line each and as a JSON line; returns them."""
     import json
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--mode", choices=("full", "quick", "smoke"), default="quick",
-                        help="full: one AlphaPilot lap per controller; quick: 2.5 s of it (default); smoke: tiny")
-    parser.add_argument("--repeats", type=int, default=None, help="timed laps per row (default 3; smoke 2)")
-    args = parser.parse_args(argv)
-    rows = loop_rows(args.mode, args.repeats)
+    rows = loop_rows(mode, repeats)
     for r in rows:
         print(f"{r['name']} (N={r['num_samples']}, T={r['horizon']}, {r['course']}, {r['ticks']} ticks, "
               f"{r['end_cause']}): per tick median {r['median_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms over "
@@ -156,7 +153,3 @@ def main(argv=None) -> list[dict]:
               f"({r['real_time_factor']:.2f}x real time); compile {r['compile_s']:.1f} s")
     print(json.dumps(rows))
     return rows
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Median step time of the quadrotor MPPI at the paper's sizes (N=512, T=80, K=1).
 
-    python benchmarks/mppi_step.py [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
+    pixelmpc bench mppi-step [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
 
 The step is the public jitted ``ctrl.step`` (inputs validated, one compiled call), timed after
 compilation with ``block_until_ready``; the state changes every call as in a control loop.
@@ -8,7 +8,6 @@ compilation with ``block_until_ready``; the state changes every call as in a con
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import jax
@@ -22,26 +21,22 @@ from pixelmpc_jax.control.rollout import TrajectoryCost
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 
+COSTS = ("racing", "waypoint")  # Eq. (19) on the AlphaPilot course; the demo's waypoint cost
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--samples", type=int, default=512)
-    parser.add_argument("--horizon", type=int, default=80)
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--cost", choices=("racing", "waypoint"), default="racing",
-                        help="racing: Eq. (19) on the AlphaPilot course (default); waypoint: the demo's cost")
-    args = parser.parse_args(argv)
 
+def run_mppi_step(samples: int = 512, horizon: int = 80, repeats: int = 50, cost: str = "racing") -> dict:
+    """Time the step at ``samples`` x ``horizon`` with the ``cost`` of :data:`COSTS`, ``repeats`` times; prints the
+    device, the figures and a JSON line, and returns them."""
     params = quadrotor.QuadParams()
     lo, hi = params.control_bounds()
-    config = MPPIConfig(num_samples=args.samples, horizon=args.horizon, dt=timing.CONTROL_DT,
+    config = MPPIConfig(num_samples=samples, horizon=horizon, dt=timing.CONTROL_DT,
                         noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
-    if args.cost == "racing":
+    if cost == "racing":
         from pixelmpc_jax.world import course as course_lib
         track = course_lib.load_course()
         cost_config = costs.RacingCostConfig()
         x = track.start
-        cost_params = costs.racing_params(track, jnp.linspace(0.0, 25.0, args.horizon), 14.0, cost_config)
+        cost_params = costs.racing_params(track, jnp.linspace(0.0, 25.0, horizon), 14.0, cost_config)
 
         running_cost = TrajectoryCost(lambda X, U, steps, p: costs.racing_costs(X, steps, p, cost_config))
     else:
@@ -61,19 +56,15 @@ def main(argv=None) -> dict:
         holder["x"] = quadrotor.step(holder["x"], u, config.dt, params)
         return u, info.min_cost
 
-    result = measure(call, repeats=args.repeats)
+    result = measure(call, repeats=repeats)
     device = device_description()
-    result.update(num_samples=args.samples, horizon=args.horizon, device=device)
-    rollouts_per_s = args.samples * args.horizon / (result["median_ms"] / 1e3)
+    result.update(num_samples=samples, horizon=horizon, device=device)
+    rollouts_per_s = samples * horizon / (result["median_ms"] / 1e3)
     print(f"device: {device['platform']} ({device['device_kind']}; {device['cpu_model']}, "
           f"{device['cpu_count']} cores), jax {device['jax']}")
-    print(f"quadrotor MPPI step ({args.cost} cost), N={args.samples}, T={args.horizon}: "
+    print(f"quadrotor MPPI step ({cost} cost), N={samples}, T={horizon}: "
           f"median {result['median_ms']:.2f} ms "
           f"(mean {result['mean_ms']:.2f} +- {result['two_sigma_ms']:.2f} ms 2sigma, max {result['max_ms']:.2f} ms, "
-          f"{args.repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")
+          f"{repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")
     print(json.dumps({k: v for k, v in result.items() if k != "device"}))
     return result
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Median time of one particle-filter tick (predict + update + estimate + resample) at the paper's 6,400 particles.
 
-    python benchmarks/particle_filter_step.py [--particles 6400] [--repeats 50]
+    pixelmpc bench pf-step [--particles 6400] [--repeats 50]
 
 The timed call is the public ``pf_step`` (inputs checked, one compiled call) on the AlphaPilot course, 6 m
 before gate 3 with the gate in view, a hover tick of preintegrated IMU samples (what the closed loop feeds
@@ -13,7 +13,6 @@ motion update alone (``pf_predict``), to show what the sensor update, estimate a
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import jax
@@ -67,23 +66,17 @@ def pf_rows(particles: int = 6400, repeats: int = 30) -> list[dict]:
             make_row("estimator", "particle filter motion update alone", particles, None, predict)]
 
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--particles", type=int, default=6400)
-    parser.add_argument("--repeats", type=int, default=50)
-    args = parser.parse_args(argv)
-    result, baseline = measure_pf(args.particles, args.repeats)
+def run_pf_step(particles: int = 6400, repeats: int = 50) -> dict:
+    """Time the filter tick and its motion update alone (:func:`measure_pf`); prints the device, the figures and a
+    JSON line, and returns them."""
+    result, baseline = measure_pf(particles, repeats)
     device = device_line()
-    result.update(num_particles=args.particles, device=device, predict_only=baseline)
+    result.update(num_particles=particles, device=device, predict_only=baseline)
     print(f"device: {device}")
-    print(f"pf_step, P={args.particles}: median {result['median_ms']:.3f} ms (mean {result['mean_ms']:.3f} "
-          f"+- {result['two_sigma_ms']:.3f} ms 2sigma, max {result['max_ms']:.3f} ms, {args.repeats} repeats); "
-          f"{args.particles / (result['median_ms'] / 1e3) / 1e6:.2f} M particle-updates/s")
+    print(f"pf_step, P={particles}: median {result['median_ms']:.3f} ms (mean {result['mean_ms']:.3f} "
+          f"+- {result['two_sigma_ms']:.3f} ms 2sigma, max {result['max_ms']:.3f} ms, {repeats} repeats); "
+          f"{particles / (result['median_ms'] / 1e3) / 1e6:.2f} M particle-updates/s")
     print(f"baseline pf_predict only: median {baseline['median_ms']:.3f} ms (mean {baseline['mean_ms']:.3f} "
           f"+- {baseline['two_sigma_ms']:.3f} ms 2sigma, max {baseline['max_ms']:.3f} ms)")
     print(json.dumps({k: v for k, v in result.items() if k not in ("device", "predict_only")}))
     return result
-
-
-if __name__ == "__main__":
-    main()

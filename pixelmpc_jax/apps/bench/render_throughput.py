@@ -5,12 +5,11 @@ timed with the harness's ``measure`` (compilation and warm-up outside the timed 
 blocked until ready).
 Baselines in the same run: one frame per call (``render``) and no anti-aliasing (``supersample=1``).
 
-    python benchmarks/render_throughput.py [--batch 8 32] [--repeats 10] [--supersample 3]
+    pixelmpc bench render [--batch 8 32] [--repeats 10] [--supersample 3]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 
 import jax
@@ -43,32 +42,24 @@ def report(label: str, frames_per_call: int, stats: dict) -> dict:
     return {"label": label, "fps": fps, **stats}
 
 
-def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=int, nargs="+", default=[8, 32])
-    parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--supersample", type=int, default=3)
-    args = parser.parse_args(argv)
-
+def run_render_throughput(batches=(8, 32), repeats: int = 10, supersample: int = 3) -> list[dict]:
+    """Frames per second of one frame per call (``supersample`` and 1) and of each batch size in ``batches``;
+    prints a line each and returns them."""
     print(f"device: {device_line()} | load avg {os.getloadavg()[0]:.1f}")
     track = course_lib.load_course()
     camera = camera_lib.default_camera()
     print(
-        f"image {camera.width} x {camera.height}, supersample {args.supersample} "
-        f"({camera.width * camera.height * args.supersample**2} rays/frame), {track.num_gates} gates"
+        f"image {camera.width} x {camera.height}, supersample {supersample} "
+        f"({camera.width * camera.height * supersample**2} rays/frame), {track.num_gates} gates"
     )
     results = []
     single = path_poses(track, 1)[0]
-    for s in sorted({1, args.supersample}):
-        stats = measure(lambda s=s: render.render(track, single, camera, supersample=s), repeats=args.repeats)
+    for s in sorted({1, supersample}):
+        stats = measure(lambda s=s: render.render(track, single, camera, supersample=s), repeats=repeats)
         results.append(report(f"render, 1 frame/call, ss {s}", 1, stats))
-    for batch in args.batch:
+    for batch in batches:
         poses = path_poses(track, batch)
-        stats = measure(lambda p=poses: render.render_batch(track, p, camera, supersample=args.supersample),
-                        repeats=args.repeats)
-        results.append(report(f"render_batch, B={batch}, ss {args.supersample}", batch, stats))
+        stats = measure(lambda p=poses: render.render_batch(track, p, camera, supersample=supersample),
+                        repeats=repeats)
+        results.append(report(f"render_batch, B={batch}, ss {supersample}", batch, stats))
     return results
-
-
-if __name__ == "__main__":
-    main()

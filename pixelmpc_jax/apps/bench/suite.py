@@ -2,8 +2,7 @@
 the closed loop's tick, peers on identical work and the hardware limit, written to ``DIR/bench.json``,
 ``DIR/bench.md`` and ``DIR/scaling.png``.
 
-    pixelmpc bench --out DIR [--quick]
-    python -m pixelmpc_jax.apps.bench.suite --out DIR [--quick | --smoke]
+    pixelmpc bench suite --out DIR [--quick | --smoke]
 
 Modes: full (everything, with one closed-loop AlphaPilot lap per controller, ~15 min on 2 CPU cores);
 ``quick`` (the paper-size controller rows, the roofline, the particle filter tick, the first 2.5 s of a lap
@@ -20,7 +19,6 @@ flown) in the timing fields, with ticks, sim_s, lap_wall_s, real_time_factor and
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import time
@@ -401,17 +399,3 @@ def plot_scaling(rows: list[dict], path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default="bench_out", help="output folder")
-    group = parser.add_mutually_exclusive_group()
-    group.add_argument("--quick", action="store_true", help="paper-size controller rows + pytorch-mppi (< 5 min)")
-    group.add_argument("--smoke", action="store_true", help="tiny sizes, 3 repeats (schema check)")
-    args = parser.parse_args(argv)
-    return run_bench(args.out, quick=args.quick, smoke=args.smoke)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,20 +1,16 @@
-"""The ``pixelmpc tune`` command: its arguments and its handler, thin (the search is :mod:`pixelmpc_jax.apps.tune`).
-It lives beside the search, not in ``cli.py``, which keeps the other commands."""
+"""``pixelmpc tune``: its arguments and its handler, thin (the search is :mod:`pixelmpc_jax.apps.tuning.search`)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pixelmpc_jax import arguments as arg
-from pixelmpc_jax.apps import tune
-from pixelmpc_jax.apps.presets import PRESETS
-from pixelmpc_jax.apps.tune_space import SPACES
-
-NOMINAL_SPEED_MAX = 50.0  # m/s, as a race's target (the vehicle's top speed is about 19 m/s)
 
 
 def add_tune(sub) -> None:
     """``pixelmpc tune``: controller settings by search against the speed frontier (docs/tune.md)."""
+    from pixelmpc_jax.apps.racing.presets import PRESETS
+    from pixelmpc_jax.apps.tuning import search
+    from pixelmpc_jax.apps.tuning.space import SPACES
+
     p = sub.add_parser("tune", help="search controller settings against the speed frontier (Optuna, resumable)")
     p.add_argument("--space", required=True, metavar="|".join(SPACES) + "|FILE",
                    help="the settings searched: a space's name or a JSON file of {dotted setting: {low, high[, log]} "
@@ -27,10 +23,10 @@ def add_tune(sub) -> None:
     p.add_argument("--preset", choices=PRESETS, default="best", help="the race whose settings are searched")
     p.add_argument("--seed", type=arg.seed, default=0, help="first training seed (default 0); lap i flies seed + i")
     p.add_argument("--laps", type=arg.positive_int, default=4, help="training laps per trial (default 4)")
-    p.add_argument("--nominal-speeds", type=arg.float_in(0.0, NOMINAL_SPEED_MAX, lo_open=True, unit="m/s"),
-                   nargs="+", default=list(tune.NOMINAL_SPEEDS), metavar="V",
-                   help="nominal MPPI's target speeds for the frontier (default 7 8 8.5 10; the preset's is added)")
-    p.add_argument("--bound", type=arg.float_in(0.0, 10.0, lo_open=True), default=tune.LAP_TIME_BOUND,
+    p.add_argument("--nominal-speeds", type=arg.target_speed, nargs="+", default=list(search.NOMINAL_SPEEDS),
+                   metavar="V", help="nominal MPPI's target speeds for the frontier (default 7 8 8.5 10; the preset's "
+                                     "is added)")
+    p.add_argument("--bound", type=arg.float_in(0.0, 10.0, lo_open=True), default=search.LAP_TIME_BOUND,
                    help="a feasible trial's lap time is at most (1 + BOUND) x nominal MPPI's at the same target "
                         "(default 0.1)")
     p.add_argument("--storage", default=None, metavar="URL",
@@ -39,7 +35,7 @@ def add_tune(sub) -> None:
     p.add_argument("--study", default="tune", help="the study's name in the storage (default tune)")
     p.add_argument("--sampler-seed", type=arg.seed, default=0,
                    help="the TPE sampler's seed (default 0); give each worker of a shared study its own")
-    p.add_argument("--reuse", type=Path, nargs="+", default=[], metavar="DIR",
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="+", default=[], metavar="DIR",
                    help="grid folders (a results.json) whose cells are copied, not flown, where they are the race "
                         "asked (same settings, seeds and laps)")
     p.add_argument("--validate-seed", type=arg.seed, default=None,
@@ -48,35 +44,37 @@ def add_tune(sub) -> None:
 
     def check(args) -> None:
         """The search space, checked before anything runs: one line per bad entry, exit code 2."""
-        from pixelmpc_jax.apps.tune_space import SpaceError
+        from pixelmpc_jax.apps.tuning.space import SpaceError
 
         try:
             _setup(args)
         except SpaceError as err:
             p.error("\n".join(err.problems))
 
-    p.set_defaults(func=_command, precheck=check)
+    p.set_defaults(func=_cmd_tune, precheck=check)
 
 
-def _setup(args) -> tune.TuneSetup:
-    from pixelmpc_jax.apps.presets import preset
-    from pixelmpc_jax.apps.tune_space import load_space
+def _setup(args):
+    """The study's :class:`~pixelmpc_jax.apps.tuning.search.TuneSetup` the arguments ask for."""
+    from pixelmpc_jax.apps.racing.presets import preset
+    from pixelmpc_jax.apps.tuning import search
+    from pixelmpc_jax.apps.tuning.space import load_space
 
     space = load_space(args.space, preset(args.preset))
-    return tune.TuneSetup(args.preset, tuple(space.values()), tuple(args.nominal_speeds), args.laps, args.seed,
-                          args.bound)
+    return search.TuneSetup(args.preset, tuple(space.values()), tuple(args.nominal_speeds), args.laps, args.seed,
+                            args.bound)
 
 
-def _command(args) -> int:
+def _cmd_tune(args) -> int:
     from pixelmpc_jax import host
-    from pixelmpc_jax.apps import tune_report
+    from pixelmpc_jax.apps.tuning import report, search
 
     host.use_compilation_cache()
     setup = _setup(args)
-    study = tune.run_tune(setup, args.out, args.trials, args.minutes, args.storage, args.study, args.sampler_seed,
-                          reuse=args.reuse)
-    print(tune_report.summary(study, args.out))
+    study = search.run_tune(setup, args.out, args.trials, args.minutes, args.storage, args.study, args.sampler_seed,
+                            reuse=args.reuse)
+    print(report.summary(study, args.out))
     if args.validate_seed is not None:
-        record = tune.validate(study, setup, args.out, args.validate_seed, args.validate_laps, reuse=args.reuse)
-        print(tune_report.validation_markdown(record))
+        record = search.validate(study, setup, args.out, args.validate_seed, args.validate_laps, reuse=args.reuse)
+        print(report.validation_markdown(record))
     return 0

@@ -7,7 +7,7 @@ import csv
 import datetime
 from pathlib import Path
 
-from pixelmpc_jax.apps import frontier
+from pixelmpc_jax.apps.experiments import frontier
 from pixelmpc_jax.strict_json import json_safe, write_json_atomic
 
 FIGURES = ("score", "feasible", "gain", "lap_time_s", "lap_time_change", "avoidable_s", "vis_below_50_s",

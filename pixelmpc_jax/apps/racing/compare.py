@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps import race
-from pixelmpc_jax.apps.presets import nominal_of
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing import race
+from pixelmpc_jax.apps.racing.presets import nominal_of
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 from pixelmpc_jax.strict_json import write_json_atomic
@@ -27,7 +27,7 @@ COLOURS = {"pixelmpc": "tab:green", "mppi": "tab:red"}
 
 def controller_race(spec: RaceSpec, name: str) -> RaceSpec:
     """The race controller ``name`` flies in a comparison of ``spec``: nominal MPPI with the paper's sampling
-    (:func:`~pixelmpc_jax.apps.presets.nominal_of`), PixelMPC as the spec says."""
+    (:func:`~pixelmpc_jax.apps.racing.presets.nominal_of`), PixelMPC as the spec says."""
     return nominal_of(spec) if name == "mppi" else spec.replace(controller=name)
 
 
@@ -62,7 +62,7 @@ def run_compare(spec: RaceSpec, controllers=("pixelmpc", "mppi"), out: Path | No
                     continue
                 books[name].add(laps)
                 if video and out is not None and name == "pixelmpc" and laps[0].record["seed"] == spec.seed:
-                    from pixelmpc_jax.apps.video import write_onboard_video
+                    from pixelmpc_jax.apps.racing.video import write_onboard_video
 
                     write_onboard_video(races[name].flight.base.track, laps[0].log, Path(out) / "onboard.mp4",
                                         races[name].camera)

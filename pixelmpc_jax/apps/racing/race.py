@@ -13,7 +13,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from pixelmpc_jax.apps.spec import COURSES, RaceSpec
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
@@ -33,7 +33,7 @@ def make_course(course: str = "alphapilot") -> track_lib.Track:
         return course_lib.straight_course()
     if Path(course).is_file():
         return course_lib.load_course(course)
-    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)} or a course file")
+    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(course_lib.COURSES)} or a course file")
 
 
 def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool) -> env_lib.World:
@@ -211,7 +211,7 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
         for laps in fly_batches(race):
             book.add(laps)
             if video and out is not None and laps[0].record["seed"] == spec.seed:
-                from pixelmpc_jax.apps.video import write_onboard_video
+                from pixelmpc_jax.apps.racing.video import write_onboard_video
 
                 write_onboard_video(race.flight.base.track, laps[0].log, Path(out) / "onboard.mp4", race.camera)
             if out is not None:

@@ -1,5 +1,6 @@
-"""Named races, each a frozen :class:`~pixelmpc_jax.apps.spec.RaceSpec` with one home here: ``paper``, the paper's
-formulation as faithfully as it can be flown, and ``best``, the best configuration measured on the speed frontier.
+"""Named races, each a frozen :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` with one home here: ``paper``, the
+paper's formulation as faithfully as it can be flown, and ``best``, the best configuration measured on the speed
+frontier.
 
 ``pixelmpc race --preset NAME`` starts from one (``best`` by default) and any flag overrides a single field of
 it; every output records the preset's name beside the settings it resolved to.
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 
@@ -49,9 +50,9 @@ HAND_TUNED_BEST = PixelMPCConfig(pixel_model="vdof", pixel_cost="border", c_pixe
 
 
 def _tuned_best() -> PixelMPCConfig:
-    """Trial 17 of `pixelmpc tune --space best --trials 30` (experiments/results/tune/best_bound5.json), exactly:
-    the highest training gain among the trials within +5 % of nominal MPPI's lap on every lap; with the clearance
-    :data:`BEST_VEHICLE_RADIUS_M` in its racing cost."""
+    """Trial 17 of `pixelmpc tune --space hand-tuned --trials 30` (experiments/results/tune/best_bound5.json),
+    exactly: the highest training gain among the trials within +5 % of nominal MPPI's lap on every lap; with the
+    clearance :data:`BEST_VEHICLE_RADIUS_M` in its racing cost."""
     mppi = dataclasses.replace(PixelMPCConfig().mppi, temperature=676.8107401099043,
                                noise_exponent=0.3299107461606072)
     return PixelMPCConfig(mppi=mppi, racing=costs.RacingCostConfig(vehicle_radius=BEST_VEHICLE_RADIUS_M),

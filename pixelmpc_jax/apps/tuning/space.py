@@ -1,7 +1,7 @@
 """The search space of ``pixelmpc tune``: named controller settings, each a range or a list of choices.
 
 A space is a JSON object whose keys name fields of the :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` a race
-flies, dotted as :meth:`~pixelmpc_jax.apps.spec.RaceSpec.record` nests them under ``"config"`` (``"c_pixel"``,
+flies, dotted as :meth:`~pixelmpc_jax.apps.racing.spec.RaceSpec.record` nests them under ``"config"`` (``"c_pixel"``,
 ``"mppi.temperature"``, ``"racing.heading_weight"``), and whose values are either a range
 ``{"low": 2e6, "high": 3e7, "log": true}`` (``log`` optional, false by default) or ``{"choices": [...]}``::
 
@@ -21,15 +21,15 @@ import json
 import math
 from pathlib import Path
 
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 
-# Around the hand-tuned `best` settings the search started from (presets.HAND_TUNED_BEST: vdof, border cost,
+# "hand-tuned": around the hand-tuned settings the search started from (presets.HAND_TUNED_BEST: vdof, border cost,
 # c_pixel 9e6, box size limit 0.5, t_f 1 s, lambda 200, white noise): the settings the hand tuning moved, each over
-# the range the 4-lap probes spanned and somewhat beyond. The tuned preset sits near two edges (lambda 747, border
-# margin 0.076): a further search would widen those.
+# the range the 4-lap probes spanned and somewhat beyond. The tuned `best` preset sits near two edges (lambda 747,
+# border margin 0.076): a further search would widen those.
 SPACES = {
-    "best": {
+    "hand-tuned": {
         "c_pixel": {"low": 2e6, "high": 3e7, "log": True},
         "border_margin": {"low": 0.05, "high": 0.3},
         "box_size_limit": {"low": 0.3, "high": 0.8},

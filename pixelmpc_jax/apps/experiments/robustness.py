@@ -17,12 +17,12 @@ named set of levers (:data:`LEVER_SETS`) on: ``model``, the disturbance observer
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
 and gate sets at once (:data:`COMBINED_LEVERS`). The sets fly apart, so each is measured on its own. The ``best``
 preset already keeps a clearance to the frames widened by the filter's error
-(:data:`~pixelmpc_jax.apps.presets.BEST_VEHICLE_RADIUS_M`).
+(:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
 A failed lap whose estimate strayed more than :data:`DIVERGED_M` from the truth counts as ``estimate_diverged``, one
 that turned upside down as ``flip``, and any other by the end of its episode (gate frame, ground, wall, missed
-gate, timeout). Writes ``results.json`` (resumable per cell, :func:`~pixelmpc_jax.apps.grid.run_grid`),
+gate, timeout). Writes ``results.json`` (resumable per cell, :func:`~pixelmpc_jax.apps.racing.grid.run_grid`),
 ``robustness.json``, ``REPORT.md`` and ``robustness.png`` (success per fault, level and loop at a glance).
 """
 
@@ -34,13 +34,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pixelmpc_jax.apps.grid import Cell, fmt, is_current, load_results, run_grid
-from pixelmpc_jax.apps.presets import preset
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
+from pixelmpc_jax.apps.racing.grid import Cell, fmt
+from pixelmpc_jax.apps.racing.presets import preset
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, LEVELS, Faults, fault_level
-from pixelmpc_jax.strict_json import write_json_atomic
 
 CONTROLLERS = ("mppi", "pixelmpc")
 ESTIMATORS = ("pf", "truth")
@@ -170,11 +171,6 @@ def summarise(results: dict, cells: list[RobustCell]) -> list[dict]:
         if res is None:
             continue
         laps, agg = res["laps"], res.get("aggregate", {})
-        failures: dict = {}
-        for lap in laps:
-            cause = failure_cause(lap)
-            if cause is not None:
-                failures[cause] = failures.get(cause, 0) + 1
         errors = [lap["max_position_error_m"] for lap in laps if lap.get("max_position_error_m") is not None]
         rows.append({
             "cell": rc.cell.name, "fault": rc.fault, "level": rc.level, "controller": rc.controller,
@@ -183,7 +179,7 @@ def summarise(results: dict, cells: list[RobustCell]) -> list[dict]:
             "success_rate": agg.get("success_rate"), "lap_time_s": agg.get("lap_time_s"),
             **{key: agg.get(key) for key in ("time_vis_below_50_s", "time_vis_zero_s", "share_target_in_view",
                                              "mean_target_angle_deg")},
-            "failures": failures, "max_position_error_m": max(errors) if errors else None,
+            "failures": failure_counts(laps, failure_cause), "max_position_error_m": max(errors) if errors else None,
             "shared_from": res.get("shared_from"), "wall_time_s": res.get("wall_time_s"),
         })
     return rows
@@ -323,37 +319,32 @@ def plot_success(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def robustness_record(rows: list[dict]) -> dict:
+    """``robustness.json``: the rows beside the device, the divergence bound and the fault levels."""
+    return {"device": device_line(), "diverged_m": DIVERGED_M, "rows": rows,
+            "levels": {f: {lv: {"settings": e.settings, "why": e.why} for lv, e in levels.items()}
+                       for f, levels in FAULT_LEVELS.items()}}
+
+
+def robustness_figure(rows: list[dict], out: Path) -> str:
+    """Draw ``robustness.png`` (none without rows; the report links it)."""
+    if rows:
+        plot_success(rows, out / "robustness.png")
+    return ""
+
+
 def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: tuple = (),
                           reuse=(), run: bool = True) -> list[dict]:
-    """Fly the robustness grid into ``out`` (resumable per cell) and write its report; returns the rows.
+    """Fly the robustness grid into ``out`` (resumable per cell, each cell its own laps from :data:`SEED`) and write
+    its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows.
 
     ``reuse``: other grids' output folders whose finished cells answer a cell here (the same race, laps and seed:
     the fault-free races) and are copied, not flown. ``run=False``: only the report of the cells already finished.
+    A cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun.
     """
-    out = Path(out)
     cells = robustness_cells(quick=quick, levers=levers)
-    interrupted = False
-    if run:
-        try:
-            for laps in sorted({rc.laps for rc in cells}, reverse=True):
-                run_grid([rc.cell for rc in cells if rc.laps == laps], out, laps=laps, seed=SEED, progress=progress,
-                         reuse=reuse)
-        except KeyboardInterrupt:
-            interrupted = True
-    # a cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun
-    flown = load_results(out)
-    results = {rc.cell.name: flown[rc.cell.name] for rc in cells
-               if is_current(flown.get(rc.cell.name), rc.cell.race(rc.laps, SEED, None))}
-    rows = summarise(results, cells)
-    missing = [rc.cell.name for rc in cells if rc.cell.name not in results]
-    out.mkdir(parents=True, exist_ok=True)
-    if rows:
-        plot_success(rows, out / "robustness.png")
-    write_json_atomic(out / "robustness.json", {"device": device_line(), "diverged_m": DIVERGED_M, "rows": rows,
-                                                "levels": {f: {lv: {"settings": e.settings, "why": e.why}
-                                                               for lv, e in levels.items()}
-                                                           for f, levels in FAULT_LEVELS.items()}})
-    (out / "REPORT.md").write_text(markdown_report(rows, device_line(), missing))
-    if interrupted:
-        raise KeyboardInterrupt(f"interrupted: {len(missing)} cell(s) not finished; run again to resume")
-    return rows
+    experiment = Experiment(
+        tuple(rc.cell for rc in cells), summarise=lambda results: summarise(results, cells),
+        report=lambda rows, missing: markdown_report(rows, device_line(), missing), plot=robustness_figure,
+        record=robustness_record, record_file="robustness.json", cell_laps={rc.cell.name: rc.laps for rc in cells})
+    return skeleton.run(experiment, out, None, SEED, progress, reuse=reuse, flies=run)

@@ -23,10 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
-from pixelmpc_jax.apps.presets import PAPER_LABEL_SPEEDS, pace_speed, preset
+from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
+from pixelmpc_jax.apps.racing.grid import Cell, fmt
+from pixelmpc_jax.apps.racing.presets import PAPER_LABEL_SPEEDS, pace_speed, preset
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.strict_json import write_json_atomic
 
 # Table IV of the paper: (success rate, lap time mean, lap time 2 sigma) per (controller, target speed).
 PAPER_TABLE_IV = {("mppi", 14.0): (0.80, 31.8, 0.7), ("pixelmpc", 14.0): (0.80, 33.0, 0.8),
@@ -66,21 +67,13 @@ def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False) -> list[C
 
 def label_of(cell: Cell) -> float:
     """The paper's label a cell answers: its own target, or the label whose pace it flies."""
-    from pixelmpc_jax.apps.presets import PAPER_PACE_SPEEDS
+    from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEEDS
 
     return next((label for label, pace in PAPER_PACE_SPEEDS.items() if pace == cell.spec.speed), cell.spec.speed)
 
 
 def who_of(cell: Cell) -> str:
     return cell.name.split("_", 1)[0]
-
-
-def _failures(laps: list[dict]) -> dict:
-    crashes: dict = {}
-    for lap in laps:
-        if not lap["success"]:
-            crashes[lap["crash"]] = crashes.get(lap["crash"], 0) + 1
-    return crashes
 
 
 def _view(agg: dict) -> dict:
@@ -109,7 +102,7 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
             "label": label, "point": "label" if label == cell.spec.speed else "pace", "course": cell.spec.course,
             "success_rate": res["aggregate"]["success_rate"], "num_laps": len(laps),
             "lap_time_s": res["aggregate"]["lap_time_s"], "gates_passed": res["aggregate"]["gates_passed"],
-            "failures": _failures(laps), **_view(res["aggregate"]),
+            "failures": failure_counts(laps), **_view(res["aggregate"]),
             "sigma_max": {"mean": float(maxima.mean()), "two_sigma": float(2 * maxima.std()),
                           "max": float(maxima.max()), "n": int(maxima.size)} if maxima.size else None,
             "mean_position_error_m": float(errors.mean()) if errors.size else None,
@@ -187,7 +180,7 @@ def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: st
 
 def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
     """One top-down figure per cell: its trajectories coloured by the position covariance trace."""
-    from pixelmpc_jax.apps.race import make_course, plot_trajectories
+    from pixelmpc_jax.apps.racing.race import make_course, plot_trajectories
 
     written = []
     for cell in cells:
@@ -208,41 +201,41 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
     return written
 
 
-def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
-                          dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
-                          reuse=()) -> dict:
-    """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
-    into ``out``, laps from ``seed``; cells a folder in ``reuse`` holds are copied, not flown. With ``run=False``
-    only the report of the cells already finished in ``out`` is written."""
-    from pixelmpc_jax.apps.paper import plot_smoothness
-
-    out = Path(out)
-    cells = race_cells(quick=quick)
-    lanes = straight_cells(quick=quick) if straight else []
-    interrupted = False
-    if run:
-        try:
-            results = run_grid(cells + lanes, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params,
-                               reuse=reuse)
-        except KeyboardInterrupt:
-            results = load_results(out)  # write the finished cells' report, then stop
-            interrupted = True
-    else:
-        results = load_results(out)
-    race_rows, straight_rows = summarise(results, cells), summarise(results, lanes)
-    missing = [cell.name for cell in cells + lanes if cell.name not in results]
-    report = markdown_report(race_rows, straight_rows, device_line())
+def estimation_report(summary: dict, missing: list[str]) -> str:
+    """REPORT.md of the summary (:func:`markdown_report`) and the cells not yet run."""
+    report = markdown_report(summary["table_iv"], summary["straight_lane"], device_line())
     if missing:
         report += f"\nNot yet run (the experiment resumes with them): {', '.join(missing)}.\n"
+    return report
+
+
+def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
+    """Draw Fig. 6 with the filter (``fig6_pf.png``, with race rows) and Fig. 9 of ``cells``; returns the report's
+    links to them."""
+    from pixelmpc_jax.apps.experiments.paper import plot_smoothness
+
+    text = ""
+    race_rows = summary["table_iv"]
     if race_rows:
         plot_smoothness([{**r, "label": f"{NAMES[r['who']].replace('`', '')} {r['speed']:g} m/s"} for r in race_rows],
                         out / "fig6_pf.png", "Fig. 6 with the particle filter: total variation of the attitude per "
                         "lap (mean ± 2σ)")
-        report += "\n![Fig. 6 with the particle filter](fig6_pf.png)\n"
-    figures = plot_fig9(out, cells + lanes)
-    report += "".join(f"\n![{path.stem}]({path.name})\n" for path in figures)
-    write_json_atomic(out / "summary.json", {"table_iv": race_rows, "straight_lane": straight_rows})
-    (out / "REPORT.md").write_text(report)
-    if interrupted:
-        raise KeyboardInterrupt(f"interrupted: {len(missing)} cell(s) not finished; run again to resume")
-    return {"table_iv": race_rows, "straight_lane": straight_rows}
+        text += "\n![Fig. 6 with the particle filter](fig6_pf.png)\n"
+    return text + "".join(f"\n![{path.stem}]({path.name})\n" for path in plot_fig9(out, cells))
+
+
+def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
+                          dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
+                          reuse=()) -> dict:
+    """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
+    into ``out``, laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`;
+    cells a folder in ``reuse`` holds are copied, not flown. With ``run=False`` only the report of the cells already
+    finished in ``out`` is written."""
+    cells = race_cells(quick=quick)
+    lanes = straight_cells(quick=quick) if straight else []
+    experiment = Experiment(
+        tuple(cells + lanes),
+        summarise=lambda results: {"table_iv": summarise(results, cells), "straight_lane": summarise(results, lanes)},
+        report=estimation_report, plot=lambda summary, folder: estimation_figures(summary, folder, cells + lanes),
+        record=lambda summary: summary)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run)

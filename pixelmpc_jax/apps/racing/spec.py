@@ -1,5 +1,5 @@
 """One race's settings, frozen: :class:`RaceSpec`. The ``pixelmpc race`` command builds one from its arguments,
-:func:`~pixelmpc_jax.apps.race.run_laps` flies it, and an experiment grid keeps a finished cell only while its
+:func:`~pixelmpc_jax.apps.racing.race.run_laps` flies it, and an experiment grid keeps a finished cell only while its
 :meth:`RaceSpec.key` is unchanged.
 
 The controller's settings are its configuration as the library takes it, whole: one
@@ -26,8 +26,9 @@ from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, PixelMPCConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.faults import Faults
+from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
+from pixelmpc_jax.world.course import COURSES
 
-COURSES = ("alphapilot", "straight")
 # Settings added after races were recorded: left out of the record while at their defaults, so every race flown
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
@@ -53,7 +54,7 @@ class RaceSpec:
         seed: seed of the first lap.
         perturb: each lap's gates perturbed within the AlphaPilot bounds (with the lap's seed).
         course: "alphapilot", "straight" or the path of a course file in the AlphaPilot file's format
-            (:func:`~pixelmpc_jax.apps.race.make_course`); a file enters the key by its contents.
+            (:func:`~pixelmpc_jax.apps.racing.race.make_course`); a file enters the key by its contents.
         detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`).
         estimator: "truth" or "pf" (the particle filter).
         max_time_s: timeout per lap, s.
@@ -76,7 +77,7 @@ class RaceSpec:
     course: str = "alphapilot"
     detector: str = "geometry"
     estimator: str = "truth"
-    max_time_s: float = 60.0
+    max_time_s: float = LAP_TIME_LIMIT_S
     dof_weights: str | None = None
     guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)

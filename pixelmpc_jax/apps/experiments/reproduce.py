@@ -12,7 +12,7 @@ Parts (each in its own folder under ``out``, each resumable on its own), in the 
   quietest machine);
 - ``table2_projection`` (not in ``all``): the Tables II-III grid with the PAMPC-style projection pixel model;
 - ``robustness`` (not in ``all``, not in the paper): the faults of a real flight
-  (:mod:`pixelmpc_jax.apps.robustness`), both controllers on both estimators at the paper's pace.
+  (:mod:`pixelmpc_jax.apps.experiments.robustness`), both controllers on both estimators at the paper's pace.
 
 Every race flies the laps of seeds from :data:`SEED` on (seeds no setting was tuned on). A cell that another part
 already flew (the same race, laps and seed) is copied from it, not flown again.
@@ -62,14 +62,14 @@ def _laps(part: str, quick: bool) -> int:
 
 
 def _frontier_speeds(quick: bool) -> tuple:
-    from pixelmpc_jax.apps.frontier import DEFAULT_SPEEDS, QUICK_SPEEDS
+    from pixelmpc_jax.apps.experiments.frontier import DEFAULT_SPEEDS, QUICK_SPEEDS
 
     return QUICK_SPEEDS if quick else DEFAULT_SPEEDS
 
 
 def _run_frontier(folder: Path, quick: bool, progress: bool) -> str:
-    from pixelmpc_jax.apps.frontier import preset_cells, run_frontier
-    from pixelmpc_jax.apps.presets import PAPER_PACE_SPEED
+    from pixelmpc_jax.apps.experiments.frontier import preset_cells, run_frontier
+    from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
 
     cells = preset_cells(PAPER_PACE_SPEED)
     run_frontier(_frontier_speeds(quick), cells[:2] if quick else cells, folder, laps=_laps("frontier", quick),
@@ -78,7 +78,7 @@ def _run_frontier(folder: Path, quick: bool, progress: bool) -> str:
 
 
 def _run_table2(folder: Path, quick: bool, progress: bool, pixel_model: str = "dof") -> str:
-    from pixelmpc_jax.apps.paper import visibility_experiment
+    from pixelmpc_jax.apps.experiments.paper import visibility_experiment
 
     root = folder.parent
     frontier_laps = _laps("frontier", quick)
@@ -91,7 +91,7 @@ def _run_table2(folder: Path, quick: bool, progress: bool, pixel_model: str = "d
 
 
 def _run_table4(folder: Path, quick: bool, progress: bool) -> str:
-    from pixelmpc_jax.apps.estimation import estimation_experiment
+    from pixelmpc_jax.apps.experiments.estimation import estimation_experiment
 
     estimation_experiment(folder, laps=_laps("table4", quick), quick=quick, progress=progress, seed=SEED)
     return "REPORT.md"
@@ -117,7 +117,7 @@ def _run_bench(folder: Path, quick: bool, progress: bool) -> str:
 
 
 def _run_robustness(folder: Path, quick: bool, progress: bool) -> str:
-    from pixelmpc_jax.apps.robustness import robustness_experiment
+    from pixelmpc_jax.apps.experiments.robustness import robustness_experiment
 
     robustness_experiment(folder, quick=quick, progress=progress)
     return "REPORT.md"
@@ -131,7 +131,7 @@ RUNNERS: dict[str, Callable[[Path, bool, bool], str]] = {
 
 def _part_wall_time(folder: Path, measured: float) -> float:
     """A part's wall time: this run's, or, for a grid resumed over several runs, the sum of its cells'."""
-    from pixelmpc_jax.apps.grid import load_results
+    from pixelmpc_jax.apps.racing.grid import load_results
 
     cells = load_results(folder)
     return max(measured, sum(cell.get("wall_time_s", 0.0) for cell in cells.values() if isinstance(cell, dict)))
@@ -159,8 +159,8 @@ def _relink(markdown: str, folder: str) -> str:
 
 def _overview(out: Path) -> list[str]:
     """The presets, and the paper's pace as the frontier measured it: our nominal laps beside the paper's."""
-    from pixelmpc_jax.apps.frontier import interpolate
-    from pixelmpc_jax.apps.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, WHY
+    from pixelmpc_jax.apps.experiments.frontier import interpolate
+    from pixelmpc_jax.apps.racing.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, WHY
 
     lines = ["The presets: " + "; ".join(f"`{name}`: {why}" for name, why in WHY.items()) + ".", "",
              f"Every race flies seeds {SEED} onwards, which no setting was tuned on. The paper's pace: the targets at "

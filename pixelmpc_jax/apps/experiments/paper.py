@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps.frontier import nominal_cell
-from pixelmpc_jax.apps.grid import Cell, fmt, load_results, run_grid
-from pixelmpc_jax.apps.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, PRESETS, preset
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.experiments.frontier import gains_against, nominal_cell
+from pixelmpc_jax.apps.experiments.skeleton import Experiment
+from pixelmpc_jax.apps.racing.grid import Cell, fmt
+from pixelmpc_jax.apps.racing.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, PRESETS, preset
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.strict_json import write_json_atomic
 
 # The paper's Tables II and III (14 m/s, 10 races per cell, mean +- 2 sigma), keyed by (t_f, c_pixel).
 PAPER_VIS_BELOW_50 = {(0.0, 0.0): (13.6, 3.6), (1.0, 3e6): (3.6, 0.6), (1.0, 6e6): (1.9, 0.6), (1.0, 9e6): (1.5, 0.2),
@@ -271,46 +272,49 @@ def table_cells(pixel_model: str = "dof", quick: bool = False) -> list[Cell]:
     return [cell for speed in OPERATING_POINTS.values() for cell in visibility_cells(pixel_model, speed)]
 
 
-def visibility_report(out: Path, cells: list[Cell], results: dict, pixel_model: str = "dof",
-                      gains: dict | None = None) -> list[dict]:
-    """Write summary.json, REPORT.md and the figures from the cells finished so far in ``results``."""
-    out = Path(out)
-    rows = summarise(results, cells, gains)
-    missing = [cell.name for cell in cells if cell.name not in results]
-    title = f"Tables II-III and Fig. 6: visibility and lap time, PixelMPC ({pixel_model} pixel model)"
+def _title(pixel_model: str) -> str:
+    return f"Tables II-III and Fig. 6: visibility and lap time, PixelMPC ({pixel_model} pixel model)"
+
+
+def tables_report(rows: list[dict], missing: list[str], pixel_model: str = "dof") -> str:
+    """REPORT.md of the rows (:func:`markdown_report`), with the calibration note and the cells not yet run."""
     notes = CALIBRATION_NOTE
     if missing:
         notes += f"\n\nNot yet run (the grid resumes with them): {', '.join(missing)}."
-    write_json_atomic(out / "summary.json", rows)
-    (out / "REPORT.md").write_text(markdown_report(rows, title, device_line(), notes=notes))
-    if rows:
-        plot_visibility(rows, out / "visibility.png", title)
-        plot_smoothness(rows, out / "smoothness.png")
-        with open(out / "REPORT.md", "a") as report:
-            report.write("\n![visibility and lap time](visibility.png)\n\n![Fig. 6](smoothness.png)\n")
-    return rows
+    return markdown_report(rows, _title(pixel_model), device_line(), notes=notes)
+
+
+def tables_figures(rows: list[dict], out: Path, pixel_model: str = "dof") -> str:
+    """Draw ``visibility.png`` and ``smoothness.png`` (none without rows); returns the report's links to them."""
+    if not rows:
+        return ""
+    plot_visibility(rows, out / "visibility.png", _title(pixel_model))
+    plot_smoothness(rows, out / "smoothness.png")
+    return "\n![visibility and lap time](visibility.png)\n\n![Fig. 6](smoothness.png)\n"
+
+
+def tables_experiment(cells: list[Cell], pixel_model: str = "dof", gains=None) -> Experiment:
+    """Tables II/III and Fig. 6 over ``cells`` as an experiment: one row per finished cell (:func:`summarise`, with
+    the frontier gains ``gains(results)`` returns, None without them) in ``summary.json``, ``REPORT.md`` and
+    ``visibility.png``, ``smoothness.png``."""
+    return Experiment(
+        tuple(cells), summarise=lambda results: summarise(results, cells, gains(results) if gains else None),
+        report=lambda rows, missing: tables_report(rows, missing, pixel_model),
+        plot=lambda rows, out: tables_figures(rows, out, pixel_model), record=lambda rows: rows)
 
 
 def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", quick: bool = False,
                           progress: bool = True, dof_params=None, run: bool = True, seed: int = 0, reuse=(),
                           frontier_dir: Path | None = None, frontier_speeds=()) -> list[dict]:
     """Tables II/III and Fig. 6 at the paper's label and its pace (``pixel_model="projection"`` for the PAMPC-style
-    comparison), laps from ``seed``. Cells a folder in ``reuse`` already holds are copied, not flown. The frontier
-    gains are read against nominal MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with the same laps and
-    seed; none without it). With ``run=False`` only the report of the cells already finished in ``out`` is
-    written."""
-    from pixelmpc_jax.apps.frontier import gains_against
-
-    out = Path(out)
+    comparison), laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`.
+    Cells a folder in ``reuse`` already holds are copied, not flown. The frontier gains are read against nominal
+    MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with the same laps and seed; none without it). With
+    ``run=False`` only the report of the cells already finished in ``out`` is written."""
     cells = table_cells(pixel_model, quick)
-    if run:
-        try:
-            results = run_grid(cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params,
-                               reuse=reuse)
-        except KeyboardInterrupt:
-            visibility_report(out, cells, load_results(out), pixel_model)  # the finished cells' report
-            raise
-    else:
-        results = load_results(out)
-    gains = gains_against(results, cells, frontier_dir, frontier_speeds, laps, seed) if frontier_dir else None
-    return visibility_report(out, cells, results, pixel_model, gains)
+
+    def gains(results: dict) -> dict:
+        return gains_against(results, cells, frontier_dir, frontier_speeds, laps, seed)
+
+    experiment = tables_experiment(cells, pixel_model, gains if frontier_dir else None)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run)

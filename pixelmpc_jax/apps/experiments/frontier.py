@@ -26,12 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps import grid
-from pixelmpc_jax.apps.spec import RaceSpec
+from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.experiments.skeleton import Experiment
+from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES
-from pixelmpc_jax.strict_json import json_safe, write_json_atomic
-from pixelmpc_jax.timing import CONTROL_DT
+from pixelmpc_jax.strict_json import json_safe
+from pixelmpc_jax.timing import CONTROL_DT, LAP_TIME_LIMIT_S
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
 AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
@@ -71,18 +73,18 @@ def cell_settings(spec: RaceSpec) -> dict:
     return {k: v for k, v in spec.changed_settings().items() if k not in ("pixel_model", "c_pixel", "t_f")}
 
 
-BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the best weights of the 4-lap sweep at 8 m/s (docs/results.md)
+BORDER_C_PIXEL = {"projection": 9e6, "dof": 3e7}  # the weights the 4-lap sweep at 8 m/s chose (docs/results.md)
 
 
-def best_cells() -> tuple:
-    """The border cost at each pixel model's best weight (projection 9e6, DOF 3e7), 8 m/s, t_f 1."""
+def border_cells() -> tuple:
+    """The border cost at each pixel model's weight of the 4-lap sweep (projection 9e6, DOF 3e7), 8 m/s, t_f 1."""
     return tuple(pixel_cell(model, "border", BORDER_C_PIXEL[model]) for model in ("projection", "dof"))
 
 
 def preset_cells(speed: float) -> tuple:
     """The ``paper`` and ``best`` presets at ``speed``, and the border cost with the exact projection pixel model
     (the reference: a pixel model that knows where the gate is)."""
-    from pixelmpc_jax.apps.presets import preset
+    from pixelmpc_jax.apps.racing.presets import preset
 
     return (grid.Cell(f"paper_v{speed:g}", preset("paper").replace(speed=speed)),
             grid.Cell(f"best_v{speed:g}", preset("best").replace(speed=speed)),
@@ -90,9 +92,9 @@ def preset_cells(speed: float) -> tuple:
 
 
 def default_cells() -> tuple:
-    """The paper's L1 cost at c_pixel 9e6 and the border cost at its best weight, each with the projection and
+    """The paper's L1 cost at c_pixel 9e6 and the border cost at the sweep's weight, each with the projection and
     the DOF, 8 m/s."""
-    return tuple(pixel_cell(model, "l1") for model in ("projection", "dof")) + best_cells()
+    return tuple(pixel_cell(model, "l1") for model in ("projection", "dof")) + border_cells()
 
 
 def default_spec() -> FrontierSpec:
@@ -101,10 +103,10 @@ def default_spec() -> FrontierSpec:
 
 def quick_spec() -> FrontierSpec:
     """Three nominal speeds around the paper's pace and the border-cost cells (projection, DOF), 4 laps."""
-    return FrontierSpec(QUICK_SPEEDS, best_cells(), laps=4)
+    return FrontierSpec(QUICK_SPEEDS, border_cells(), laps=4)
 
 
-def nominal_cell(speed: float, max_time_s: float = 60.0) -> grid.Cell:
+def nominal_cell(speed: float, max_time_s: float = LAP_TIME_LIMIT_S) -> grid.Cell:
     return grid.Cell(f"nominal_{speed:g}", RaceSpec("mppi", speed=float(speed), max_time_s=max_time_s))
 
 
@@ -202,7 +204,7 @@ def gain_interval(cell: np.ndarray, nominal: list[np.ndarray], draws: int = BOOT
     return float(np.percentile(gains, tail)), float(np.percentile(gains, 100 - tail))
 
 
-def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = 60.0) -> dict:
+def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S) -> dict:
     """The frontier from the grid's results (``{cell name: race results}``); cells not run yet are listed
     under ``missing``."""
     nominal, missing = [], []
@@ -259,42 +261,36 @@ def gains_against(results: dict, cells, frontier_dir: Path, nominal_speeds, laps
     return {row["name"]: row for row in built["cells"]}
 
 
-def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
-                 dof_params=None, max_time_s: float = 60.0, course: str | None = None) -> dict:
-    """Fly nominal MPPI at each of ``nominal_speeds`` (episodes of at most ``max_time_s``) and every PixelMPC
-    cell with :func:`grid.run_grid` (resumable per cell), then write ``frontier.json``, ``REPORT.md`` and
-    ``frontier.png`` into ``out``; returns the frontier. ``course`` (a name or a course file) flies every cell
-    on that course instead of the cells' own.
+def frontier_figure(frontier: dict, out: Path) -> str:
+    """Draw ``frontier.png`` (the report links it)."""
+    plot(frontier, Path(out) / "frontier.png")
+    return ""
 
-    Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
-    KeyboardInterrupt is raised again."""
-    out = Path(out)
+
+def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S,
+                        course: str | None = None) -> Experiment:
+    """Nominal MPPI at each of ``nominal_speeds`` (episodes of at most ``max_time_s``) and every PixelMPC cell as an
+    experiment: the frontier (:func:`build`) in ``frontier.json``, ``REPORT.md`` and ``frontier.png``. ``course`` (a
+    name or a course file) flies every cell on that course instead of the cells' own."""
     all_cells = [nominal_cell(speed, max_time_s) for speed in nominal_speeds] + list(cells)
     if course is not None:
         all_cells = [dataclasses.replace(cell, spec=cell.spec.replace(course=course)) for cell in all_cells]
         cells = all_cells[len(nominal_speeds):]
-    names = [cell.name for cell in all_cells]
-    if len(set(names)) != len(names):
-        raise ValueError(f"cell names repeat: {sorted(n for n in set(names) if names.count(n) > 1)}")
-    interrupted = False
-    try:
-        grid.run_grid(all_cells, out, laps=laps, seed=seed, progress=progress, dof_params=dof_params)
-    except KeyboardInterrupt:
-        interrupted = True
-    # only the cells of this run (settings, laps, seed, weights) count, also after an interruption
-    results = grid.current_results(all_cells, out, laps, seed, dof_params)
-    frontier = build(results, nominal_speeds, cells, laps, seed, max_time_s)
-    write(frontier, out)
-    if interrupted or frontier["missing"]:
-        raise KeyboardInterrupt(f"interrupted: {len(frontier['missing'])} cell(s) not finished; run again to resume")
-    return frontier
+    return Experiment(tuple(all_cells),
+                      summarise=lambda results: build(results, nominal_speeds, cells, laps, seed, max_time_s),
+                      report=lambda frontier, missing: report(frontier), plot=frontier_figure, record=json_safe,
+                      record_file="frontier.json")
 
 
-def write(frontier: dict, out: Path) -> None:
-    out = Path(out)
-    write_json_atomic(out / "frontier.json", json_safe(frontier))
-    plot(frontier, out / "frontier.png")
-    (out / "REPORT.md").write_text(report(frontier))
+def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
+                 dof_params=None, max_time_s: float = LAP_TIME_LIMIT_S, course: str | None = None) -> dict:
+    """Fly the frontier (:func:`frontier_experiment`) into ``out`` with
+    :func:`~pixelmpc_jax.apps.experiments.skeleton.run` (resumable per cell) and write ``frontier.json``,
+    ``REPORT.md`` and ``frontier.png``; returns the frontier. Only the cells of this run (settings, laps, seed,
+    weights) count. Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
+    KeyboardInterrupt is raised again."""
+    experiment = frontier_experiment(nominal_speeds, cells, laps, seed, max_time_s, course)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params)
 
 
 def _f(value, digits: int = 2, sigma=None) -> str:

@@ -1,9 +1,9 @@
 """``pixelmpc tune``: a controller's settings found by search against the speed frontier, not by hand (issue 29).
 
 **Objective.** Nominal MPPI flies the training seeds at a few target speeds once (the nominal frontier of
-:mod:`~pixelmpc_jax.apps.frontier`); every trial flies the base race (a preset, ``best`` by default) with the
-trial's settings on the same seeds and laps, through :func:`~pixelmpc_jax.apps.grid.run_grid` (the grids' laps,
-batched over the devices), and scores its frontier gain: the nominal avoidable low-visibility time at the
+:mod:`~pixelmpc_jax.apps.experiments.frontier`); every trial flies the base race (a preset, ``best`` by default)
+with the trial's settings on the same seeds and laps, through :func:`~pixelmpc_jax.apps.racing.grid.run_grid` (the
+grids' laps, batched over the devices), and scores its frontier gain: the nominal avoidable low-visibility time at the
 trial's mean lap time over the trial's (floored at one control tick, as :func:`frontier.build` does; the avoidable
 time counts every tick a gate is the target, :func:`~pixelmpc_jax.sim.metrics.visibility_masks`). The constraints
 that make a trial feasible: every lap completed; a mean lap time at most ``(1 + bound)`` times nominal MPPI's at the
@@ -42,10 +42,12 @@ import warnings
 from collections.abc import Callable
 from pathlib import Path
 
-from pixelmpc_jax.apps import frontier, grid, tune_report
-from pixelmpc_jax.apps.presets import preset
-from pixelmpc_jax.apps.spec import RaceSpec
-from pixelmpc_jax.apps.tune_space import Param, with_settings
+from pixelmpc_jax.apps.experiments import frontier
+from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing.presets import preset
+from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.apps.tuning import report
+from pixelmpc_jax.apps.tuning.space import Param, with_settings
 from pixelmpc_jax.strict_json import write_json_atomic
 
 NOMINAL_SPEEDS = (7.0, 8.0, 8.5, 10.0)  # m/s: brackets the best preset's laps at 8.5 m/s and +10 % beyond
@@ -261,7 +263,7 @@ def run_tune(setup: TuneSetup, out: Path, trials: int, minutes: float | None = N
     nominal = nominal_results(study, setup, out, fly, reuse)
     interrupted: list[int] = []
     callbacks = [optuna.study.MaxTrialsCallback(trials, states=(optuna.trial.TrialState.COMPLETE,)),
-                 lambda study, trial: tune_report.write_outputs(study, setup, nominal, out, trial)]
+                 lambda study, trial: report.write_outputs(study, setup, nominal, out, trial)]
     try:
         if completed(study) < trials:
             with warnings.catch_warnings():
@@ -276,9 +278,9 @@ def run_tune(setup: TuneSetup, out: Path, trials: int, minutes: float | None = N
         for trial in study.get_trials(deepcopy=False):
             if trial.number in interrupted and trial.state == optuna.trial.TrialState.FAIL:
                 retry(study, trial)
-        tune_report.write_outputs(study, setup, nominal, out)
+        report.write_outputs(study, setup, nominal, out)
         raise
-    tune_report.write_outputs(study, setup, nominal, out)
+    report.write_outputs(study, setup, nominal, out)
     return study
 
 
@@ -287,7 +289,7 @@ def validate(study, setup: TuneSetup, out: Path, seed: int, laps: int = 10, fly:
     """Fly the study's best trial, the base preset and the nominal frontier on the held-out seeds ``seed ..
     seed + laps - 1`` (races already flown in a ``reuse`` grid folder are copied, not flown) into
     ``out/validation/``; write ``validation.json`` and ``validation.md``; returns the table's record."""
-    trial = tune_report.best_trial(study)
+    trial = report.best_trial(study)
     if trial is None:
         raise ValueError("the study holds no completed trial to validate: run the search first")
     best = RaceSpec.from_record(trial.user_attrs["race"]).replace(laps=1, seed=0)
@@ -302,7 +304,7 @@ def validate(study, setup: TuneSetup, out: Path, seed: int, laps: int = 10, fly:
     results = fly(cells, folder, laps, seed)
     built = frontier.build(results, setup.nominal_speeds, [tuned, hand, at_target], laps, seed,
                            setup.base.max_time_s)
-    record = tune_report.validation_record(built, trial, setup, results)
+    record = report.validation_record(built, trial, setup, results)
     write_json_atomic(Path(out) / "validation.json", record)
-    (Path(out) / "validation.md").write_text(tune_report.validation_markdown(record))
+    (Path(out) / "validation.md").write_text(report.validation_markdown(record))
     return record

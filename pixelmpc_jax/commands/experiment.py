@@ -1,0 +1,202 @@
+"""``pixelmpc experiment NAME``: one experiment on its own, resumable per cell (``pixelmpc reproduce`` runs the
+paper's into one report): the paper's tables, the speed frontier, the robustness grid and the probes. The
+``experiments/`` scripts call these jobs."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from pixelmpc_jax import arguments as arg
+from pixelmpc_jax.apps.experiments.reproduce import SEED
+from pixelmpc_jax.arguments import SEED_MAX
+
+FRONTIER_CELLS = ("all", "border")  # frontier --cells: both pixel costs and models, or the border cost alone
+
+
+def add_experiment(sub) -> None:
+    """``pixelmpc experiment``: its jobs as sub-commands."""
+    p = sub.add_parser("experiment", help="one experiment on its own (resumable): table2, table4, robustness, "
+                                          "frontier, margin-probe, speed-probe")
+    jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
+    for add in (_add_table2, _add_table4, _add_robustness, _add_frontier, _add_margin_probe, _add_speed_probe):
+        add(jobs)
+
+
+def _print_report(out: Path) -> None:
+    print((out / "REPORT.md").read_text())
+
+
+def _add_table2(jobs) -> None:
+    p = jobs.add_parser("table2", help="Tables II and III and Fig. 6: visibility, lap time and smoothness against "
+                                       "nominal MPPI over the t_f x c_pixel grid, at the paper's 14 m/s label and its "
+                                       "pace, with the best preset beside them (REPORT.md, summary.json, figures)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/table2"),
+                   help="output directory")
+    p.add_argument("--laps", type=arg.positive_int, default=10, help="laps per cell (default 10)")
+    p.add_argument("--seed", type=arg.seed, default=SEED,
+                   help=f"seed of the first lap, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
+    p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
+                   help="the grid's pixel model: dof (the paper's) or projection (PAMPC-style; default dof)")
+    p.add_argument("--quick", action="store_true", help="nominal MPPI and the presets at the pace only")
+    p.set_defaults(func=_cmd_table2)
+
+
+def _cmd_table2(args) -> int:
+    from pixelmpc_jax.apps.experiments.paper import visibility_experiment
+
+    visibility_experiment(args.out, laps=args.laps, pixel_model=args.pixel_model, quick=args.quick, seed=args.seed)
+    _print_report(args.out)
+    return 0
+
+
+def _add_table4(jobs) -> None:
+    p = jobs.add_parser("table4", help="Table IV, the straight lane, Fig. 6 and Fig. 9: nominal MPPI against PixelMPC "
+                                       "on the particle filter's estimate (REPORT.md, summary.json, figures)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/table4"),
+                   help="output directory")
+    p.add_argument("--laps", type=arg.positive_int, default=25, help="laps per cell (default 25)")
+    p.add_argument("--seed", type=arg.seed, default=SEED,
+                   help=f"seed of the first lap, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
+    p.add_argument("--quick", action="store_true", help="the 16 m/s pace only (and the straight lane's)")
+    p.add_argument("--no-straight", action="store_true", help="skip the straight-lane test")
+    p.set_defaults(func=_cmd_table4)
+
+
+def _cmd_table4(args) -> int:
+    from pixelmpc_jax.apps.experiments.estimation import estimation_experiment
+
+    estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed)
+    _print_report(args.out)
+    return 0
+
+
+def _add_robustness(jobs) -> None:
+    from pixelmpc_jax.apps.experiments.robustness import LEVER_SETS
+
+    p = jobs.add_parser("robustness", help="the faults of a real flight: nominal MPPI and the best preset at the "
+                                           "paper's pace under each fault (REPORT.md, robustness.json, "
+                                           "robustness.png)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/robustness"),
+                   help="output directory")
+    p.add_argument("--quick", action="store_true",
+                   help="a smoke run: 2 laps per cell, the moderate level on the particle filter only")
+    p.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
+                   help="also fly PixelMPC's moderate filter cells with each set of levers on, apart: model "
+                        "(the disturbance observer, the latency in the model), filter (the filter's guards), "
+                        "gate and bias (the guards' two halves alone), robust (model and gate at once); no name: "
+                        "all five")
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
+                   help="other grids' output folders whose finished fault-free cells are copied, not flown")
+    p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
+    p.set_defaults(func=_cmd_robustness)
+
+
+def _cmd_robustness(args) -> int:
+    from pixelmpc_jax.apps.experiments.robustness import LEVER_SETS, robustness_experiment
+
+    levers = () if args.levers is None else tuple(args.levers or LEVER_SETS)
+    robustness_experiment(args.out, quick=args.quick, levers=levers, reuse=args.reuse, run=not args.report_only)
+    _print_report(args.out)
+    return 0
+
+
+def _add_frontier(jobs) -> None:
+    from pixelmpc_jax.world.course import COURSES
+
+    p = jobs.add_parser("frontier", help="the speed frontier: PixelMPC's avoidable low-visibility time against "
+                                         "nominal MPPI flown slower (frontier.json, REPORT.md, frontier.png)")
+    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder (resumable)")
+    p.add_argument("--laps", type=arg.positive_int, default=None, help="laps per point (default 10; 4 with --quick)")
+    p.add_argument("--seed", type=arg.seed, default=0,
+                   help=f"first seed, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)")
+    p.add_argument("--quick", action="store_true", help="4 nominal speeds and the 2 border-cost cells, 4 laps")
+    p.add_argument("--cells", choices=FRONTIER_CELLS, default="all",
+                   help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default) or "
+                        "border (the border cost alone, at each model's weight of the 4-lap sweep)")
+    p.add_argument("--speeds", type=arg.target_speed, nargs="+", default=None, metavar="M_S",
+                   help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (at least 2; default "
+                        "6 7 8 8.5 9.1 10 12 14, quick 6 8 8.5 10)")
+    p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
+                   help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
+                        "alphapilot)")
+    p.set_defaults(func=_cmd_frontier, validate=_two_speeds, precheck=_check_course)
+
+
+def _two_speeds(args) -> str | None:
+    if args.speeds is not None and len(set(args.speeds)) < 2:
+        return "argument --speeds: needs at least 2 different speeds to draw a frontier"
+    return None
+
+
+def _check_course(args) -> None:
+    """A course file's bad field, named before anything runs."""
+    if args.course is not None:
+        from pixelmpc_jax.apps.racing.race import make_course
+
+        make_course(args.course)
+
+
+def _cmd_frontier(args) -> int:
+    from pixelmpc_jax.apps.experiments import frontier
+
+    spec = frontier.quick_spec() if args.quick else frontier.default_spec()
+    changes = {}
+    if args.cells == "border":
+        changes["cells"] = frontier.border_cells()
+    if args.speeds:
+        changes["nominal_speeds"] = tuple(sorted(set(args.speeds)))
+    if args.laps is not None:
+        changes["laps"] = args.laps
+    spec = dataclasses.replace(spec, **changes)
+    frontier.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps, seed=args.seed,
+                          course=args.course)
+    _print_report(args.out)
+    return 0
+
+
+def _add_margin_probe(jobs) -> None:
+    p = jobs.add_parser("margin-probe", help="the best preset's clearance to the gate frames against the vehicle's "
+                                             "own, on the true state (the frontier) and on the filter (Table IV)")
+    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder (resumable)")
+    p.add_argument("--frontier", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
+                   help="grid folders (a frontier run's) whose nominal cells are copied, not flown again")
+    p.add_argument("--seed", type=arg.seed, default=SEED,
+                   help=f"the first lap's seed, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
+    p.set_defaults(func=_cmd_margin_probe)
+
+
+def _cmd_margin_probe(args) -> int:
+    from pixelmpc_jax.apps.experiments.margin_probe import margin_probe
+
+    margin_probe(args.out, args.frontier, args.seed)
+    _print_report(args.out / "truth")
+    _print_report(args.out / "pf")
+    return 0
+
+
+def _add_speed_probe(jobs) -> None:
+    p = jobs.add_parser("speed-probe", help="what PixelMPC's visibility costs in lap time over pixel-cost weights at "
+                                            "one target speed (REPORT.md, tradeoff.png)")
+    p.add_argument("--speed", type=arg.target_speed, default=8.0,
+                   help=f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default 8)")
+    p.add_argument("--laps", type=arg.positive_int, default=4, help="laps per cell (default 4)")
+    p.add_argument("--models", nargs="+", default=["projection", "dof"], choices=["projection", "dof"],
+                   help="the pixel models of the PixelMPC cells (default projection dof)")
+    p.add_argument("--c-pixel", type=arg.float_in(0.0, 1e30, lo_open=True), nargs="+", default=[9e6],
+                   help="pixel cost weights, in (0, 1e30] (default 9e6)")
+    p.add_argument("--t-f", type=arg.float_in(0.0, arg.T_F_MAX_S, lo_open=True, unit="s"), default=1.0,
+                   help=f"seconds of the horizon with the pixel cost, in (0, {arg.T_F_MAX_S:g}] (default 1)")
+    p.add_argument("--dof-weights", type=arg.weights_file, default=None,
+                   help="DOF weights file for the dof cells (default: the shipped weights)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/visibility_probe"), help="output directory")
+    p.set_defaults(func=_cmd_speed_probe)
+
+
+def _cmd_speed_probe(args) -> int:
+    from pixelmpc_jax.apps.experiments.speed_probe import speed_probe
+
+    speed_probe(args.out, speed=args.speed, laps=args.laps, models=tuple(args.models), c_pixels=tuple(args.c_pixel),
+                t_f=args.t_f, dof_weights=args.dof_weights)
+    _print_report(args.out)
+    return 0

@@ -1,0 +1,110 @@
+"""The jobs of ``pixelmpc experiment``, ``pixelmpc bench`` and ``pixelmpc tune`` (``pixelmpc_jax/commands/``): one
+parser lists every job, each argument is checked as parsed, each job calls its library function, and every script in
+``experiments/`` and ``benchmarks/`` is a thin call of one of them."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from pixelmpc_jax import cli
+
+ROOT = Path(__file__).resolve().parent.parent
+JOBS = {"experiment": ("table2", "table4", "robustness", "frontier", "margin-probe", "speed-probe"),
+        "bench": ("suite", "mppi-step", "closed-loop", "pf-step", "render")}
+
+
+def test_the_help_lists_every_job(capsys):
+    with pytest.raises(SystemExit) as done:
+        cli.main(["--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    for command in ("race", "tune", "reproduce", "course", "demo", "render", "collect", "train", "evaluate", *JOBS):
+        assert f"    {command} " in text
+    for jobs in JOBS.values():
+        for job in jobs:
+            assert job in text
+
+
+def _script_argv(path: Path) -> list[str]:
+    """The fixed arguments a thin script hands to ``cli.main`` (its only call of it)."""
+    calls = [node for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.Call)
+             and getattr(node.func, "id", None) == "main"]
+    assert len(calls) == 1, f"{path.name} should call pixelmpc_jax.cli.main once"
+    return [elt.value for elt in calls[0].args[0].elts if isinstance(elt, ast.Constant)]
+
+
+@pytest.mark.parametrize("path", sorted([*ROOT.glob("experiments/*.py"), *ROOT.glob("benchmarks/*.py")]),
+                         ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_every_script_is_a_thin_call_of_a_job(path, capsys):
+    tree = ast.parse(path.read_text())
+    imported = {alias.name for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom))
+                for alias in node.names}
+    assert imported <= {"sys", "main"}, f"{path.name} imports {imported}: a script only calls the command"
+    command, job = _script_argv(path)
+    assert job in JOBS[command]
+    with pytest.raises(SystemExit) as done:
+        cli.main([command, job, "--help"])
+    assert done.value.code == 0 and f"pixelmpc {command} {job}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv", [
+    ["experiment"], ["bench"], ["experiment", "table2", "--laps", "0"], ["experiment", "table4", "--seed", "-1"],
+    ["experiment", "robustness", "--levers", "wings"], ["experiment", "robustness", "--reuse", "{tmp}/nothing"],
+    ["experiment", "frontier", "--out", "{tmp}/out", "--speeds", "8", "60"],
+    ["experiment", "margin-probe", "--out", "{tmp}/out", "--frontier", "{tmp}/nothing"],
+    ["experiment", "speed-probe", "--t-f", "3"], ["experiment", "speed-probe", "--c-pixel", "0"],
+    ["experiment", "speed-probe", "--dof-weights", "{tmp}/none.msgpack"], ["bench", "suite", "--quick", "--smoke"],
+    ["bench", "mppi-step", "--samples", "0"], ["bench", "closed-loop", "--mode", "slow"],
+    ["bench", "pf-step", "--repeats", "-2"], ["bench", "render", "--supersample", "2"],
+    ["tune", "--space", "hand-tuned", "--out", "{tmp}/out", "--nominal-speeds", "8", "nan"],
+    ["tune", "--space", "best", "--out", "{tmp}/out"],
+])
+def test_bad_arguments_exit_2_with_one_line_before_anything_is_written(tmp_path, argv, capsys):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    with pytest.raises(SystemExit) as done:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert done.value.code == cli.EXIT_USAGE and "error:" in err and len(err.strip().splitlines()) == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path, monkeypatch, capsys):
+    from pixelmpc_jax.apps.bench import mppi_step, suite
+    from pixelmpc_jax.apps.experiments import frontier, paper, speed_probe
+
+    seen = {}
+
+    def visibility_experiment(out, **kwargs):
+        seen["table2"] = kwargs
+        (out / "REPORT.md").write_text("# the tables\n")
+
+    monkeypatch.setattr(paper, "visibility_experiment", visibility_experiment)
+    out = tmp_path / "tables"
+    assert cli.main(["experiment", "table2", "--out", str(out), "--laps", "3", "--pixel-model", "projection"]) == 0
+    assert seen["table2"] == {"laps": 3, "pixel_model": "projection", "quick": False, "seed": 200}
+    assert "# the tables" in capsys.readouterr().out
+
+    def run_frontier(speeds, cells, out, laps, seed, course=None):
+        seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course)
+        (out / "REPORT.md").write_text("frontier\n")
+
+    monkeypatch.setattr(frontier, "run_frontier", run_frontier)
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "border", "--speeds", "9",
+                     "7", "9", "--course", "straight"]) == 0
+    assert seen["frontier"] == ((7.0, 9.0), ["border", "border"], 10, 0, "straight")
+
+    def probe(out, **kwargs):
+        seen["probe"] = kwargs
+        (out / "REPORT.md").write_text("probe\n")
+
+    monkeypatch.setattr(speed_probe, "speed_probe", probe)
+    assert cli.main(["experiment", "speed-probe", "--out", str(tmp_path / "p"), "--c-pixel", "9e6", "3e7"]) == 0
+    assert seen["probe"]["c_pixels"] == (9e6, 3e7) and seen["probe"]["speed"] == 8.0
+
+    monkeypatch.setattr(mppi_step, "run_mppi_step", lambda *args: seen.update(mppi_step=args))
+    assert cli.main(["bench", "mppi-step", "--samples", "64", "--cost", "waypoint"]) == 0
+    assert seen["mppi_step"] == (64, 80, 50, "waypoint")
+    monkeypatch.setattr(suite, "run_bench", lambda out, quick, smoke: seen.update(suite=(out, quick, smoke)))
+    assert cli.main(["bench", "suite", "--smoke", "--out", str(tmp_path / "bench")]) == 0
+    assert seen["suite"] == (tmp_path / "bench", False, True) and (tmp_path / "bench").is_dir()
