@@ -464,7 +464,7 @@ def _add_race(sub) -> None:
     flag sets one controller setting (:func:`_setting`)."""
     from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS
     from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
-    from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS
+    from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
     from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
     from pixelmpc_jax.sim.controllers import CONTROLLERS
     from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
@@ -509,6 +509,9 @@ def _add_race(sub) -> None:
     _setting(p, "--c-pixel", "c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]", type=arg.float_in(0.0, 1e30))
     _setting(p, "--pixel-cost", "pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image centre, "
              "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
+    _setting(p, "--target-prior", "target_prior", "what PixelMPC's pixel cost charges while the target is not "
+             "detected: none, the paper's (no pixel cost), or map, its pixel projected from the map and the estimate",
+             choices=TARGET_PRIORS)
     _setting(p, "--border-margin", "border_margin", "where the border cost starts, as a fraction of the image inside "
              "the border, in (0, 0.5]", type=arg.float_in(0.0, 0.5, lo_open=True))
     _setting(p, "--noise-exponent", "mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "

@@ -187,3 +187,25 @@ def test_lap_metrics_causes_add_up_to_the_low_visibility_time():
     assert sum(parts) == pytest.approx(lap["time_vis_below_50_s"])
     table = M.format_table([lap], M.aggregate([lap]))
     assert f"above {lap['time_vis_below_50_above_s']:.2f}" in table.splitlines()[-1]
+
+
+def test_the_map_aided_prior_projects_an_undetected_target_from_the_map_and_the_estimate():
+    """In front of the camera the prior is the gate's projected centre and corners (what an ideal detector would
+    report); behind it, the pixel the cost charges the most."""
+    from pixelmpc_jax.perception.detector import detect_from_geometry
+
+    track = course_lib.straight_course(num_gates=1, height=3.0, first_gate_x=10.0)
+    camera = C.default_camera()
+    gate = track.gate(0)
+    ahead = Q.hover_state((0.0, 1.0, 3.0), yaw=0.3)
+    centre, corners = PM.map_pixel_state(gate, ahead, camera)
+    ideal = detect_from_geometry(gate, ahead, camera)
+    np.testing.assert_allclose(centre, ideal.centre, atol=1e-6)
+    np.testing.assert_allclose(corners, ideal.corners, atol=1e-6)
+    assert 0.5 < float(centre[0]) < 1.0  # yawed 0.4 rad left of the gate: it lies in the image's right half
+    behind, _ = PM.map_pixel_state(gate, Q.hover_state((0.0, 0.0, 3.0), yaw=np.pi), camera)
+    np.testing.assert_array_equal(behind, PM.behind_camera_pixel())
+    config = PixelMPCConfig(pixel_cost="border")
+    assert float(PM.pixel_cost(behind, config)) >= float(PM.pixel_cost(jnp.asarray([1.2, 0.5]), config))
+    with pytest.raises(ValueError, match="target_prior must be one of"):
+        PixelMPCConfig(target_prior="guess")

@@ -49,6 +49,10 @@ PIXEL_COSTS = ("l1", "border")
 BEHIND_CAMERA_OFFSET = 1e3  # a target behind the camera sits this far off the image (before any clip)
 STATE_DIM = quadrotor.STATE_DIM + 2
 IMAGE_CENTRE = (0.5, 0.5)
+# What the pixel cost charges while the detector does not report the target: "none", the paper's (no pixel cost
+# until the target is detected); "map", a map-aided prior (the target's pixel projected from the map and the
+# estimate, see :func:`map_pixel_state`).
+TARGET_PRIORS = ("none", "map")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 
 
@@ -111,6 +115,10 @@ class PixelMPCConfig:
             thrust off the model's) that the controller in the loop estimates from the residual of its own one-tick
             predictions, with this time constant (offset-free MPC; ``PixelMPCParams.disturbance``). None: no
             disturbance model (the paper's). Nominal MPPI flies it too.
+        target_prior: what the pixel cost charges while the detector does not report the target
+            (:data:`TARGET_PRIORS`): "none", the paper's (no pixel cost until it is detected, so a gate that has
+            just become the target is not looked for); "map", the map-aided prior (its pixel projected from the
+            map and the estimate, :func:`map_pixel_state`), charged like a detected one.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -126,8 +134,11 @@ class PixelMPCConfig:
     box_size_limit: float | None = None
     model_latency_ticks: int = 0
     disturbance_time_constant_s: float | None = None
+    target_prior: str = "none"
 
     def __post_init__(self):
+        if self.target_prior not in TARGET_PRIORS:
+            raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
         if self.pixel_model not in PIXEL_MODELS:
             raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
         if not (0.0 <= self.t_f < math.inf):
@@ -211,6 +222,15 @@ def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
     else:
         per_axis = jnp.maximum(error - config.pixel_deadzone, 0.0)
     return config.c_pixel * config.pixel_cost_scale * (per_axis[..., 0] + per_axis[..., 1])
+
+
+def map_pixel_state(gate, x_est: jax.Array, camera: camera_lib.Camera) -> tuple[jax.Array, jax.Array]:
+    """The map-aided prior of a target the detector does not report: its centre's pixel (2,) and its inner
+    corners' pixels (4, 2) projected through ``camera`` from the estimate ``x_est`` with the map's ``gate``; a
+    centre behind the camera takes :func:`behind_camera_pixel`, which the pixel cost charges the most."""
+    centre, _, in_front = camera_lib.project(gate.centre, x_est, camera)
+    corners, _, _ = camera_lib.project(gate.corners(), x_est, camera)
+    return jnp.where(in_front, centre, behind_camera_pixel(centre.dtype)), corners
 
 
 def behind_camera_pixel(dtype=jnp.float32) -> jax.Array:

@@ -152,19 +152,28 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
 def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
                     quad_params: quadrotor.QuadParams | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
-    size of its corners), the pixel cost is active while it detects the target; the learned pixel model's weights
-    come from ``world.dof``."""
+    size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
+    (``config.target_prior``: an undetected target's pixel from the map and the estimate); the learned pixel
+    model's weights come from ``world.dof``."""
     config = config or pixelmpc_lib.PixelMPCConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
 
     def build(obs, world, racing, disturbance):
         detection = obs.detection
-        uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
-        if config.pixel_model == "vdof":  # not costed while the target is not detected, whatever it holds
-            uv0 = vdof_lib.initial_pixel_state(uv0, detection.corners)
+        if config.target_prior == "map":  # an undetected target's pixel from the map and the estimate
+            mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
+                                                                  world.camera)
+            uv0 = jnp.where(detection.found, detection.centre, mapped)
+            corners = jnp.where(detection.found, detection.corners, mapped_corners)
+            active = jnp.asarray(True)
+        else:  # the paper's: not costed while the target is not detected, whatever the pixel holds
+            uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
+            corners, active = detection.corners, detection.found
+        if config.pixel_model == "vdof":
+            uv0 = vdof_lib.initial_pixel_state(uv0, corners)
         params = pixelmpc_lib.PixelMPCParams(
-            racing=racing, dof=world.dof, target_active=detection.found,
+            racing=racing, dof=world.dof, target_active=active,
             target_centre=world.track.gates.centre[obs.target_gate],
             target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera, disturbance=disturbance,
         )
