@@ -67,7 +67,7 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, STATE_DIM, VEL
-from pixelmpc_jax.perception.particle_filter import GRAVITY, propagate_preintegrated
+from pixelmpc_jax.perception.particle_filter import GRAVITY, checked_prior, propagate_preintegrated
 from pixelmpc_jax.world import camera as camera_lib
 
 ERROR_DIM = 15  # [dp, dv, dtheta, dba, dbg]
@@ -611,12 +611,7 @@ def eskf_init(x0: jax.Array, config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.0
             in the order of ``pf_init``'s.
         bias0: (6,) initial bias estimate ``[b_a, b_g]`` (None: zeros); its prior std is the config's.
     """
-    x0 = jnp.asarray(x0, jnp.float32)
-    if x0.shape != (STATE_DIM,):
-        raise ValueError(f"x0 must have shape ({STATE_DIM},) = [p, q(wxyz), v], got {x0.shape}")
-    spread = tuple(float(s) for s in spread)
-    if len(spread) != 3 or not all(math.isfinite(s) and s >= 0 for s in spread):
-        raise ValueError(f"spread must be 3 finite stds >= 0 (position, attitude, velocity), got {spread}")
+    x0, spread = checked_prior(x0, spread)
     bias0 = jnp.zeros(6, jnp.float32) if bias0 is None else jnp.asarray(bias0, jnp.float32)
     if bias0.shape != (6,):
         raise ValueError(f"bias0 must have shape (6,) = [b_a, b_g], got {bias0.shape}")

@@ -281,13 +281,20 @@ def pf_init(key: jax.Array, x0: jax.Array, config: PFConfig = PFConfig(), spread
         config: filter configuration (``num_particles``).
         spread: Gaussian std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``.
     """
+    x0, spread = checked_prior(x0, spread)
+    return _pf_init(key, x0, config, spread)
+
+
+def checked_prior(x0, spread) -> tuple[jax.Array, tuple[float, float, float]]:
+    """An estimator's first state ``x0`` (10,) as float32 and its prior ``spread`` (position m, attitude rad,
+    velocity m/s) as floats; a ValueError naming what is wrong, before anything runs."""
     x0 = jnp.asarray(x0, jnp.float32)
     if x0.shape != (STATE_DIM,):
         raise ValueError(f"x0 must have shape ({STATE_DIM},) = [p, q(wxyz), v], got {x0.shape}")
     spread = tuple(float(s) for s in spread)
     if len(spread) != 3 or not all(math.isfinite(s) and s >= 0 for s in spread):
         raise ValueError(f"spread must be 3 finite stds >= 0 (position, attitude, velocity), got {spread}")
-    return _pf_init(key, x0, config, spread)
+    return x0, spread
 
 
 # --------------------------------------------------------------------------------------------------
