@@ -495,15 +495,16 @@ def _add_race(sub) -> None:
                         "in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
                         "(default: the preset's, alphapilot)")
     p.add_argument("--estimator", choices=ESTIMATORS, default=None,
-                   help="state the controller acts on: truth or pf, the particle filter (default: the preset's, "
-                        "truth)")
+                   help="state the controller acts on: truth, pf (the paper's particle filter) or eskf (an "
+                        "error-state Kalman filter with IMU bias states) (default: the preset's, truth)")
     p.add_argument("--video", action="store_true",
                    help="write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) pixel")
     p.add_argument("--no-compile-cache", action="store_true",
                    help="compile afresh (by default compiled steps are kept in the user's cache folder, "
                         "~/.cache/pixelmpc-jax, so a second run starts faster)")
-    _setting(p, "--pixel-model", "pixel_model", "PixelMPC's pixel model: the DOF network or the PAMPC-style "
-             "projection of the known gate", choices=PIXEL_MODELS)
+    _setting(p, "--pixel-model", "pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, "
+             "the learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
+             "known gate", choices=PIXEL_MODELS)
     _setting(p, "--t-f", "t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC horizon)",
              type=arg.float_in(0.0, arg.T_F_MAX_S, unit="s"))
     _setting(p, "--c-pixel", "c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]", type=arg.float_in(0.0, 1e30))

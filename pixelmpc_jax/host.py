@@ -1,7 +1,8 @@
 """The process and its host: the CPU's cores as JAX devices, and the C allocator keeping freed memory.
 
 Neither is part of a controller: they set up the process a controller runs in, once, before (or while) it
-runs. ``pixelmpc race``, ``bench`` and ``reproduce`` call both by default.
+runs. ``pixelmpc race``, ``bench``, ``reproduce``, ``tune`` and ``experiment`` call both by default
+(``cli.SPLIT_CPU_COMMANDS``).
 
 * :func:`split_host_cpu`: make each usable core a JAX device (before JAX starts), so a step whose samples are
   split over the devices (``MPPIConfig.sample_devices``) runs on every core.

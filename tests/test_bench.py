@@ -206,8 +206,12 @@ def test_smoke_run_writes_the_schema(smoke_run):
         assert key in written["versions"]
     groups = {r["group"] for r in written["rows"]}
     assert {"controller", "roofline", "estimator", "loop", "peer", "mppi_generic", "table1", "scaling"} <= groups
-    pf_rows = [r for r in written["rows"] if r["group"] == "estimator"]
+    estimator_rows = [r for r in written["rows"] if r["group"] == "estimator"]
+    pf_rows = [r for r in estimator_rows if r["name"].startswith("particle filter")]
     assert all(r["median_ms"] > 0 and r["num_samples"] == 256 for r in pf_rows) and len(pf_rows) == 2
+    (eskf_row,) = [r for r in estimator_rows if "Kalman" in r["name"]]
+    assert eskf_row["median_ms"] > 0 and eskf_row["repeats"] == 20 and eskf_row["target_ms"] == 1.0
+    assert written["summary"]["eskf_tick_median_ms"] == eskf_row["median_ms"]
     for row in written["rows"]:
         for field in suite.REQUIRED_ROW_FIELDS:
             assert field in row, (row["name"], field)
@@ -225,7 +229,7 @@ def test_smoke_run_writes_the_schema(smoke_run):
         "pixelmpc_step_ms <= 12", "pixelmpc_step_p95_ms <= 25", "nominal_step_ms <= 5",
         "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)", "step_2048_over_512 <= 4.5",
         "step_8192_over_512 <= 16 (linear)", "dof_fraction >= 0.70", "loop_tick_ms <= 25",
-        "vdof_over_dof_step <= 1.10"}
+        "vdof_over_dof_step <= 1.10", "eskf_tick_ms <= 1", "eskf_loop_over_truth <= 1.10"}
 
 
 def test_scaling_growth_reads_the_default_rollout_at_t_80():
@@ -241,9 +245,10 @@ def test_scaling_growth_reads_the_default_rollout_at_t_80():
 
 def test_smoke_run_has_the_closed_loop_rows(smoke_run):
     tmp_path, _, written, _ = smoke_run
-    loop = {r["controller"]: r for r in written["rows"] if r["group"] == "loop"}
-    assert set(loop) == {"pixelmpc", "mppi"}
-    for row in loop.values():
+    rows = {(r["controller"], r["estimator"]): r for r in written["rows"] if r["group"] == "loop"}
+    assert set(rows) == {("pixelmpc", "truth"), ("mppi", "truth"), ("pixelmpc", "eskf")}
+    loop = {controller: row for (controller, estimator), row in rows.items() if estimator == "truth"}
+    for row in rows.values():
         # the smoke lap: N=16, T=8, 0.25 s = 10 ticks from the start, which ends as a timeout
         assert row["status"] == "ok" and row["runner"] == "single" and row["repeats"] == 2
         assert (row["num_samples"], row["horizon"], row["ticks"], row["end_cause"]) == (16, 8, 10, "timeout")
@@ -258,9 +263,12 @@ def test_smoke_run_has_the_closed_loop_rows(smoke_run):
     assert summary["loop_tick_median_ms"] == loop["pixelmpc"]["median_ms"]
     assert summary["nominal_loop_tick_median_ms"] == loop["mppi"]["median_ms"]
     assert summary["targets"]["loop_tick_ms <= 25"] is False  # not the paper's size
+    eskf = rows[("pixelmpc", "eskf")]
+    assert "on the eskf estimate" in eskf["name"]
+    assert summary["eskf_loop_over_truth"] == pytest.approx(eskf["median_ms"] / loop["pixelmpc"]["median_ms"])
     md = (tmp_path / "bench.md").read_text()
     assert "## Closed loop: the tick of a lap (target 25 ms median" in md
-    assert md.count("| closed-loop tick: ") == 2
+    assert md.count("| closed-loop tick: ") == 3
 
 
 def test_loop_row_refuses_an_unknown_runner():

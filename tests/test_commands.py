@@ -11,7 +11,7 @@ from pixelmpc_jax import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 JOBS = {"experiment": ("table2", "table4", "robustness", "frontier", "margin-probe", "speed-probe"),
-        "bench": ("suite", "mppi-step", "closed-loop", "pf-step", "render")}
+        "bench": ("suite", "mppi-step", "closed-loop", "pf-step", "eskf-step", "render")}
 
 
 def test_the_help_lists_every_job(capsys):
@@ -56,7 +56,8 @@ def test_every_script_is_a_thin_call_of_a_job(path, capsys):
     ["experiment", "speed-probe", "--t-f", "3"], ["experiment", "speed-probe", "--c-pixel", "0"],
     ["experiment", "speed-probe", "--dof-weights", "{tmp}/none.msgpack"], ["bench", "suite", "--quick", "--smoke"],
     ["bench", "mppi-step", "--samples", "0"], ["bench", "closed-loop", "--mode", "slow"],
-    ["bench", "pf-step", "--repeats", "-2"], ["bench", "render", "--supersample", "2"],
+    ["bench", "pf-step", "--repeats", "-2"], ["bench", "eskf-step", "--repeats", "0"],
+    ["bench", "render", "--supersample", "2"],
     ["tune", "--space", "hand-tuned", "--out", "{tmp}/out", "--nominal-speeds", "8", "nan"],
     ["tune", "--space", "best", "--out", "{tmp}/out"],
 ])

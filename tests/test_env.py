@@ -1,5 +1,7 @@
 """The environment alone (reset, observe, step from hand-made states) and the policies' init/act pair."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,6 +142,48 @@ def test_observe_sees_the_target_gate_and_the_truth_or_the_filter(world):
     error = np.linalg.norm(np.asarray(obs.x_est[:3] - state.plant.x[:3]))
     assert 0.0 < error < 0.5 and float(obs.position_cov_trace) > 0.0
     assert not np.array_equal(updated.filter.key, state.filter.key)  # the filter stepped
+
+
+def test_the_kalman_filter_estimates_near_the_truth_and_passes_on_no_detection_it_rejects(world):
+    from pixelmpc_jax.sim.faults import Faults
+
+    filtered = env_lib.make_env(env_lib.EnvConfig(estimator="eskf"))
+    state = filtered.reset(world, jax.random.PRNGKey(0))
+    observe = jax.jit(filtered.observe)
+    updated, obs = observe(world, state, jax.random.PRNGKey(1))
+    error = np.linalg.norm(np.asarray(obs.x_est[:3] - state.plant.x[:3]))
+    assert error < 0.1 and 0.0 < float(obs.position_cov_trace) < 3 * 0.3 ** 2  # the corners narrowed the prior
+    assert bool(obs.detection.found)
+    assert not np.array_equal(updated.filter.latest.cov, state.filter.latest.cov)  # the filter stepped
+    # one second of hover with honest detections narrows the prior (a lie at the first tick, within the prior's
+    # 0.3 m and 0.03 rad, is still believable)
+    step = jax.jit(filtered.step)
+    for i in range(40):
+        state, _ = observe(world, state, jax.random.PRNGKey(i))
+        state = step(world, state, HOVER, jax.random.PRNGKey(i))
+    _, honest = observe(world, state, jax.random.PRNGKey(41))
+    assert bool(honest.detection.found)
+    # then a lie (gate 1's image under gate 0's name): the filter's gate rejects every corner and the controller is
+    # told nothing was found, where on the true state it is handed the lie
+    lying = env_lib.EnvConfig(faults=Faults(false_rate=1.0))
+    for estimator, found in (("eskf", False), ("truth", True)):
+        env = env_lib.make_env(dataclasses.replace(lying, estimator=estimator))
+        start = state if estimator == "eskf" else env.reset(world, jax.random.PRNGKey(0))
+        _, obs = jax.jit(env.observe)(world, start, jax.random.PRNGKey(41))
+        assert bool(obs.detection.found) == found, estimator
+
+
+def test_an_estimator_config_that_cannot_work_is_refused():
+    from pixelmpc_jax.perception.eskf import ESKFConfig
+    from pixelmpc_jax.perception.filter_guards import GuardConfig
+    from pixelmpc_jax.sim.faults import Faults
+
+    with pytest.raises(ValueError, match="window"):
+        env_lib.EnvConfig(estimator="eskf", eskf=ESKFConfig(max_delay_ticks=1), faults=Faults(detection_delay_ticks=2))
+    with pytest.raises(ValueError, match="particle filter"):
+        env_lib.EnvConfig(estimator="eskf", guards=GuardConfig(detection_gate_px=30.0))
+    with pytest.raises(ValueError, match="estimator must be one of"):
+        env_lib.EnvConfig(estimator="ekf")
 
 
 @pytest.mark.parametrize("kind", ["mppi", "pixelmpc"])

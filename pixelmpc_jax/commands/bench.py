@@ -12,9 +12,9 @@ from pixelmpc_jax import arguments as arg
 def add_bench(sub) -> None:
     """``pixelmpc bench``: its jobs as sub-commands."""
     p = sub.add_parser("bench", help="runtime harness: suite (Table I, controller scaling, peers, matmul roofline), "
-                                     "mppi-step, closed-loop, pf-step, render")
+                                     "mppi-step, closed-loop, pf-step, eskf-step, render")
     jobs = p.add_subparsers(dest="bench", metavar="JOB", required=True)
-    for add in (_add_suite, _add_mppi_step, _add_closed_loop, _add_pf_step, _add_render):
+    for add in (_add_suite, _add_mppi_step, _add_closed_loop, _add_pf_step, _add_eskf_step, _add_render):
         add(jobs)
 
 
@@ -85,6 +85,19 @@ def _cmd_pf_step(args) -> int:
     from pixelmpc_jax.apps.bench.particle_filter_step import run_pf_step
 
     run_pf_step(args.particles, args.repeats)
+    return 0
+
+
+def _add_eskf_step(jobs) -> None:
+    p = jobs.add_parser("eskf-step", help="median time of one error-state Kalman filter tick (its bar: 1 ms)")
+    p.add_argument("--repeats", type=arg.positive_int, default=200, help="timed ticks (default 200)")
+    p.set_defaults(func=_cmd_eskf_step)
+
+
+def _cmd_eskf_step(args) -> int:
+    from pixelmpc_jax.apps.bench.eskf_step import run_eskf_step
+
+    run_eskf_step(args.repeats)
     return 0
 
 

@@ -75,7 +75,10 @@ def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: fl
 
 @dataclasses.dataclass(frozen=True)
 class PixelMPCConfig:
-    """Static PixelMPC settings (hashable; a new config compiles once).
+    """Static settings of the racing controller, PixelMPC or nominal MPPI (hashable; a new config compiles once).
+
+    Both controllers fly ``mppi``, ``racing``, ``model_latency_ticks`` and ``disturbance_time_constant_s``; the
+    rest is PixelMPC's pixel cost and pixel model, which nominal MPPI does not evaluate.
 
     Attributes:
         mppi: sampling settings (the paper's by default).

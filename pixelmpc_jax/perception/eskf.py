@@ -23,10 +23,14 @@ camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU'
   predicted pixel (px), ``H`` its Jacobian with respect to the error state (:func:`reproject_corners`, analytic,
   checked against ``jax.jacfwd``), ``R = sigma^2 I``. A corner whose Mahalanobis distance ``d^2 = r^T S_k^-1 r``
   under its own prior innovation covariance ``S_k`` exceeds ``ESKFConfig.gate_chi2`` is rejected; an accepted one
-  is reweighted by a Huber (or Cauchy) weight ``w(d)``, its noise inflated to ``R / w``. The accepted corners are
-  applied together (Joseph form, symmetrised, then the ESKF reset of the attitude block). A tick whose corners are
-  all rejected leaves the belief exactly as a tick without a detection (the update is skipped, not applied with
-  zero gain).
+  is reweighted by a Huber (or Cauchy) weight ``w(d)``, its noise inflated to ``R / w``. With
+  ``ESKFConfig.joint_gate`` the accepted corners are then gated together: when their joint ``r^T S^-1 r`` exceeds
+  the 99.9 % quantile of chi-square with two degrees of freedom per corner, the whole detection is rejected. A
+  false detection (another gate's image under the target's name) moves every corner a little, each within its own
+  gate, in a pattern (a shrunk or shifted outline) that no error of the pose explains; the joint gate catches it
+  where the per-corner one cannot. The accepted corners are applied together (Joseph form, symmetrised, then the
+  ESKF reset of the attitude block). A tick whose corners are all rejected leaves the belief exactly as a tick
+  without a detection (the update is skipped, not applied with zero gain).
 - Late detections. A detection captured ``delay_ticks`` ticks before it reaches the filter is applied at the tick
   it was captured. The state keeps a fixed-lag window (``ESKFConfig.max_delay_ticks`` ticks): the belief before
   the window (the anchor) and the window's IMU inputs and detections (:class:`ESKFState`). Each step appends the
@@ -76,6 +80,8 @@ NOISE_DIM = 6  # the tick's mean IMU noise [accelerometer, gyro]
 NUM_CORNERS = 4
 ROBUST_LOSSES = ("huber", "cauchy", "none")
 CHI2_2DOF_999 = 13.815510557964274  # 99.9 % quantile of chi-square with 2 degrees of freedom: one corner
+# 99.9 % quantiles of chi-square with 2, 4, 6 and 8 degrees of freedom: the joint gate of 1-4 accepted corners
+CHI2_JOINT_999 = (13.815510557964274, 18.46682695290317, 22.457744484825323, 26.12448155837614)
 # The simulated IMU (alphapilot_course.json, vehicle.imu_noise_variance; sim/plant.py): white noise of these
 # variances per sample at the plant's rate; as densities, sigma * sqrt(sample interval).
 PLANT_ACCEL_VARIANCE = 0.005  # (m/s^2)^2 per sample
@@ -113,6 +119,8 @@ class ESKFConfig:
         robust_loss: "huber" (``w = min(1, c / d)``), "cauchy" (``w = 1 / (1 + d^2 / c^2)``) or "none"; an
             accepted corner's noise is inflated to ``R / w`` (``d`` its Mahalanobis distance, ``c`` below).
         robust_threshold: ``c``, the Mahalanobis distance where the robust weight departs from 1 (Huber).
+        joint_gate: also reject the whole detection when its accepted corners together fail the chi-square gate
+            (:data:`CHI2_JOINT_999`); False: the per-corner gate only.
         max_delay_ticks: the latest a detection may arrive, in control ticks; the window's length.
         gravity: m/s^2 along world -z.
     """
@@ -130,6 +138,7 @@ class ESKFConfig:
     gate_chi2: float = CHI2_2DOF_999
     robust_loss: str = "huber"
     robust_threshold: float = 3.0
+    joint_gate: bool = True
     max_delay_ticks: int = 3
     gravity: float = GRAVITY
 
@@ -145,6 +154,8 @@ class ESKFConfig:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                       and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if not isinstance(self.joint_gate, bool):
+            raise ValueError(f"joint_gate must be True or False, got {self.joint_gate!r}")
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(f"robust_loss must be one of {ROBUST_LOSSES}, got {self.robust_loss!r}")
         delay = self.max_delay_ticks
@@ -233,7 +244,8 @@ class ESKFInfo(NamedTuple):
             camera, or within ``border_margin_px`` of the image border).
         innovation_cov: (4, 2, 2) px^2, each corner's prior innovation covariance ``S_k = H_k P H_k^T + R``.
         corner_mahalanobis2: (4,) ``r_k^T S_k^-1 r_k`` (0 where not usable).
-        accepted: (4,) bool, the corner passed the chi-square gate and was applied.
+        accepted: (4,) bool, the corner passed the chi-square gate (and the detection the joint one) and
+            was applied.
         weight: (4,) the robust weight of each accepted corner (its noise was ``R / weight``); 1 otherwise.
         nis: () the accepted corners' joint normalised innovation squared ``r^T S^-1 r`` (unweighted ``R``).
         nis_dof: () int32, its degrees of freedom, 2 per accepted corner.
@@ -446,12 +458,21 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     ru, rv = residual[:, 0], residual[:, 1]
     mahalanobis2 = (d * ru * ru - (b + c) * ru * rv + a * rv * rv) / (a * d - b * c)  # (4,)
     accepted = usable & (mahalanobis2 <= config.gate_chi2)
-    weight = jnp.where(accepted, robust_weight(mahalanobis2, config), 1.0)
 
     rows = jnp.repeat(accepted, 2)  # (8,)
     H_used = jnp.where(rows[:, None], H.reshape(2 * NUM_CORNERS, ERROR_DIM), 0.0)  # (8, 15)
     r_used = jnp.where(rows, residual.reshape(2 * NUM_CORNERS), 0.0)  # (8,)
     HPHt = H_used @ P @ H_used.T
+    # rows not used have H = 0 and r = 0: R on their diagonal, nothing in the sum
+    nis = r_used @ _solve_spd(HPHt + r_var * jnp.eye(2 * NUM_CORNERS, dtype=dtype), r_used)
+    if config.joint_gate:  # all or nothing: a rejected detection uses no row
+        count = jnp.sum(accepted.astype(jnp.int32))
+        kept = nis <= jnp.asarray(CHI2_JOINT_999, dtype)[jnp.clip(count - 1, 0, NUM_CORNERS - 1)]
+        accepted, H_used, r_used, HPHt, nis = (accepted & kept, jnp.where(kept, H_used, 0.0),
+                                               jnp.where(kept, r_used, 0.0), jnp.where(kept, HPHt, 0.0),
+                                               jnp.where(kept, nis, 0.0))
+    weight = jnp.where(accepted, robust_weight(mahalanobis2, config), 1.0)
+
     noise = jnp.repeat(r_var / weight, 2)  # (8,) R / w per row
     gain = _solve_spd(HPHt + jnp.diag(noise), H_used @ P).T  # (15, 8), K = P H^T S^-1
     dx = gain @ r_used
@@ -462,7 +483,6 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     updated = ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
     belief = _tree_where(jnp.any(accepted), updated, belief)  # nothing accepted: the belief untouched, bit for bit
 
-    nis = r_used @ _solve_spd(HPHt + r_var * jnp.eye(2 * NUM_CORNERS, dtype=dtype), r_used)
     report = _CornerReport(innovation=residual, innovation_cov=S_corner,
                            corner_mahalanobis2=jnp.where(usable, mahalanobis2, 0.0), accepted=accepted,
                            weight=weight, nis=nis, nis_dof=2 * jnp.sum(accepted.astype(jnp.int32)))

@@ -5,8 +5,9 @@ Three pure functions over a :class:`SimState` pytree, built for a frozen :class:
 
 - ``reset(world, key) -> SimState``: the vehicle at rest at the course's start.
 - ``observe(world, state, key) -> (SimState, Observation)``: the target gate's detection from the true pose
-  (geometric, or the rendered frame through OpenCV) and the estimate (the truth, or the particle filter of
-  Section V-D updated with the last tick's IMU and this detection): what a policy acts on.
+  (geometric, or the rendered frame through OpenCV) and the estimate (the truth, the particle filter of
+  Section V-D, or the error-state Kalman filter of :mod:`pixelmpc_jax.perception.eskf`, updated with the last
+  tick's IMU and this detection): what a policy acts on.
 - ``step(world, state, u, key) -> SimState``: one 1/40 s control tick, 24 plant substeps at 960 Hz, then
   gate passage and collisions on the flown segment, progress along the desired path, and the episode's end.
 """
@@ -24,6 +25,7 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.perception import eskf as eskf_lib
 from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.sim import faults as faults_lib
@@ -40,7 +42,7 @@ END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TI
 CONTROL_DT = timing.CONTROL_DT  # s, one control tick (pixelmpc_jax.timing)
 SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
 DETECTORS = ("geometry", "image")
-ESTIMATORS = ("truth", "pf")
+ESTIMATORS = ("truth", "pf", "eskf")
 
 
 @struct.dataclass
@@ -104,9 +106,14 @@ class EnvConfig:
             detector on the host through ``jax.pure_callback``; slower, one frame per tick).
         estimator: "truth" (the controller sees the true state) or "pf" (the particle filter of Section
             V-D, fed each tick with the previous tick's 24 IMU samples, preintegrated, and the target
-            gate's detection; the controller sees its mean).
-        pf: the particle filter's settings; pf_initial_spread: its initial spread (position m, attitude
-            rad, velocity m/s) around the true start.
+            gate's detection; the controller sees its mean) or "eskf" (the error-state Kalman filter, fed
+            the same; a detection arriving late is applied at the tick it was captured, and a detection whose
+            every usable corner the filter's Mahalanobis gate rejects reaches the controller as none).
+        pf: the particle filter's settings; pf_initial_spread: the initial spread of either filter (position m,
+            attitude rad, velocity m/s) around the true start (the particle filter draws its cloud with it, the
+            Kalman filter takes it as its prior's standard deviations).
+        eskf: the error-state Kalman filter's settings; its ``max_delay_ticks`` must cover the faults'
+            detection delay.
         guards: the particle filter's guards against a lying detector and its own divergence
             (:mod:`pixelmpc_jax.perception.filter_guards`; off by default).
         faults: what the world does beyond the nominal model (:mod:`pixelmpc_jax.sim.faults`; none by default).
@@ -119,6 +126,7 @@ class EnvConfig:
     estimator: str = "truth"
     pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
     pf_initial_spread: tuple = (0.3, 0.03, 0.2)
+    eskf: eskf_lib.ESKFConfig = dataclasses.field(default_factory=eskf_lib.ESKFConfig)
     guards: guards_lib.GuardConfig = dataclasses.field(default_factory=guards_lib.GuardConfig)
     faults: faults_lib.Faults = dataclasses.field(default_factory=faults_lib.Faults)
 
@@ -129,6 +137,12 @@ class EnvConfig:
             raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
         if not self.max_time_s > 0:
             raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
+        delay = self.faults.detection_delay_ticks
+        if self.estimator == "eskf" and delay > self.eskf.max_delay_ticks:
+            raise ValueError(f"the detection delay of {delay} ticks exceeds the Kalman filter's window "
+                             f"(eskf.max_delay_ticks={self.eskf.max_delay_ticks})")
+        if self.estimator != "pf" and self.guards.active:
+            raise ValueError("guards are the particle filter's: they need estimator='pf'")
 
     @property
     def max_ticks(self) -> int:
@@ -165,7 +179,7 @@ class SimState(NamedTuple):
         target: () int32 index of the gate to pass next; the number of gates once every gate is passed.
         progress_s: () m, the true position's progress along the desired path.
         progress_est_s: () m, the estimate's progress (follows ``progress_s`` with the "truth" estimator).
-        filter: the particle filter's state with the "pf" estimator, else a () placeholder.
+        filter: the filter's state with the "pf" or "eskf" estimator, else a () placeholder.
         imu: the last tick's IMU samples, preintegrated (the filter's next input).
         end_cause: () int32, 0 while flying or once finished, else a key of ``END_NAMES``.
         done: () bool, the episode has ended (finished, crashed, missed a gate or timed out).
@@ -258,19 +272,34 @@ def _pf_config(config: EnvConfig) -> pf_lib.PFConfig:
     return guards_lib.filter_config(config.pf, config.guards)
 
 
-def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array) -> pf_lib.PFState:
-    """The particle filter's first cloud about ``x0``, with what its guards carry."""
-    return guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
-                                  config.guards)
+def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array):
+    """The estimator's first state about ``x0``: the particle filter's cloud, with what its guards carry, the
+    Kalman filter's prior, or a () placeholder on the true state."""
+    if config.estimator == "eskf":
+        return eskf_lib.eskf_init(x0, config.eskf, config.pf_initial_spread)
+    if config.estimator == "pf":
+        return guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
+                                      config.guards)
+    return jnp.zeros(())
 
 
-def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
-    """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
-    covariance trace, progress of the estimate, the detection as the loop uses it)``. With the filter's detection
-    gate (``config.guards``), a detection the filter rejects reaches the controller as none."""
-    x = state.plant.x
-    if config.estimator != "pf":
-        return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
+def _eskf_estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
+    """The Kalman filter's step: the detection filed at the tick it was captured (the faults' delay), and passed
+    on as none when the filter's gate rejected every corner it could use. -> (filter state, x_est, position
+    covariance trace, detection)."""
+    filter_state, estimate, info = eskf_lib.eskf_step(state.filter, state.imu, detection,
+                                                      config.faults.detection_delay_ticks, world.track,
+                                                      world.camera, config.eskf)
+    usable = info.corner_mahalanobis2 > 0
+    rejected = jnp.any(usable) & ~jnp.any(info.accepted)
+    detection = detection.replace(found=detection.found & ~rejected,
+                                  corners_visible=detection.corners_visible & ~rejected)
+    return filter_state, estimate.mean, info.position_cov_trace, detection
+
+
+def _pf_estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
+    """The particle filter's step, with its guards when on (a detection their gate rejects is passed on as none).
+    -> (filter state, mean, position covariance trace, detection)."""
     pf_config = _pf_config(config)
     if config.guards.active:
         filter_state, estimate, filter_info, guard = guards_lib.guarded_pf_step(
@@ -280,9 +309,22 @@ def _estimate(config: EnvConfig, world: World, state: SimState, detection: detec
     else:
         filter_state, estimate, filter_info = pf_lib.pf_step(state.filter, state.imu, detection, world.track,
                                                              world.camera, pf_config)
-    x_est = estimate.mean.astype(x.dtype)
+    return filter_state, estimate.mean, filter_info.position_cov_trace, detection
+
+
+def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
+    """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
+    covariance trace, progress of the estimate, the detection as the loop uses it)``. A detection the filter
+    rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's own gate) reaches the
+    controller as none."""
+    x = state.plant.x
+    if config.estimator == "truth":
+        return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
+    update = _eskf_estimate if config.estimator == "eskf" else _pf_estimate
+    filter_state, mean, cov_trace, detection = update(config, world, state, detection)
+    x_est = mean.astype(x.dtype)
     progress_est = _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
-    return filter_state, x_est, filter_info.position_cov_trace, progress_est, detection
+    return filter_state, x_est, cov_trace, progress_est, detection
 
 
 def make_env(config: EnvConfig = EnvConfig()) -> Env:
@@ -301,7 +343,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=_init_filter(config, key, x0) if config.estimator == "pf" else jnp.zeros(()),
+            filter=_init_filter(config, key, x0),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
             faults=faults_lib.init_fault_state(faults, key, world.track.gates, hover),

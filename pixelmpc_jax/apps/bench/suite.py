@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax import host
-from pixelmpc_jax.apps.bench import closed_loop, controller, particle_filter_step, peers, table1
+from pixelmpc_jax.apps.bench import closed_loop, controller, eskf_step, particle_filter_step, peers, table1
 from pixelmpc_jax.apps.bench.measure import fmt_ms
 from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
@@ -39,7 +39,8 @@ REQUIRED_ROW_FIELDS = ("group", "name", "num_samples", "horizon", "median_ms", "
 TARGETS = {"pixelmpc_step_ms": 12.0, "pixelmpc_step_p95_ms": 25.0, "nominal_step_ms": 5.0,
            "ratio_vs_pytorch_mppi": {512: 0.1, 2048: 0.15}, "step_2048_over_512": 4.5, "step_8192_over_512": 16.0,
            "dof_fraction_of_matmul_rate": 0.70, "loop_tick_ms": closed_loop.TICK_TARGET_MS,
-           "vdof_over_dof_step": 1.10}  # the vdof pixel model's step at most 10 % slower than the DOF's
+           "vdof_over_dof_step": 1.10,  # the vdof pixel model's step at most 10 % slower than the DOF's
+           "eskf_tick_ms": eskf_step.TICK_TARGET_MS, "eskf_loop_over_truth": closed_loop.ESKF_OVER_TRUTH_TARGET}
 
 
 def _scaling_growth(rows: list[dict], small: int = 512, large: int = 2048, horizon: int = 80) -> float | None:
@@ -107,6 +108,8 @@ def run_bench(out_dir, quick: bool = False, smoke: bool = False) -> dict:
 
     _log("particle filter tick", start)
     rows += particle_filter_step.pf_rows(particles=256 if smoke else 6400, repeats=repeats)
+    _log("Kalman filter tick", start)
+    rows += eskf_step.eskf_rows(repeats=20 if smoke else 200)
 
     _log(f"closed loop ({'one lap' if mode == 'full' else 'a short lap'} per controller)", start)
     rows += closed_loop.loop_rows(mode)
@@ -156,8 +159,11 @@ def summarize(rows: list[dict]) -> dict:
     """Headline figures and the targets (met or not)."""
     step = rows[0]
     nominal = _first(rows, group="controller", name=controller.NOMINAL_NAME)
-    loop = _first(rows, group="loop", controller="pixelmpc", runner="single") or {}
-    loop_nominal = _first(rows, group="loop", controller="mppi", runner="single") or {}
+    loop = _first(rows, group="loop", controller="pixelmpc", runner="single", estimator="truth") or {}
+    loop_nominal = _first(rows, group="loop", controller="mppi", runner="single", estimator="truth") or {}
+    loop_eskf = _first(rows, group="loop", controller="pixelmpc", runner="single", estimator="eskf",
+                       sample_devices=loop.get("sample_devices")) or {}
+    eskf = _first(rows, group="estimator", num_samples=1) or {}
     roof = _first(rows, group="roofline", name="PixelMPC step vs matmul rate") or {}
     ratios = {r["num_samples"]: r["ratio"] for r in rows if r["group"] == "peer" and r.get("best_peer")}
     vdof = _first(rows, group="controller", name=controller.PIXELMPC_NAME.replace("(DOF,", "(vdof,"),
@@ -178,6 +184,10 @@ def summarize(rows: list[dict]) -> dict:
         "loop_real_time_factor": loop.get("real_time_factor"),
         "nominal_loop_tick_median_ms": loop_nominal.get("median_ms"),
         "nominal_loop_real_time_factor": loop_nominal.get("real_time_factor"),
+        "eskf_tick_median_ms": eskf.get("median_ms"),
+        "eskf_loop_tick_median_ms": loop_eskf.get("median_ms"),
+        "eskf_loop_over_truth": (loop_eskf["median_ms"] / loop["median_ms"]
+                                 if loop_eskf.get("median_ms") and loop.get("median_ms") else None),
         "ratio_vs_pytorch_mppi": ratios,
         "step_2048_over_512": _scaling_growth(rows),
         "step_8192_over_512": _scaling_growth(rows, large=8192),
@@ -204,6 +214,9 @@ def summarize(rows: list[dict]) -> dict:
         "dof_fraction >= 0.70": (roof.get("dof_alone_fraction") or 0.0) >= TARGETS["dof_fraction_of_matmul_rate"],
         "vdof_over_dof_step <= 1.10": (summary["vdof_over_dof_step"] is not None
                                        and summary["vdof_over_dof_step"] <= TARGETS["vdof_over_dof_step"]),
+        "eskf_tick_ms <= 1": eskf.get("median_ms") is not None and eskf["median_ms"] <= TARGETS["eskf_tick_ms"],
+        "eskf_loop_over_truth <= 1.10": (summary["eskf_loop_over_truth"] is not None
+                                         and summary["eskf_loop_over_truth"] <= TARGETS["eskf_loop_over_truth"]),
         "loop_tick_ms <= 25": (loop.get("num_samples") == 512 and loop.get("horizon") == 80
                                and loop.get("median_ms") is not None and loop["median_ms"] <= TARGETS["loop_tick_ms"]),
     }
@@ -218,7 +231,8 @@ def headline(summary: dict) -> str:
         loop = (f"closed-loop tick (PixelMPC, {summary['loop_ticks']} ticks) median "
                 f"{summary['loop_tick_median_ms']:.2f} ms, p95 {summary['loop_tick_p95_ms']:.2f} ms, "
                 f"{summary['loop_real_time_factor']:.2f}x real time; nominal MPPI "
-                f"{_num(summary['nominal_loop_tick_median_ms'])} ms; ")
+                f"{_num(summary['nominal_loop_tick_median_ms'])} ms; PixelMPC on the Kalman filter "
+                f"{_num(summary['eskf_loop_tick_median_ms'])} ms (x{_num(summary['eskf_loop_over_truth'])}); ")
     return (f"PixelMPC step N={summary['num_samples']} T={summary['horizon']}: median "
             f"{summary['pixelmpc_step_median_ms']:.2f} ms (min {summary['pixelmpc_step_min_ms']:.2f}), "
             f"{summary['samples_per_s'] / 1e3:.1f} k samples/s, {summary['sample_steps_per_s'] / 1e6:.2f} M "

@@ -102,7 +102,7 @@ def default_spec() -> FrontierSpec:
 
 
 def quick_spec() -> FrontierSpec:
-    """Three nominal speeds around the paper's pace and the border-cost cells (projection, DOF), 4 laps."""
+    """Four nominal speeds around the paper's pace and the border-cost cells (projection, DOF), 4 laps."""
     return FrontierSpec(QUICK_SPEEDS, border_cells(), laps=4)
 
 

@@ -92,7 +92,7 @@ def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -
     lap's seed."""
     lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=spec.speed)
     n = int(log.num_ticks)
-    if spec.estimator == "pf":
+    if spec.estimator != "truth":
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
         lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
@@ -174,7 +174,7 @@ class LapBook:
 
     def flown(self) -> dict:
         """The results with each lap's flown states (``trajectories``), the target's visibility at each tick
-        (``visibility``), the states the controller acted on (``estimates``), with the particle filter the trace
+        (``visibility``), the states the controller acted on (``estimates``), with a filter the trace
         of its position covariance at each tick (``covariances``), the per-tick record (``ticks``) and the camera
         the laps were seen with (``camera``)."""
         out = {**self.results, "trajectories": [], "visibility": [], "estimates": [], "covariances": [],
@@ -184,7 +184,7 @@ class LapBook:
             out["trajectories"].append(np.asarray(log.states)[: n + 1])
             out["visibility"].append(np.asarray(log.visibility)[: n + 1])
             out["estimates"].append(np.asarray(log.estimates)[:n])
-            if self.race.spec.estimator == "pf":
+            if self.race.spec.estimator != "truth":
                 out["covariances"].append(np.asarray(log.position_cov_trace)[:n])
         return out
 

@@ -3,9 +3,10 @@
 :meth:`RaceSpec.key` is unchanged.
 
 The controller's settings are its configuration as the library takes it, whole: one
-:class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`, whose ``mppi`` (:class:`~pixelmpc_jax.control.mppi.MPPIConfig`)
-and ``racing`` (:class:`~pixelmpc_jax.control.costs.RacingCostConfig`) also configure nominal MPPI. Every setting
-lives in one field of one configuration; the record, the key and the policy are derived from it.
+:class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`, whose ``mppi``
+(:class:`~pixelmpc_jax.control.mppi.MPPIConfig`), ``racing`` (:class:`~pixelmpc_jax.control.costs.RacingCostConfig`),
+latency and disturbance model configure nominal MPPI too. Every setting lives in one field of one configuration;
+the record, the key and the policy are derived from it.
 
 Settings that do not change a lap stay out of it: the batch size, the progress bar, the output folder, the
 video, and how many devices a step's samples are split over. The DOF weights enter as their fingerprint
@@ -56,7 +57,7 @@ class RaceSpec:
         course: "alphapilot", "straight" or the path of a course file in the AlphaPilot file's format
             (:func:`~pixelmpc_jax.apps.racing.race.make_course`); a file enters the key by its contents.
         detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`).
-        estimator: "truth" or "pf" (the particle filter).
+        estimator: "truth", "pf" (the particle filter) or "eskf" (the error-state Kalman filter).
         max_time_s: timeout per lap, s.
         dof_weights: the DOF weights flown: the name of weights shipped in the package
             (:data:`~pixelmpc_jax.dynamics.dof.PACKAGED_VARIANTS`: "flown", "turned"), or the fingerprint
