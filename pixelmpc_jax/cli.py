@@ -75,7 +75,7 @@ def _cmd_course(args) -> int:
 
 def _setting(p: argparse.ArgumentParser, flag: str, field: str, help: str, **kwargs) -> None:
     """A race flag that sets one controller setting: ``field`` names it in the
-    :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` the race flies ("t_f"; "mppi.temperature" for its
+    :class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig` the race flies ("t_f"; "mppi.temperature" for its
     MPPIConfig; "racing.heading_weight" for its RacingCostConfig). Left out, the setting keeps its default."""
     shown = {name: _preset_setting(name, field) for name in ("best", "paper")}
     shown = ", ".join(f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"

@@ -8,7 +8,7 @@ import pytest
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
 from pixelmpc_jax.control.costs import RacingCostConfig
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 
 
 def _reject(constant):
@@ -81,7 +81,7 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
         return real(log, *args, **kwargs)
 
     monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
-    spec = RaceSpec("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
+    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
                     max_time_s=0.2)
     results = race.run_laps(spec, out=tmp_path, batch_size=1, progress=False)
     assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4 and results["interrupted"]
@@ -110,7 +110,7 @@ def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
               "--samples", "256", "--batch", "2", "--video", "--clearance", "0.2"])
     mppi = dataclasses.replace(paper_mppi_config(num_samples=256, temperature=100.0), noise_exponent=1.0)
     racing = RacingCostConfig(heading_weight=0.5, vehicle_radius=0.2)
-    config = PixelMPCConfig(mppi=mppi, racing=racing, pixel_model="projection",
+    config = ControllerConfig(mppi=mppi, racing=racing, pixel_model="projection",
                             t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2)
     assert seen["spec"] == RaceSpec("pixelmpc", config, speed=9.0, laps=3, seed=5, perturb=True, course="straight",
                                     detector="image", estimator="pf", max_time_s=20.0)
@@ -156,7 +156,7 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
         return runner._replace(batch=batch)
 
     monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
-    spec = RaceSpec("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
+    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
                     max_time_s=0.1)
     results = race.run_laps(spec, batch_size=2, progress=False)
     assert [lap["seed"] for lap in results["laps"]] == [4, 5, 6] and len(results["trajectories"]) == 3

@@ -15,14 +15,14 @@ import pytest
 
 from pixelmpc_jax.apps.racing import compare, presets, race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import metrics
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
-SMALL = PixelMPCConfig(pixel_model="projection", mppi=paper_mppi_config(num_samples=32, horizon=10))
+SMALL = ControllerConfig(pixel_model="projection", mppi=paper_mppi_config(num_samples=32, horizon=10))
 
 
 def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeypatch, tmp_path):

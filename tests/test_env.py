@@ -192,7 +192,7 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     if kind == "mppi":
         policy = policies.nominal_mppi_policy(mppi_config)
     else:
-        policy = policies.pixelmpc_policy(pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, pixel_model="projection"))
+        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=mppi_config, pixel_model="projection"))
     env = env_lib.make_env(CONFIG)
     state = env.reset(world, jax.random.PRNGKey(0))
     _, obs = env.observe(world, state, jax.random.PRNGKey(1))

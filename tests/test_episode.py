@@ -37,7 +37,7 @@ def _seeded_lap(name: str) -> dict:
         config = E.EpisodeConfig(max_time_s=4.0, estimator="pf", pf=PFConfig(num_particles=256))
         world = env_lib.make_world(course, target_speed=8.0, detector_noise_px=2.0, detector_dropout=0.2)
     else:
-        policy = policies.pixelmpc_policy(pixelmpc_lib.PixelMPCConfig(mppi=SMALL, pixel_model="projection"))
+        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=SMALL, pixel_model="projection"))
         config = E.EpisodeConfig(max_time_s=4.0)
         world = env_lib.make_world(course, target_speed=8.0)
     log = jax.device_get(E.make_runner(policy, config).single(world, jax.random.PRNGKey(7)))

@@ -304,7 +304,7 @@ def test_the_disturbance_observer_learns_a_constant_push_with_its_time_constant(
     learnt = jax.lax.scan(tick, jnp.zeros(3), None, length=20)[0]
     np.testing.assert_allclose(learnt, push * (1 - (1 - dt / tau) ** 20), rtol=1e-4)
     with pytest.raises(ValueError, match="disturbance_time_constant_s"):
-        PM.PixelMPCConfig(disturbance_time_constant_s=0.0)
+        PM.ControllerConfig(disturbance_time_constant_s=0.0)
 
 
 def test_the_model_latency_rolls_the_estimate_through_the_pending_commands():
@@ -314,7 +314,7 @@ def test_the_model_latency_rolls_the_estimate_through_the_pending_commands():
     expected = Q.step(Q.step(x, pending[0], CONTROL_DT, params), pending[1], CONTROL_DT, params)
     np.testing.assert_allclose(policies.predict_through(x, pending, params, CONTROL_DT), expected, atol=1e-6)
     with pytest.raises(ValueError, match="model_latency_ticks"):
-        PM.PixelMPCConfig(model_latency_ticks=4)
+        PM.ControllerConfig(model_latency_ticks=4)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -331,7 +331,7 @@ def faulty_loop(request):
     if request.param == "mppi":
         policy = policies.nominal_mppi_policy(SMALL, latency_ticks=latency, disturbance_tau=0.5)
     else:
-        policy = policies.pixelmpc_policy(PM.PixelMPCConfig(mppi=SMALL, pixel_model="projection",
+        policy = policies.pixelmpc_policy(PM.ControllerConfig(mppi=SMALL, pixel_model="projection",
                                                             model_latency_ticks=latency,
                                                             disturbance_time_constant_s=0.5))
     config = env_lib.EnvConfig(max_time_s=0.4, estimator="pf", pf=pf_lib.PFConfig(num_particles=64),
@@ -379,7 +379,7 @@ def test_a_fault_free_race_records_and_keys_as_before_the_faults():
     assert windy.key() != spec.key()
     assert RaceSpec.from_record(json.loads(json.dumps(windy.record()))).key() == windy.key()
     assert spec.replace(estimator="truth", guards=guards_lib.GuardConfig(30.0)).guards == guards_lib.GuardConfig()
-    nominal = RaceSpec("mppi", PM.PixelMPCConfig(model_latency_ticks=2))
+    nominal = RaceSpec("mppi", PM.ControllerConfig(model_latency_ticks=2))
     assert nominal.config.model_latency_ticks == 2  # nominal MPPI flies the latency in its model too
 
 

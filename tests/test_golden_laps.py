@@ -14,12 +14,12 @@ import pytest
 
 from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 from pixelmpc_jax.platform_info import cpu_signature
 
 GOLDEN_PATH = Path(__file__).resolve().parent / "data" / "golden_laps.npz"
 GOLDEN = np.load(GOLDEN_PATH)
-BORDER = PixelMPCConfig(c_pixel=3e7, pixel_cost="border")
+BORDER = ControllerConfig(c_pixel=3e7, pixel_cost="border")
 RACES = {  # the recorded laps: target speed, seed, controller configuration, estimator
     "mppi": RaceSpec("mppi", speed=14.0, seed=0),
     "pixelmpc_l1": RaceSpec("pixelmpc", speed=14.0, seed=0),

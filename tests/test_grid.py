@@ -11,13 +11,13 @@ import pytest
 
 from pixelmpc_jax.apps.racing import grid, race
 from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.sim.metrics import MEASURE
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
-         grid.Cell("projection", RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="projection")))]
+         grid.Cell("projection", RaceSpec("pixelmpc", ControllerConfig(pixel_model="projection")))]
 
 
 @pytest.fixture
@@ -147,14 +147,14 @@ def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
 # --------------------------------------------------------------------------------------------------
 
 
-BORDER = PixelMPCConfig(pixel_cost="border", border_margin=0.2)
+BORDER = ControllerConfig(pixel_cost="border", border_margin=0.2)
 
 
 def test_identical_races_have_one_key_and_any_difference_another():
     spec = RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2)
     # the same race spelled otherwise: an int for a float, the MPPI config built another way, its samples' split
     mppi = dataclasses.replace(paper_mppi_config(), sample_devices=2)
-    same = RaceSpec("pixelmpc", PixelMPCConfig(mppi=mppi, border_margin=0.2, pixel_cost="border", t_f=1), speed=8,
+    same = RaceSpec("pixelmpc", ControllerConfig(mppi=mppi, border_margin=0.2, pixel_cost="border", t_f=1), speed=8,
                     laps=4, seed=2)
     assert same == spec and same.key() == spec.key()
     assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))).key() == spec.key()  # read back from JSON
@@ -177,13 +177,13 @@ def test_a_nominal_race_has_no_pixel_settings():
     nominal = RaceSpec("mppi", BORDER)
     assert nominal == RaceSpec("mppi") and nominal.key() == RaceSpec("mppi").key()
     hotter = dataclasses.replace(BORDER.mppi, temperature=100.0)
-    assert RaceSpec("mppi", PixelMPCConfig(mppi=hotter)).key() != nominal.key()  # its MPPI settings do
+    assert RaceSpec("mppi", ControllerConfig(mppi=hotter)).key() != nominal.key()  # its MPPI settings do
 
 
 def test_an_unknown_setting_is_refused_with_its_name():
     record = RaceSpec("pixelmpc").record()
     for path, message in ((("config", "mppi", "temprature"), "unknown setting config.mppi.temprature"),
-                          (("config", "t_ff"), "unknown setting config.t_ff: PixelMPCConfig has the fields"),
+                          (("config", "t_ff"), "unknown setting config.t_ff: ControllerConfig has the fields"),
                           (("speeed",), "unknown setting speeed: RaceSpec has the fields")):
         bad = json.loads(json.dumps(record))
         node = bad
@@ -198,7 +198,7 @@ def test_an_unknown_setting_is_refused_with_its_name():
 
 def test_the_dof_weights_count_only_for_a_race_that_flies_the_dof():
     other = dof_weights_hash(jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof()))
-    for spec in (RaceSpec("mppi"), RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="projection"))):
+    for spec in (RaceSpec("mppi"), RaceSpec("pixelmpc", ControllerConfig(pixel_model="projection"))):
         named = spec.replace(dof_weights=other)
         assert named.key() == spec.key() and named.dof_weights is None
     dof_race = RaceSpec("pixelmpc")
@@ -235,7 +235,7 @@ def test_a_spec_refuses_bad_settings_and_a_cell_its_run_fields():
 def test_a_record_reads_back_as_the_race_it_was_flown_as(tmp_path, flown):
     """The recorded settings, seed, laps and weights make the same race, so the same key."""
     other = jax.tree_util.tree_map(lambda a: a * 2, dof.load_packaged_dof())
-    cells = [grid.Cell("dof", RaceSpec("pixelmpc", PixelMPCConfig(pixel_cost="border"), speed=9.0))]
+    cells = [grid.Cell("dof", RaceSpec("pixelmpc", ControllerConfig(pixel_cost="border"), speed=9.0))]
     grid.run_grid(cells, tmp_path, laps=2, seed=4, progress=False, batch_size=1, dof_params=other)
     entry = grid.load_results(tmp_path)["dof"]
     assert grid.recorded_race(entry) == cells[0].race(2, 4, dof_weights_hash(other))
@@ -247,7 +247,7 @@ def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
     flat = {"name": "c", "controller": "pixelmpc", "speed": 8.0, "t_f": 1.0, "c_pixel": 3e7, "pixel_model": "dof",
             "temperature": None, "num_samples": 512, "max_time_s": 60.0,
             "options": {"pixel_cost": "border", "mppi.noise_exponent": 1.0}}
-    config = PixelMPCConfig(c_pixel=3e7, pixel_cost="border",
+    config = ControllerConfig(c_pixel=3e7, pixel_cost="border",
                             mppi=dataclasses.replace(paper_mppi_config(), noise_exponent=1.0))
     flown = grid.recorded_race({"config": flat, "laps": [{}] * 2, "seed": 3})
     assert flown.key() == RaceSpec("pixelmpc", config, speed=8.0, laps=2, seed=3).key()
@@ -256,7 +256,7 @@ def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
 def test_a_vdof_race_names_the_packaged_vdof_weights_and_drops_the_dofs_names():
     from pixelmpc_jax.dynamics import vdof
 
-    spec = RaceSpec("pixelmpc", PixelMPCConfig(pixel_model="vdof"), dof_weights="flown")  # a DOF name
+    spec = RaceSpec("pixelmpc", ControllerConfig(pixel_model="vdof"), dof_weights="flown")  # a DOF name
     assert spec.dof_weights is None and spec.uses_dof
     assert spec.dof_fingerprint() == dof_weights_hash(vdof.load_packaged_vdof())
     assert spec.key() != RaceSpec("pixelmpc").key()

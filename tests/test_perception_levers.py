@@ -11,7 +11,7 @@ import pytest
 from pixelmpc_jax.control import costs, sampling
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.sim import controllers
 from pixelmpc_jax.sim import metrics as M
@@ -26,7 +26,7 @@ def _cost(config, uv):
 
 
 def test_border_cost_is_zero_inside_the_margin_and_one_per_axis_at_the_border():
-    config = PM.PixelMPCConfig(pixel_cost="border", border_margin=0.2, c_pixel=1.0, pixel_cost_scale=1.0)
+    config = PM.ControllerConfig(pixel_cost="border", border_margin=0.2, c_pixel=1.0, pixel_cost_scale=1.0)
     assert _cost(config, (0.5, 0.5)) == 0.0
     assert _cost(config, (0.69, 0.31)) == 0.0  # 0.19 from the centre: inside the 0.3 free zone
     assert _cost(config, (1.0, 0.5)) == pytest.approx(1.0)  # at the right border
@@ -41,7 +41,7 @@ def test_border_cost_is_zero_inside_the_margin_and_one_per_axis_at_the_border():
 def test_target_behind_the_camera_costs_at_least_the_worst_pixel_in_front(form):
     """The projection model places a target behind the camera at the behind-camera pixel: that must cost at least
     as much as any pixel in front, however far off the image (the clip bounds those)."""
-    config = PM.PixelMPCConfig(pixel_cost=form, pixel_model="projection", c_pixel=1.0, pixel_cost_scale=1.0)
+    config = PM.ControllerConfig(pixel_cost=form, pixel_model="projection", c_pixel=1.0, pixel_cost_scale=1.0)
     behind = float(PM.pixel_cost(PM.behind_camera_pixel(), config))
     grid_uv = np.stack(np.meshgrid(np.linspace(-3, 4, 57), np.linspace(-3, 4, 57)), -1).reshape(-1, 2)
     in_front = np.asarray(jax.vmap(lambda uv: PM.pixel_cost(uv, config))(jnp.asarray(grid_uv, jnp.float32)))
@@ -52,7 +52,7 @@ def test_target_behind_the_camera_costs_at_least_the_worst_pixel_in_front(form):
 def test_projection_model_gives_the_behind_camera_pixel_when_the_gate_is_behind():
     """Flying away from the target gate, the projection model's predicted pixel is the behind-camera pixel."""
     track = course_lib.load_course()
-    config = PM.PixelMPCConfig(mppi=SMALL, pixel_model="projection", t_f=0.1, pixel_cost="border")
+    config = PM.ControllerConfig(mppi=SMALL, pixel_model="projection", t_f=0.1, pixel_cost="border")
     ctrl = PM.make_pixelmpc(config)
     gate = track.gate(0)
     yaw_away = float(np.arctan2(-gate.normal[1], -gate.normal[0]))
@@ -68,9 +68,9 @@ def test_projection_model_gives_the_behind_camera_pixel_when_the_gate_is_behind(
 
 def test_bad_pixel_cost_options_are_rejected():
     with pytest.raises(ValueError, match="pixel_cost"):
-        PM.PixelMPCConfig(pixel_cost="l2")
+        PM.ControllerConfig(pixel_cost="l2")
     with pytest.raises(ValueError, match="border_margin"):
-        PM.PixelMPCConfig(border_margin=0.0)
+        PM.ControllerConfig(border_margin=0.0)
     with pytest.raises(ValueError, match="heading_weight"):
         costs.RacingCostConfig(heading_weight=1.5)
     with pytest.raises(ValueError, match="noise_exponent"):
@@ -134,7 +134,7 @@ def test_coloured_noise_samples_have_sigma_and_are_smoother():
 def test_the_named_controllers_fly_their_configuration():
     """make_policy builds the controller from the configuration whole: nominal MPPI from its MPPI and racing
     settings, PixelMPC from all of it."""
-    config = PixelMPCConfig(pixel_cost="border", mppi=paper_mppi_config(num_samples=64, horizon=12))
+    config = ControllerConfig(pixel_cost="border", mppi=paper_mppi_config(num_samples=64, horizon=12))
     assert controllers.make_policy("mppi", config).name == "mppi"
     assert controllers.make_policy("pixelmpc", config).name == "pixelmpc-dof"
     with pytest.raises(ValueError, match="unknown controller 'lqr'"):
@@ -205,7 +205,7 @@ def test_the_map_aided_prior_projects_an_undetected_target_from_the_map_and_the_
     assert 0.5 < float(centre[0]) < 1.0  # yawed 0.4 rad left of the gate: it lies in the image's right half
     behind, _ = PM.map_pixel_state(gate, Q.hover_state((0.0, 0.0, 3.0), yaw=np.pi), camera)
     np.testing.assert_array_equal(behind, PM.behind_camera_pixel())
-    config = PixelMPCConfig(pixel_cost="border")
+    config = ControllerConfig(pixel_cost="border")
     assert float(PM.pixel_cost(behind, config)) >= float(PM.pixel_cost(jnp.asarray([1.2, 0.5]), config))
     with pytest.raises(ValueError, match="target_prior must be one of"):
-        PixelMPCConfig(target_prior="guess")
+        ControllerConfig(target_prior="guess")

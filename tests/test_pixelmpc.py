@@ -48,7 +48,7 @@ def test_prefix_equals_full_horizon_computation(setup, model):
     generic MPPI with one-sample costs whose pixel model runs over the whole horizon and whose pixel cost is masked
     after n_f steps, while the target is detected and ahead."""
     track, dof_params = setup
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model=model)  # n_f = 10 of 24 steps
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model=model)  # n_f = 10 of 24 steps
     assert config.pixel_steps == 10
     fast = PM.make_pixelmpc(config)
     dt = SMALL.dt
@@ -87,14 +87,14 @@ def test_prefix_equals_full_horizon_computation(setup, model):
 
 def test_pixel_cost_counts_only_while_the_target_is_detected(setup):
     track, dof_params = setup
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, c_pixel=9e6)
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.5, c_pixel=9e6)
     ctrl = PM.make_pixelmpc(config)
     key = jax.random.PRNGKey(0)
     u_init = Q.hover_control(Q.QuadParams())
     off_centre = state(track, uv=(0.9, 0.1))
     _, _, on = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=True))
     _, _, off = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=False))
-    nominal = PM.make_pixelmpc(PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, c_pixel=0.0))
+    nominal = PM.make_pixelmpc(PM.ControllerConfig(mppi=SMALL, t_f=0.5, c_pixel=0.0))
     _, _, zero = nominal.step(nominal.init(key, u_init), off_centre, make_params(track, dof_params, config))
     np.testing.assert_allclose(off.costs, zero.costs, rtol=1e-6)
     # L1 of (0.9, 0.1) from the centre is 0.8: at least n_f steps of a large pixel cost in every sample
@@ -103,7 +103,7 @@ def test_pixel_cost_counts_only_while_the_target_is_detected(setup):
 
 def test_projection_model_predicts_the_projected_target(setup):
     track, dof_params = setup
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.5, pixel_model="projection")
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.5, pixel_model="projection")
     ctrl = PM.make_pixelmpc(config)
     params = make_params(track, dof_params, config)
     _, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams())), state(track), params)
@@ -116,7 +116,7 @@ def test_projection_model_predicts_the_projected_target(setup):
 
 def small_controller(track, dof_params, seed=0):
     """A PixelMPC controller at the small size with t_f = 0.25 s: (ctrl, config, its first state, params)."""
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25)
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25)
     ctrl = PM.make_pixelmpc(config)
     s = ctrl.init(jax.random.PRNGKey(seed), Q.hover_control(Q.QuadParams()))
     return ctrl, config, s, make_params(track, dof_params, config)
@@ -137,26 +137,26 @@ def test_no_recompilation_for_new_pixel_gates_or_weights(setup):
 
 def test_bad_config_is_rejected():
     with pytest.raises(ValueError, match="pixel_model"):
-        PM.PixelMPCConfig(pixel_model="flow")
+        PM.ControllerConfig(pixel_model="flow")
     with pytest.raises(ValueError, match="t_f"):
-        PM.PixelMPCConfig(t_f=-1.0)
+        PM.ControllerConfig(t_f=-1.0)
     with pytest.raises(ValueError, match="c_pixel"):
-        PM.PixelMPCConfig(c_pixel=-5.0)
+        PM.ControllerConfig(c_pixel=-5.0)
 
 
 def test_pixel_cost_clip_and_dead_zone():
-    paper = PM.PixelMPCConfig(pixel_error_clip=None, c_pixel=1.0, pixel_cost_scale=1.0)
+    paper = PM.ControllerConfig(pixel_error_clip=None, c_pixel=1.0, pixel_cost_scale=1.0)
     uv = jnp.asarray([0.9, -2.5])  # 0.4 right of the centre, 3 image heights above it
     np.testing.assert_allclose(PM.pixel_cost(uv, paper), 0.4 + 3.0, rtol=1e-6)
-    clipped = PM.PixelMPCConfig(c_pixel=1.0, pixel_cost_scale=1.0)  # default clip: 1 image size per axis
+    clipped = PM.ControllerConfig(c_pixel=1.0, pixel_cost_scale=1.0)  # default clip: 1 image size per axis
     np.testing.assert_allclose(PM.pixel_cost(uv, clipped), 0.4 + 1.0, rtol=1e-6)
-    dead = PM.PixelMPCConfig(c_pixel=1.0, pixel_cost_scale=1.0, pixel_deadzone=0.3)
+    dead = PM.ControllerConfig(c_pixel=1.0, pixel_cost_scale=1.0, pixel_deadzone=0.3)
     np.testing.assert_allclose(PM.pixel_cost(uv, dead), 0.1 + 1.0, rtol=1e-6)
     np.testing.assert_allclose(PM.pixel_cost(jnp.asarray([0.6, 0.35]), dead), 0.0, atol=1e-7)
     with pytest.raises(ValueError, match="pixel_deadzone"):
-        PM.PixelMPCConfig(pixel_deadzone=0.5)
+        PM.ControllerConfig(pixel_deadzone=0.5)
     with pytest.raises(ValueError, match="pixel_error_clip"):
-        PM.PixelMPCConfig(pixel_error_clip=0.0)
+        PM.ControllerConfig(pixel_error_clip=0.0)
 
 
 def test_nominal_step_equals_a_one_sample_racing_cost(setup):
@@ -218,7 +218,7 @@ def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(
     track, _ = setup
     params_vdof = vdof.load_packaged_vdof()
     x = track.start
-    config = PM.PixelMPCConfig(mppi=SMALL, t_f=0.25, c_pixel=3e7, pixel_cost="border", pixel_model="vdof",
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=3e7, pixel_cost="border", pixel_model="vdof",
                                box_size_limit=0.5)
     costs_of = {}
     controllers = {c_pixel: PM.make_pixelmpc(dataclasses.replace(config, c_pixel=c_pixel)) for c_pixel in (3e7, 0.0)}
@@ -231,4 +231,4 @@ def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(
         costs_of[name] = np.asarray(info.costs)
     np.testing.assert_allclose(costs_of["near"], costs_of["near_free"], rtol=1e-6)  # past the limit: no pixel cost
     assert np.all(costs_of["far"] > costs_of["far_free"])  # below it the corner pixel costs every sample
-    assert PM.PixelMPCConfig(box_size_limit=0.5) == PM.PixelMPCConfig()  # no box size: the limit flies nothing
+    assert PM.ControllerConfig(box_size_limit=0.5) == PM.ControllerConfig()  # no box size: the limit flies nothing

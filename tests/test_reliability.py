@@ -269,10 +269,10 @@ def test_an_update_that_overflows_float32_keeps_the_last_finite_plan():
     ],
 )
 def test_pixelmpc_config_refuses_non_finite_settings(field, value, message):
-    from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+    from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
     with pytest.raises(ValueError, match=message):
-        PixelMPCConfig(**{field: value})
+        ControllerConfig(**{field: value})
 
 
 # --------------------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ import jax, jax.numpy as jnp, numpy as np
 from pixelmpc_jax.apps.bench import problems
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import episode as E
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.world import course as C
 from pixelmpc_jax.sim import env as env_lib
 
@@ -42,7 +42,7 @@ for k in (1, 2):
 out["steps"] = steps
 course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
 world = env_lib.make_world(course, target_speed=8.0)
-spec = RaceSpec(controller="mppi", config=PixelMPCConfig(mppi=paper_mppi_config(num_samples=64, horizon=12)))
+spec = RaceSpec(controller="mppi", config=ControllerConfig(mppi=paper_mppi_config(num_samples=64, horizon=12)))
 laps = {}
 for k in (1, 2):
     runner = E.make_runner(spec.policy(sample_devices=k), E.EpisodeConfig(max_time_s=0.5))
@@ -152,5 +152,5 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
     np.testing.assert_allclose(i_y.costs, i_x.costs, rtol=1e-5)
     np.testing.assert_allclose(s_y.plan, s_x.plan, atol=1e-5)
     small = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=12)
-    policy = make_policy("pixelmpc", pixelmpc_lib.PixelMPCConfig(mppi=small, t_f=0.15))
+    policy = make_policy("pixelmpc", pixelmpc_lib.ControllerConfig(mppi=small, t_f=0.15))
     assert policy.compiler_options == devices.YNNPACK_MATMULS  # the episode's jit compiles with them

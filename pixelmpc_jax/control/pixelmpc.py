@@ -74,7 +74,7 @@ def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: fl
 
 
 @dataclasses.dataclass(frozen=True)
-class PixelMPCConfig:
+class ControllerConfig:
     """Static settings of the racing controller, PixelMPC or nominal MPPI (hashable; a new config compiles once).
 
     Both controllers fly ``mppi``, ``racing``, ``model_latency_ticks`` and ``disturbance_time_constant_s``; the
@@ -194,7 +194,7 @@ class PixelMPCParams:
             the pixel of a gate already behind the camera).
         camera: the onboard camera (projection model only).
         disturbance: (3,) m/s^2, the estimated external acceleration the robot model adds (with
-            ``PixelMPCConfig.disturbance_time_constant_s``; None without).
+            ``ControllerConfig.disturbance_time_constant_s``; None without).
     """
 
     racing: costs.RacingParams
@@ -206,7 +206,7 @@ class PixelMPCParams:
     disturbance: jax.Array | None = None
 
 
-def pixel_cost(uv: jax.Array, config: PixelMPCConfig) -> jax.Array:
+def pixel_cost(uv: jax.Array, config: ControllerConfig) -> jax.Array:
     """Eq. (18)'s integrand per step for a pixel ``uv`` (..., 2) -> (...), of the form ``config.pixel_cost``.
 
     "l1": c_pixel * scale * (|u - 0.5| + |v - 0.5|), each axis less the dead zone (at least 0);
@@ -271,17 +271,17 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     return make_mppi(mppi_config, dynamics, TrajectoryCost(trajectory_cost))
 
 
-def make_pixelmpc(config: PixelMPCConfig | None = None,
+def make_pixelmpc(config: ControllerConfig | None = None,
                   quad_params: quadrotor.QuadParams | None = None) -> Controller:
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.
 
     The controller's state is X = [x (10,); uv (2,)] ([x; uv; s] (13,) for "vdof");
     ``step(state, X0, params: PixelMPCParams)``.
     The initial pixel ``uv`` is the detector's (normalised) target pixel; with the projection model it
-    is recomputed from the pose at every step. ``config`` defaults to ``PixelMPCConfig()`` (built here, not at
+    is recomputed from the pose at every step. ``config`` defaults to ``ControllerConfig()`` (built here, not at
     import: building it creates arrays, which would start the JAX backend before ``jax.distributed``).
     """
-    config = PixelMPCConfig() if config is None else config
+    config = ControllerConfig() if config is None else config
     quad_params = quad_params or quadrotor.QuadParams()
     dt = config.mppi.dt
     n_f = config.pixel_steps

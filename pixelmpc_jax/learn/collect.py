@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import strict_json, timing
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import flow as flow_lib
@@ -176,7 +176,7 @@ def _cached_runner(num_samples: int, max_time_s: float, excitation: tuple | None
     """The nominal MPPI episode runner (``controllers.make_policy("mppi", ...)`` on the paper's MPPI settings at
     ``num_samples`` and the default racing cost), compiled once per size; with ``excitation``
     (``CollectConfig.excitation_params()``) wrapped in :func:`excited_policy`."""
-    policy = controllers.make_policy("mppi", PixelMPCConfig(mppi=paper_mppi_config(num_samples=num_samples)))
+    policy = controllers.make_policy("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=num_samples)))
     if excitation is not None:
         policy = excited_policy(policy, *excitation, num_samples=num_samples)
     return episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=max_time_s))

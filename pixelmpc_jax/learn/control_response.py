@@ -179,7 +179,7 @@ def _pixel_state_velocity_fn(pixel_model: str, velocity_fn=None) -> Callable:
 
 
 @functools.lru_cache(maxsize=8)
-def _pixel_cost_pair_fn(config: pixelmpc_lib.PixelMPCConfig, velocity_fn=None, pixel_model: str = "dof"):
+def _pixel_cost_pair_fn(config: pixelmpc_lib.ControllerConfig, velocity_fn=None, pixel_model: str = "dof"):
     """The jitted ``(params, x0, p0, controls (N, n_f, 4), target_centre, target_normal, camera) ->
     (cost_model (N,), cost_projection (N,))``: the pixel cost of Eq. (18) over the first ``n_f`` steps with the
     pixel from the learned pixel model's dynamics (``pixel_model`` "dof": p0 the pixel (2,); "vdof": the pixel
@@ -252,7 +252,7 @@ def _ranking_starts(laps: list[Lap], track, camera, stride: int, initial) -> lis
 
 def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
                                 num_samples: int = RANK_SAMPLES, t_f: float = RANK_T_F, stride: int = RANK_STRIDE,
-                                seed: int = 0, velocity_fn=None, config: pixelmpc_lib.PixelMPCConfig | None = None,
+                                seed: int = 0, velocity_fn=None, config: pixelmpc_lib.ControllerConfig | None = None,
                                 progress: bool = False, pixel_model: str = "dof", box_cue: str = "apparent") -> dict:
     """Spearman correlation between a learned pixel model's and the exact projection's pixel cost of sampled
     sequences.
@@ -261,7 +261,7 @@ def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
     no noise) with its centre in the image, ``num_samples`` control sequences of ``t_f / dt`` steps are
     sampled as PixelMPC's MPPI samples them (:func:`sample_control_sequences`, PixelMPC's MPPI config) around
     the logged commands from that tick on (the plan MPPI was flying), rolled out with the MPC's robot model
-    from the logged state, and costed with PixelMPC's pixel cost (``PixelMPCConfig``, the l1 cost by default)
+    from the logged state, and costed with PixelMPC's pixel cost (``ControllerConfig``, the l1 cost by default)
     with the model's pixel and with the target's exact projection. The model is given the sampled controls, as
     PixelMPC gives them. ``pixel_model`` "dof" (``dof_params`` a DOF, from the detected centre) or "vdof"
     (``dof_params`` vdof weights, from the detected ``[centre, box size]``, ``box_cue`` as its weights were
@@ -271,7 +271,7 @@ def pixel_cost_rank_correlation(dof_params, laps: list[Lap], track, camera,
         ``median``, ``q25``, ``q75``, ``mean`` of the per-state correlations; ``states`` counted;
         ``skipped_constant`` (states where either cost did not vary over the samples); ``samples``, ``steps``.
     """
-    base = config or pixelmpc_lib.PixelMPCConfig()
+    base = config or pixelmpc_lib.ControllerConfig()
     config = dataclasses.replace(base, t_f=float(t_f), mppi=dataclasses.replace(base.mppi, num_samples=num_samples))
     steps = config.pixel_steps
     pair = _pixel_cost_pair_fn(config, velocity_fn, pixel_model)

@@ -1,6 +1,6 @@
 """The named controllers as episode policies: "mppi" (nominal MPPI) and "pixelmpc". The race app, the experiment
 grids and DOF data collection build their policies here, from one
-:class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`.
+:class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig`.
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ def make_policy(controller: str, config=None) -> policies.Policy:
         controller: "mppi", the paper's nominal MPPI, flying ``config.mppi``, ``config.racing``,
             ``config.model_latency_ticks`` and ``config.disturbance_time_constant_s``; or
             "pixelmpc", flying all of ``config``.
-        config: a :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` (None: its defaults).
+        config: a :class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig` (None: its defaults).
     """
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}; choose one of {', '.join(CONTROLLERS)}")
-    from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+    from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
-    config = PixelMPCConfig() if config is None else config
+    config = ControllerConfig() if config is None else config
     if controller == "mppi":
         return policies.nominal_mppi_policy(config.mppi, config.racing, latency_ticks=config.model_latency_ticks,
                                             disturbance_tau=config.disturbance_time_constant_s)

@@ -149,13 +149,13 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks, disturbance_tau)
 
 
-def pixelmpc_policy(config: pixelmpc_lib.PixelMPCConfig | None = None,
+def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
                     quad_params: quadrotor.QuadParams | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
     size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
     (``config.target_prior``: an undetected target's pixel from the map and the estimate); the learned pixel
     model's weights come from ``world.dof``."""
-    config = config or pixelmpc_lib.PixelMPCConfig()
+    config = config or pixelmpc_lib.ControllerConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
 

@@ -25,7 +25,7 @@ from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig, paper_mppi_config
+from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
@@ -137,7 +137,7 @@ def loop_rows(mode: str = "full", repeats: int | None = None, dof_params=None) -
     max_time_s = {"full": timing.LAP_TIME_LIMIT_S, "quick": 2.5, "smoke": 0.25}[mode]
     base = RaceSpec(controller="pixelmpc", max_time_s=max_time_s)
     if mode == "smoke":
-        base = base.replace(config=PixelMPCConfig(mppi=paper_mppi_config(num_samples=16, horizon=8), t_f=0.1))
+        base = base.replace(config=ControllerConfig(mppi=paper_mppi_config(num_samples=16, horizon=8), t_f=0.1))
     devices = usable_sample_devices(base.config.mppi.num_samples)
     rows = [loop_row(base, repeats, dof_params=dof_params, sample_devices=devices),
             loop_row(base.replace(controller="mppi"), repeats, sample_devices=devices),

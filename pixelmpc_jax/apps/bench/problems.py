@@ -48,7 +48,7 @@ class ControllerProblem(NamedTuple):
         state: its initial MPPIState.
         x0: (n,) the state the step plans from.
         params: the dynamic params pytree of the step.
-        config: the PixelMPCConfig (or MPPIConfig for the nominal/diff-drive problems).
+        config: the ControllerConfig (or MPPIConfig for the nominal/diff-drive problems).
     """
 
     ctrl: Controller
@@ -84,7 +84,7 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
         dof_params = bench_dof_params() if dof_params is None else dof_params
     mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
                                       sample_devices=sample_devices)
-    config = pixelmpc_lib.PixelMPCConfig(mppi=mppi_config, t_f=t_f, pixel_model=pixel_model)
+    config = pixelmpc_lib.ControllerConfig(mppi=mppi_config, t_f=t_f, pixel_model=pixel_model)
     ctrl = pixelmpc_lib.make_pixelmpc(config)
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
     params = pixelmpc_lib.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(True),

@@ -30,7 +30,7 @@ from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing import grid
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES
 from pixelmpc_jax.strict_json import json_safe
 from pixelmpc_jax.timing import CONTROL_DT, LAP_TIME_LIMIT_S
@@ -55,10 +55,10 @@ class FrontierSpec:
 
 
 def pixel_cell(model: str, cost: str = "l1", c_pixel: float = 9e6, speed: float = 8.0, t_f: float = 1.0,
-               config: PixelMPCConfig | None = None) -> grid.Cell:
+               config: ControllerConfig | None = None) -> grid.Cell:
     """A PixelMPC grid cell named after its pixel model, pixel cost, weight and speed; ``config`` holds any further
     settings (its other fields different from the defaults are named in the cell's name too)."""
-    config = dataclasses.replace(config or PixelMPCConfig(), pixel_model=model, pixel_cost=cost, c_pixel=c_pixel,
+    config = dataclasses.replace(config or ControllerConfig(), pixel_model=model, pixel_cost=cost, c_pixel=c_pixel,
                                  t_f=t_f)
     spec = RaceSpec("pixelmpc", config=config, speed=speed)
     extra = "".join(f"_{k.replace('.', '-')}{v:g}" if isinstance(v, float) else f"_{k.replace('.', '-')}{v}"

@@ -16,7 +16,7 @@ from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing.grid import Cell, fmt
 from pixelmpc_jax.apps.racing.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, PRESETS, preset
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 from pixelmpc_jax.platform_info import device_line
 
 # The paper's Tables II and III (14 m/s, 10 races per cell, mean +- 2 sigma), keyed by (t_f, c_pixel).
@@ -30,7 +30,7 @@ PAPER_ACCELERATION_CHANGE = -0.29  # "29% decrease in linear and angular acceler
 
 CALIBRATION_NOTE = (
     "Our pixel cost per step is c_pixel x 3e-5 x L1(uv - centre) with each axis clipped to 1 image size "
-    "(`PixelMPCConfig.pixel_cost_scale`, `pixel_error_clip`). The paper's cost units are not recoverable, so "
+    "(`ControllerConfig.pixel_cost_scale`, `pixel_error_clip`). The paper's cost units are not recoverable, so "
     "the scale was chosen so that the paper's best cell (t_f = 1 s, c_pixel = 9e6) costs about the lap time "
     "the paper's does (+5 %): 4-lap probes gave +7 % at 3e-5 and +25 % at 1e-4. In this world the target "
     "gate cannot stay in view at cruise speed: with FlightGoggles' drag (0.1 |v| v, 1 kg) holding 14 m/s "
@@ -57,7 +57,7 @@ def visibility_cells(pixel_model: str = "dof", speed: float = LABEL_SPEED, t_f_v
     cells = [nominal_cell(speed)]
     for t_f in t_f_values:
         for c_pixel in c_pixel_values:
-            config = PixelMPCConfig(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
+            config = ControllerConfig(t_f=t_f, c_pixel=c_pixel, pixel_model=pixel_model)
             cells.append(Cell(grid_cell_name(pixel_model, t_f, c_pixel, speed),
                               RaceSpec(controller="pixelmpc", config=config, speed=speed)))
     if best:

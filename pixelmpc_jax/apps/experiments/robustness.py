@@ -11,8 +11,8 @@ Laps: 10 per cell for the moderate faults with the filter and for the fault-free
 smoke run, 2 laps, the moderate level on the filter only). With ``levers``, PixelMPC's filter cells of the moderate
 level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown again with each
 named set of levers (:data:`LEVER_SETS`) on: ``model``, the disturbance observer in the controller's model
-(``PixelMPCConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
-(``PixelMPCConfig.model_latency_ticks``); ``filter``, the filter's guards
+(``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
+(``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
 and gate sets at once (:data:`COMBINED_LEVERS`). The sets fly apart, so each is measured on its own. The ``best``

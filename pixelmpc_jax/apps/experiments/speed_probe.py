@@ -21,7 +21,7 @@ from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing.grid import Cell
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
 KEYS = ("time_vis_below_50_s", "time_vis_below_50_unavoidable_s", "time_vis_zero_s", "lap_time_s", "mean_speed")
 LABELS = ("vis < 50 % [s]", "of which unavoidable [s]", "vis = 0 % [s]", "lap time [s]", "mean speed [m/s]")
@@ -31,7 +31,7 @@ def cells_for(speed: float, models, c_pixels, t_f: float) -> list[Cell]:
     """Nominal MPPI, then PixelMPC for every (pixel model, c_pixel) at ``speed``."""
     return [Cell("mppi", RaceSpec("mppi", speed=speed))] + [
         Cell(f"pixelmpc_{model}_tf{t_f:g}_c{c:.0e}",
-             RaceSpec("pixelmpc", config=PixelMPCConfig(t_f=t_f, c_pixel=c, pixel_model=model), speed=speed))
+             RaceSpec("pixelmpc", config=ControllerConfig(t_f=t_f, c_pixel=c, pixel_model=model), speed=speed))
         for model in models for c in c_pixels]
 
 

@@ -12,7 +12,7 @@ import dataclasses
 
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control import costs
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
 PRESETS = ("best", "paper")
 DEFAULT_PRESET = "best"
@@ -46,16 +46,16 @@ WHY = {
 BEST_VEHICLE_RADIUS_M = 0.3
 
 # The hand-tuned `best` before the search (kept to compare against): vdof, border cost, c_pixel 9e6, box size 0.5.
-HAND_TUNED_BEST = PixelMPCConfig(pixel_model="vdof", pixel_cost="border", c_pixel=9e6, box_size_limit=0.5)
+HAND_TUNED_BEST = ControllerConfig(pixel_model="vdof", pixel_cost="border", c_pixel=9e6, box_size_limit=0.5)
 
 
-def _tuned_best() -> PixelMPCConfig:
+def _tuned_best() -> ControllerConfig:
     """Trial 17 of `pixelmpc tune --space hand-tuned --trials 30` (experiments/results/tune/best_bound5.json),
     exactly: the highest training gain among the trials within +5 % of nominal MPPI's lap on every lap; with the
     clearance :data:`BEST_VEHICLE_RADIUS_M` in its racing cost."""
-    mppi = dataclasses.replace(PixelMPCConfig().mppi, temperature=676.8107401099043,
+    mppi = dataclasses.replace(ControllerConfig().mppi, temperature=676.8107401099043,
                                noise_exponent=0.3299107461606072)
-    return PixelMPCConfig(mppi=mppi, racing=costs.RacingCostConfig(vehicle_radius=BEST_VEHICLE_RADIUS_M),
+    return ControllerConfig(mppi=mppi, racing=costs.RacingCostConfig(vehicle_radius=BEST_VEHICLE_RADIUS_M),
                           pixel_model="vdof", pixel_cost="border", c_pixel=23621504.230326705,
                           border_margin=0.14054065123708687, box_size_limit=0.7879021112336558,
                           t_f=0.6240106812244421)
@@ -64,7 +64,7 @@ def _tuned_best() -> PixelMPCConfig:
 def preset(name: str) -> RaceSpec:
     """The race ``name`` ("paper" or "best"), PixelMPC; :func:`nominal_of` gives its nominal MPPI baseline."""
     if name == "paper":
-        return RaceSpec("pixelmpc", PixelMPCConfig(), speed=PAPER_LABEL_SPEEDS[0])
+        return RaceSpec("pixelmpc", ControllerConfig(), speed=PAPER_LABEL_SPEEDS[0])
     if name == "best":
         return RaceSpec("pixelmpc", _tuned_best(), speed=PAPER_PACE_SPEED)
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
@@ -75,7 +75,7 @@ def nominal_of(spec: RaceSpec) -> RaceSpec:
     horizon), flown by nominal MPPI with the paper's sampling temperature and noise colour, as the nominal frontier
     that every frontier gain is measured against flies it. A preset's tuned lambda and noise colour were searched
     for PixelMPC's cost and stay with it."""
-    paper = PixelMPCConfig().mppi
+    paper = ControllerConfig().mppi
     mppi = dataclasses.replace(spec.config.mppi, temperature=paper.temperature, noise_exponent=paper.noise_exponent)
     return spec.replace(controller="mppi", config=dataclasses.replace(spec.config, mppi=mppi))
 

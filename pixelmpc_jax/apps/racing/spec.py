@@ -3,7 +3,7 @@
 :meth:`RaceSpec.key` is unchanged.
 
 The controller's settings are its configuration as the library takes it, whole: one
-:class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig`, whose ``mppi``
+:class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig`, whose ``mppi``
 (:class:`~pixelmpc_jax.control.mppi.MPPIConfig`), ``racing`` (:class:`~pixelmpc_jax.control.costs.RacingCostConfig`),
 latency and disturbance model configure nominal MPPI too. Every setting lives in one field of one configuration;
 the record, the key and the policy are derived from it.
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.faults import Faults
@@ -36,8 +36,8 @@ LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
                   ("config", "disturbance_time_constant_s"), ("config", "target_prior"))
 
 
-def _default_config() -> PixelMPCConfig:
-    return PixelMPCConfig()
+def _default_config() -> ControllerConfig:
+    return ControllerConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +70,7 @@ class RaceSpec:
     """
 
     controller: str = "mppi"
-    config: PixelMPCConfig = dataclasses.field(default_factory=_default_config)
+    config: ControllerConfig = dataclasses.field(default_factory=_default_config)
     speed: float = 14.0
     laps: int = 1
     seed: int = 0
@@ -88,8 +88,8 @@ class RaceSpec:
             raise ValueError(f"unknown controller {self.controller!r}; choose one of {', '.join(CONTROLLERS)}")
         if self.course not in COURSES and not Path(self.course).is_file():
             raise ValueError(f"unknown course {self.course!r}; choose one of {', '.join(COURSES)} or a course file")
-        if not isinstance(self.config, PixelMPCConfig):
-            raise ValueError(f"config must be a PixelMPCConfig, got {type(self.config).__name__}")
+        if not isinstance(self.config, ControllerConfig):
+            raise ValueError(f"config must be a ControllerConfig, got {type(self.config).__name__}")
         if not (isinstance(self.speed, (int, float)) and 0 < self.speed < float("inf")):
             raise ValueError(f"speed must be a positive finite number of m/s, got {self.speed!r}")
         if not (isinstance(self.laps, int) and self.laps > 0):
@@ -99,7 +99,7 @@ class RaceSpec:
         object.__setattr__(self, "max_time_s", float(self.max_time_s))
         mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
         if self.controller == "mppi":
-            config = PixelMPCConfig(mppi=mppi, racing=self.config.racing,
+            config = ControllerConfig(mppi=mppi, racing=self.config.racing,
                                     model_latency_ticks=self.config.model_latency_ticks,
                                     disturbance_time_constant_s=self.config.disturbance_time_constant_s)
         else:

@@ -1,6 +1,6 @@
 """The search space of ``pixelmpc tune``: named controller settings, each a range or a list of choices.
 
-A space is a JSON object whose keys name fields of the :class:`~pixelmpc_jax.control.pixelmpc.PixelMPCConfig` a race
+A space is a JSON object whose keys name fields of the :class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig` a race
 flies, dotted as :meth:`~pixelmpc_jax.apps.racing.spec.RaceSpec.record` nests them under ``"config"`` (``"c_pixel"``,
 ``"mppi.temperature"``, ``"racing.heading_weight"``), and whose values are either a range
 ``{"low": 2e6, "high": 3e7, "log": true}`` (``log`` optional, false by default) or ``{"choices": [...]}``::
@@ -22,7 +22,7 @@ import math
 from pathlib import Path
 
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import PixelMPCConfig
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
 # "hand-tuned": around the hand-tuned settings the search started from (presets.HAND_TUNED_BEST: vdof, border cost,
 # c_pixel 9e6, box size limit 0.5, t_f 1 s, lambda 200, white noise): the settings the hand tuning moved, each over
@@ -118,7 +118,7 @@ def load_space(space: str, base: RaceSpec) -> dict[str, Param]:
 
 def _field_annotation(name: str) -> tuple[str | None, str | None]:
     """The annotation of the configuration field ``name`` (dotted), or None and what is wrong with the name."""
-    node = PixelMPCConfig()
+    node = ControllerConfig()
     parts = name.split(".")
     for depth, part in enumerate(parts):
         fields = {f.name: f for f in dataclasses.fields(node)}
