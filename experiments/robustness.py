@@ -1,8 +1,10 @@
 """Robustness to the faults a real flight brings (issue 28): nominal MPPI and PixelMPC (the ``best`` preset) at the
 paper's pace under wind, model error, latency, IMU and detector faults and map errors, each alone at a moderate and
-a severe level and all moderate ones at once, on the particle filter (and at the moderate level on the true state).
+a severe level and all moderate ones at once, on the particle filter and the error-state Kalman filter (and at the
+moderate level on the true state).
 
-    python experiments/robustness.py --out DIR [--quick] [--levers [NAME ...]] [--reuse FOLDER ...] [--report-only]
+    python experiments/robustness.py --out DIR [--quick] [--estimators pf eskf truth] [--faults NAME ...]
+        [--levers [NAME ...]] [--reuse FOLDER ...] [--report-only]
 
 --levers: model, filter, gate, bias, robust (no name: all).
 

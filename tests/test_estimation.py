@@ -8,7 +8,8 @@ from pixelmpc_jax.sim import metrics
 
 def _lap(success, lap_time, cov_max, error, crash=None):
     return {"success": success, "lap_time_s": lap_time, "crash": crash, "gates_passed": 11 if success else 3,
-            "max_position_cov_trace": cov_max, "mean_position_error_m": error, "time_vis_below_50_s": 1.0,
+            "max_position_cov_trace": cov_max, "mean_position_error_m": error, "rms_position_error_m": error,
+            "time_vis_below_50_s": 1.0,
             "time_vis_zero_s": 0.0, "total_variation_roll": 1.0, "total_variation_pitch": 1.0,
             "total_variation_yaw": 1.0, "mean_linear_acc": 1.0, "mean_angular_acc": 1.0, "mean_speed": 9.0,
             "flight_time_s": lap_time or 5.0}
@@ -36,6 +37,11 @@ def test_cells_cover_the_paper_grid_at_the_labels_and_the_paces():
     assert {(E.who_of(c), c.spec.speed) for c in lanes} == {("mppi", 20.0), ("paper", 20.0), ("mppi", 10.3),
                                                            ("paper", 10.3), ("best", 10.3)}
     assert [c.spec.speed for c in E.race_cells(quick=True)] == [9.1] * 3
+    # Table IV on the Kalman filter: the same races on its estimate, beside the paper's filter's
+    both = E.race_cells(estimators=E.ESTIMATORS)
+    assert len(both) == 20 and [c.spec.estimator for c in both] == ["pf"] * 10 + ["eskf"] * 10
+    assert [c.spec.replace(estimator="pf") for c in both[10:]] == [c.spec for c in cells]
+    assert both[10].name == cells[0].name.replace("_pf", "_eskf")
 
 
 def test_summary_counts_successes_failures_and_covariance_maxima():
@@ -53,9 +59,11 @@ def test_summary_counts_successes_failures_and_covariance_maxima():
     assert abs(row["sigma_max"]["mean"] - maxima.mean()) < 1e-9 and row["sigma_max"]["max"] == 9.0
     assert abs(row["mean_position_error_m"] - 0.625) < 1e-9
     report = E.markdown_report(race_rows, straight_rows, "cpu")
-    assert "| nominal MPPI | 16 m/s | 9.1 m/s | 2/4 (50%) | 52% |" in report
-    assert "| PixelMPC, `paper` | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
-    assert "| PixelMPC, `best` | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
+    assert "| nominal MPPI | particle filter | 16 m/s | 9.1 m/s | 2/4 (50%) | 52% |" in report
+    assert "| PixelMPC, `paper` | particle filter | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
+    assert "| PixelMPC, `best` | particle filter | 16 m/s | 9.1 m/s | 2/4 (50%) | 60% |" in report
+    # the RMS position error over the laps (0.3, 1.2, 0.8, 0.2 m)
+    assert abs(row["rms_position_error_m"] - np.sqrt(np.mean(np.square([0.3, 1.2, 0.8, 0.2])))) < 1e-9
     assert "9.2" in report and "5.7" in report  # the paper's straight-lane figures beside ours
     assert "Wall time of the cells flown here: 6.0 min" in report
 

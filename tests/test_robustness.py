@@ -30,7 +30,9 @@ def test_the_grid_flies_every_fault_at_both_levels_and_combined_for_both_control
     for controller in R.CONTROLLERS:
         assert cells[f"{controller}_pf_{COMBINED}_moderate"].cell.spec.faults == fault_level(COMBINED, "moderate")
         assert cells[f"{controller}_pf_none"].laps == cells[f"{controller}_truth_none"].laps == 10
-        assert cells[f"{controller}_truth_wind_moderate"].laps == 6
+        assert cells[f"{controller}_truth_wind_moderate"].laps == 10  # lap for lap against the filters' cells
+        assert cells[f"{controller}_eskf_{COMBINED}_moderate"].cell.spec.estimator == "eskf"
+        assert cells[f"{controller}_eskf_wind_moderate"].laps == 10 and cells[f"{controller}_eskf_none"].laps == 10
     spec = cells["pixelmpc_pf_gust_severe"].cell.spec
     assert spec.speed == PAPER_PACE_SPEED and spec.config.pixel_model == "vdof" and spec.estimator == "pf"
     assert spec.faults == Faults(gust=FAULT_LEVELS["gust"]["severe"].settings["gust"])
@@ -82,6 +84,32 @@ def test_the_robust_set_turns_on_the_model_and_gate_sets_together():
     assert not any(name.endswith("_robust") and not name.startswith("pixelmpc_pf") for name in cells)
 
 
+def test_the_controller_levers_fly_on_every_loop_and_the_guards_on_the_particle_filter_only():
+    cells = _by_name(R.robustness_cells(levers=("model", "filter", "robust")))
+    for estimator in ("eskf", "truth"):  # each filter cell with a lever has its true-state cell with the same lever
+        spec = cells[f"pixelmpc_{estimator}_wind_moderate_model"].cell.spec
+        assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S and spec.estimator == estimator
+        assert f"pixelmpc_{estimator}_wind_moderate_filter" not in cells
+        assert f"pixelmpc_{estimator}_wind_moderate_robust" not in cells
+        assert f"pixelmpc_{estimator}_wind_severe_model" not in cells
+    assert "pixelmpc_pf_wind_moderate_robust" in cells and "mppi_eskf_wind_moderate_model" not in cells
+
+
+def test_a_part_of_the_grid_by_estimator_and_fault():
+    cells = R.robustness_cells(estimators=("eskf", "truth"), faults=("none", "wind", "imu_bias"))
+    assert {rc.estimator for rc in cells} == {"eskf", "truth"} and {rc.fault for rc in cells} == {"none", "wind",
+                                                                                                "imu_bias"}
+    names = {rc.cell.name for rc in cells}
+    assert "pixelmpc_eskf_imu_bias_severe" in names and "pixelmpc_truth_imu_bias_moderate" not in names
+    with pytest.raises(ValueError, match="unknown estimator 'ekf'"):
+        R.robustness_cells(estimators=("ekf",))
+    with pytest.raises(ValueError, match="unknown fault 'rain'"):
+        R.robustness_cells(faults=("rain",))
+    moderate = R.robustness_cells(estimators=("eskf",), faults=("none", "wind"), levels=("moderate",))
+    assert {rc.cell.name for rc in moderate} == {"mppi_eskf_none", "pixelmpc_eskf_none", "mppi_eskf_wind_moderate",
+                                                 "pixelmpc_eskf_wind_moderate"}
+
+
 @pytest.mark.parametrize("lap, cause", [
     ({"success": True}, None), ({"success": False, "crash": "gate", "max_position_error_m": 0.4}, "gate"),
     ({"success": False, "crash": "wall", "max_position_error_m": 2.5}, "estimate_diverged"),
@@ -94,7 +122,7 @@ def test_every_failed_lap_has_a_named_cause(lap, cause):
 def _lap(success: bool, crash=None, error=0.3) -> dict:
     return {"success": success, "crash": crash, "lap_time_s": 31.0 if success else None, "time_vis_below_50_s": 2.0,
             "time_vis_zero_s": 0.5, "share_target_in_view": 0.9, "mean_target_angle_deg": 12.0,
-            "max_position_error_m": error, "flipped": False, "seed": 200}
+            "max_position_error_m": error, "rms_position_error_m": error / 2, "flipped": False, "seed": 200}
 
 
 @pytest.fixture
@@ -121,9 +149,11 @@ def test_a_run_flies_each_cell_with_its_laps_and_writes_the_report(tmp_path, flo
     assert {spec.laps for spec in flown} == {2} and {spec.seed for spec in flown} == {R.SEED}
     row = next(r for r in rows if r["cell"] == "pixelmpc_pf_wind_moderate")
     assert row["successes"] == 1 and row["failures"] == {"estimate_diverged": 1}
+    # the laps' RMS errors 0 and 1.5 m: the cell's RMS over both laps, and its worst error
+    assert row["rms_position_error_m"] == pytest.approx(np.sqrt(1.5**2 / 2)) and row["max_position_error_m"] == 3.0
     report = (tmp_path / "REPORT.md").read_text()
     assert "| wind | moderate | 1/2 | 1/2 | 1/2 |" in report  # glance: both controllers, then PixelMPC with the levers
-    assert "PixelMPC (best), filter + model levers" in report and R.LEVER_SETS["model"] in report
+    assert "PixelMPC (best), particle filter + model levers" in report and R.LEVER_SETS["model"] in report
     assert "estimate diverged 1" in report and FAULT_LEVELS["map"]["severe"].why in report
     saved = json.loads((tmp_path / "robustness.json").read_text())
     assert len(saved["rows"]) == len(rows) and saved["levels"]["gust"]["moderate"]["why"]

@@ -16,10 +16,11 @@ FRONTIER_CELLS = ("all", "border")  # frontier --cells: both pixel costs and mod
 
 def add_experiment(sub) -> None:
     """``pixelmpc experiment``: its jobs as sub-commands."""
-    p = sub.add_parser("experiment", help="one experiment on its own (resumable): table2, table4, robustness, "
-                                          "frontier, margin-probe, speed-probe")
+    p = sub.add_parser("experiment", help="one experiment on its own, resumable: table2, table4, robustness, "
+                                          "fault-curves, frontier, margin-probe, speed-probe")
     jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
-    for add in (_add_table2, _add_table4, _add_robustness, _add_frontier, _add_margin_probe, _add_speed_probe):
+    for add in (_add_table2, _add_table4, _add_robustness, _add_fault_curves, _add_frontier, _add_margin_probe,
+                _add_speed_probe):
         add(jobs)
 
 
@@ -51,8 +52,10 @@ def _cmd_table2(args) -> int:
 
 
 def _add_table4(jobs) -> None:
+    from pixelmpc_jax.apps.experiments.estimation import ESTIMATORS
+
     p = jobs.add_parser("table4", help="Table IV, the straight lane, Fig. 6 and Fig. 9: nominal MPPI against PixelMPC "
-                                       "on the particle filter's estimate (REPORT.md, summary.json, figures)")
+                                       "on a filter's estimate (REPORT.md, summary.json, figures)")
     p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/table4"),
                    help="output directory")
     p.add_argument("--laps", type=arg.positive_int, default=25, help="laps per cell (default 25)")
@@ -60,19 +63,24 @@ def _add_table4(jobs) -> None:
                    help=f"seed of the first lap, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
     p.add_argument("--quick", action="store_true", help="the 16 m/s pace only (and the straight lane's)")
     p.add_argument("--no-straight", action="store_true", help="skip the straight-lane test")
+    p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=ESTIMATORS,
+                   help="Table IV's filters: pf, the paper's particle filter, and eskf, the error-state Kalman filter "
+                        "(default: both; the straight lane flies the particle filter)")
     p.set_defaults(func=_cmd_table4)
 
 
 def _cmd_table4(args) -> int:
     from pixelmpc_jax.apps.experiments.estimation import estimation_experiment
 
-    estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed)
+    estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed,
+                          estimators=tuple(args.estimators))
     _print_report(args.out)
     return 0
 
 
 def _add_robustness(jobs) -> None:
-    from pixelmpc_jax.apps.experiments.robustness import LEVER_SETS
+    from pixelmpc_jax.apps.experiments.robustness import ESTIMATORS, FAULTS, LEVER_SETS
+    from pixelmpc_jax.sim.faults import LEVELS
 
     p = jobs.add_parser("robustness", help="the faults of a real flight: nominal MPPI and the best preset at the "
                                            "paper's pace under each fault (REPORT.md, robustness.json, "
@@ -80,12 +88,19 @@ def _add_robustness(jobs) -> None:
     p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/robustness"),
                    help="output directory")
     p.add_argument("--quick", action="store_true",
-                   help="a smoke run: 2 laps per cell, the moderate level on the particle filter only")
+                   help="a smoke run: 2 laps per cell, the moderate level (on the particle filter only unless "
+                        "--estimators names others)")
+    p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=None,
+                   help="fly and report only the loops on these estimators (default: all; pf only with --quick)")
+    p.add_argument("--faults", nargs="+", choices=FAULTS, default=None,
+                   help="fly and report only these faults (default: all, with none and combined)")
+    p.add_argument("--levels", nargs="+", choices=LEVELS, default=None,
+                   help="fly and report only these fault levels (default: both; the fault-free race is in each)")
     p.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
-                   help="also fly PixelMPC's moderate filter cells with each set of levers on, apart: model "
-                        "(the disturbance observer, the latency in the model), filter (the filter's guards), "
-                        "gate and bias (the guards' two halves alone), robust (model and gate at once); no name: "
-                        "all five")
+                   help="also fly PixelMPC's moderate cells with each set of levers on, apart: model (the "
+                        "disturbance observer, the latency in the model; on every loop), filter (the particle "
+                        "filter's guards), gate and bias (the guards' two halves alone), robust (model and gate at "
+                        "once); the guards on the particle filter only; no name: all five")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="other grids' output folders whose finished fault-free cells are copied, not flown")
     p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
@@ -96,7 +111,42 @@ def _cmd_robustness(args) -> int:
     from pixelmpc_jax.apps.experiments.robustness import LEVER_SETS, robustness_experiment
 
     levers = () if args.levers is None else tuple(args.levers or LEVER_SETS)
-    robustness_experiment(args.out, quick=args.quick, levers=levers, reuse=args.reuse, run=not args.report_only)
+    robustness_experiment(args.out, quick=args.quick, levers=levers, reuse=args.reuse, run=not args.report_only,
+                          estimators=tuple(args.estimators) if args.estimators else None,
+                          faults=tuple(args.faults) if args.faults else None,
+                          levels=tuple(args.levels) if args.levels else None)
+    _print_report(args.out)
+    return 0
+
+
+def _add_fault_curves(jobs) -> None:
+    from pixelmpc_jax.apps.experiments.fault_curves import DELAY_TICKS, ESTIMATORS, LAPS, WIND_M_S
+    from pixelmpc_jax.apps.experiments.robustness import CONTROLLER_LEVERS
+
+    p = jobs.add_parser("fault-curves", help="success against steady wind and detection delay: both controllers on "
+                                             "the particle filter and the Kalman filter (REPORT.md, curves.json, "
+                                             "fault_curves.png)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/fault_curves"),
+                   help="output directory (resumable)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"a smoke run: 2 laps per point, the middle and the end of each curve (default: {LAPS} laps "
+                        f"at wind {', '.join(f'{w:g}' for w in WIND_M_S)} m/s and delay "
+                        f"{', '.join(str(d) for d in DELAY_TICKS)} ticks)")
+    p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=ESTIMATORS,
+                   help="the filters flown (default: both)")
+    p.add_argument("--levers", nargs="*", choices=CONTROLLER_LEVERS, default=(),
+                   help="also fly PixelMPC at every point with these levers on (model: the disturbance observer)")
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
+                   help="grid folders (the robustness grid's) whose finished cells of the same race are copied")
+    p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
+    p.set_defaults(func=_cmd_fault_curves)
+
+
+def _cmd_fault_curves(args) -> int:
+    from pixelmpc_jax.apps.experiments.fault_curves import fault_curves_experiment
+
+    fault_curves_experiment(args.out, quick=args.quick, estimators=tuple(args.estimators),
+                            levers=tuple(args.levers or ()), reuse=args.reuse, run=not args.report_only)
     _print_report(args.out)
     return 0
 

@@ -1,7 +1,8 @@
 """The paper's state-estimation experiments (Section V-D): Table IV, the straight-lane test, Fig. 6 and Fig. 9.
 
 With the particle filter in the loop (``estimator="pf"``: the controllers act on its mean, fed by the IMU
-and the detections of the target gate), nominal MPPI against PixelMPC, at two operating points:
+and the detections of the target gate), nominal MPPI against PixelMPC, at two operating points (Table IV also on the
+error-state Kalman filter's estimate, ``estimator="eskf"``, beside the paper's filter):
 
 - the paper's labels (14 and 16 m/s): nominal MPPI and the ``paper`` preset (t_f = 1 s, c_pixel = 9e6);
 - the paper's pace (the targets at which our nominal lap matches the paper's, ``presets.PAPER_PACE_SPEEDS``):
@@ -38,9 +39,13 @@ STRAIGHT_LABEL = PAPER_LABEL_SPEEDS[2]  # 20 m/s
 WHO = ("mppi", "paper", "best")  # nominal MPPI and the two presets
 
 
-def _race(who: str, speed: float, **changes):
+ESTIMATORS = ("pf", "eskf")  # Table IV's filters: the paper's particle filter, the error-state Kalman filter
+ESTIMATOR_NAMES = {"pf": "particle filter", "eskf": "ESKF"}
+
+
+def _race(who: str, speed: float, estimator: str = "pf", **changes):
     """Nominal MPPI (at the ``paper`` preset's MPPI settings) or a preset, at ``speed``, on the filter."""
-    spec = preset("paper" if who == "mppi" else who).replace(speed=speed, estimator="pf", **changes)
+    spec = preset("paper" if who == "mppi" else who).replace(speed=speed, estimator=estimator, **changes)
     return spec.replace(controller="mppi") if who == "mppi" else spec
 
 
@@ -53,10 +58,13 @@ def _points(labels, quick: bool) -> list[tuple[float, float, tuple]]:
     return [(label, pace_speed(label), WHO) for label in labels] + [(label, label, WHO[:2]) for label in labels]
 
 
-def race_cells(labels=RACE_LABELS, quick: bool = False) -> list[Cell]:
-    """Table IV's cells with the filter, per operating point."""
-    return [Cell(f"{who}_{speed:g}ms_pf", _race(who, speed)) for label, speed, whos in _points(labels, quick)
-            for who in whos]
+def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf",)) -> list[Cell]:
+    """Table IV's cells with each filter of ``estimators`` (of :data:`ESTIMATORS`), per operating point."""
+    unknown = [e for e in estimators if e not in ESTIMATORS]
+    if unknown:
+        raise ValueError(f"unknown estimator {unknown[0]!r}; Table IV flies {', '.join(ESTIMATORS)}")
+    return [Cell(f"{who}_{speed:g}ms_{estimator}", _race(who, speed, estimator))
+            for estimator in estimators for label, speed, whos in _points(labels, quick) for who in whos]
 
 
 def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False) -> list[Cell]:
@@ -97,8 +105,10 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
                              is not None])
         who, label = who_of(cell), label_of(cell)
         paper = PAPER_TABLE_IV.get(("mppi" if who == "mppi" else "pixelmpc", label))  # the paper's PixelMPC for both
+        rms = [lap["rms_position_error_m"] ** 2 for lap in laps if lap.get("rms_position_error_m") is not None]
         rows.append({
             "cell": cell.name, "who": who, "controller": cell.spec.controller, "speed": cell.spec.speed,
+            "estimator": cell.spec.estimator,
             "label": label, "point": "label" if label == cell.spec.speed else "pace", "course": cell.spec.course,
             "success_rate": res["aggregate"]["success_rate"], "num_laps": len(laps),
             "lap_time_s": res["aggregate"]["lap_time_s"], "gates_passed": res["aggregate"]["gates_passed"],
@@ -106,6 +116,7 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
             "sigma_max": {"mean": float(maxima.mean()), "two_sigma": float(2 * maxima.std()),
                           "max": float(maxima.max()), "n": int(maxima.size)} if maxima.size else None,
             "mean_position_error_m": float(errors.mean()) if errors.size else None,
+            "rms_position_error_m": float(np.sqrt(np.mean(rms))) if rms else None,
             "wall_time_s": res.get("wall_time_s"),
             "paper": {"success_rate": paper[0], "lap_time_s": paper[1:]} if paper else
             {"sigma_max": PAPER_SIGMA_MAX.get("mppi" if who == "mppi" else "pixelmpc")
@@ -121,15 +132,18 @@ def _race_line(r: dict) -> str:
     paper = r["paper"]
     failures = ", ".join(f"{k}: {v}" for k, v in sorted(r["failures"].items(), key=lambda kv: str(kv[0]))) or "-"
     error = f"{r['mean_position_error_m']:.2f}" if r["mean_position_error_m"] is not None else "-"
+    rms = f"{r['rms_position_error_m']:.3f}" if r.get("rms_position_error_m") is not None else "-"
     view = r["share_target_in_view"] or {}
     in_view = f"{100 * view['mean']:.1f}" if view.get("mean") is not None else "-"
     theirs = (f"{paper['success_rate'] * 100:.0f}% | {paper['lap_time_s'][0]:.1f} ± {paper['lap_time_s'][1]:.1f}"
               if paper.get("success_rate") is not None else "- | -")
     succeeded = round(r["success_rate"] * r["num_laps"])
-    return (f"| {NAMES[r['who']]} | {r['label']:g} m/s | {r['speed']:g} m/s | {succeeded}/{r['num_laps']} "
+    estimator = ESTIMATOR_NAMES.get(r.get("estimator", "pf"), r.get("estimator"))
+    return (f"| {NAMES[r['who']]} | {estimator} | {r['label']:g} m/s | {r['speed']:g} m/s | "
+            f"{succeeded}/{r['num_laps']} "
             f"({r['success_rate'] * 100:.0f}%) | {theirs.split(' | ')[0]} | {fmt(r['lap_time_s'])} | "
             f"{theirs.split(' | ')[1]} | {failures} | {fmt(r['time_vis_below_50_s'])} | {in_view} | "
-            f"{fmt(r['mean_target_angle_deg'])} | {error} |")
+            f"{fmt(r['mean_target_angle_deg'])} | {error} | {rms} |")
 
 
 def _straight_lines(rows: list[dict]) -> list[str]:
@@ -156,16 +170,18 @@ def _smoothness_lines(rows: list[dict]) -> list[str]:
 
 
 def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: str) -> str:
-    lines = ["# Table IV, the straight lane, Fig. 6 and Fig. 9: racing on the particle filter's estimate", "",
-             f"Device: {device}. Controllers act on the filter's mean (6,400 particles, IMU motion update, "
-             "gate-corner sensor update). At each paper label (14, 16 m/s) nominal MPPI and the `paper` preset fly "
+    lines = ["# Table IV, the straight lane, Fig. 6 and Fig. 9: racing on a filter's estimate", "",
+             f"Device: {device}. Controllers act on the filter's mean: the paper's particle filter (6,400 particles, "
+             "IMU motion update, gate-corner sensor update) and, in Table IV, the error-state Kalman filter (ESKF: "
+             "IMU propagation with bias states, a gated, robustly weighted update per gate corner). At each paper "
+             "label (14, 16 m/s) nominal MPPI and the `paper` preset fly "
              "the label itself and, with the `best` preset, its pace (the target at which our nominal lap matches "
              "the paper's). Lap times are over the successful laps, mean ± 2σ; vis < 50 %, in view (share of flight "
              "time with the target in the image) and the angle to the target over all laps. The paper's figures "
              "(FlightGoggles, 25 laps, its PixelMPC t_f = 1 s, c_pixel = 9e6) beside ours at the label they answer.",
-             "", "| controller | label | target | success ours | paper | lap time [s] ours | paper | failures | "
-             "vis < 50 % [s] | in view [%] | angle to target [deg] | mean position error [m] |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "", "| controller | filter | label | target | success ours | paper | lap time [s] ours | paper | "
+             "failures | vis < 50 % [s] | in view [%] | angle to target [deg] | mean position error [m] | "
+             "RMS position error [m] |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += [_race_line(r) for r in race_rows]
     if straight_rows:
         lines += _straight_lines(straight_rows)
@@ -194,7 +210,8 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
                                                                                               covariances)]
         path = out / f"fig9_{cell.name}.png"
         plot_trajectories(make_course(cell.spec.course), trajectories, path,
-                          title=f"{cell.spec.controller} with the particle filter, {cell.spec.speed:g} m/s, "
+                          title=f"{cell.spec.controller} with the {ESTIMATOR_NAMES[cell.spec.estimator]}, "
+                                f"{cell.spec.speed:g} m/s, "
                                 f"{len(trajectories)} runs", colour_by=colours,
                           colour_label="position covariance trace [m²]")
         written.append(path)
@@ -217,7 +234,8 @@ def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
     text = ""
     race_rows = summary["table_iv"]
     if race_rows:
-        plot_smoothness([{**r, "label": f"{NAMES[r['who']].replace('`', '')} {r['speed']:g} m/s"} for r in race_rows],
+        plot_smoothness([{**r, "label": f"{NAMES[r['who']].replace('`', '')} {r['speed']:g} m/s"
+                                         f"{'' if r['estimator'] == 'pf' else ', ESKF'}"} for r in race_rows],
                         out / "fig6_pf.png", "Fig. 6 with the particle filter: total variation of the attitude per "
                         "lap (mean ± 2σ)")
         text += "\n![Fig. 6 with the particle filter](fig6_pf.png)\n"
@@ -226,12 +244,13 @@ def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
 
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
                           dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
-                          reuse=()) -> dict:
+                          reuse=(), estimators: tuple = ESTIMATORS) -> dict:
     """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
     into ``out``, laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`;
     cells a folder in ``reuse`` holds are copied, not flown. With ``run=False`` only the report of the cells already
-    finished in ``out`` is written."""
-    cells = race_cells(quick=quick)
+    finished in ``out`` is written. Table IV flies on each filter of ``estimators``; the straight lane on the
+    particle filter (the paper's figures it answers are the particle filter's)."""
+    cells = race_cells(quick=quick, estimators=estimators)
     lanes = straight_cells(quick=quick) if straight else []
     experiment = Experiment(
         tuple(cells + lanes),

@@ -3,14 +3,19 @@
 Each fault of :data:`~pixelmpc_jax.sim.faults.FAULT_LEVELS` alone at its moderate and severe level, then every fault
 at its moderate level at once (``combined``), beside the fault-free race. Nominal MPPI (the paper's MPPI settings)
 and PixelMPC with the ``best`` preset fly each at the preset's pace, the paper's (8.5 m/s). Every cell is flown on
-the particle filter's estimate, and the moderate level also on the true state. A fault that cannot reach a loop is
-left out there, and the report says so: the IMU feeds only the filter, and nominal MPPI on the true state never
-looks at the detector.
+each filter's estimate, the particle filter's (``pf``) and the error-state Kalman filter's (``eskf``), and the
+moderate level also on the true state. A fault that cannot reach a loop is left out there, and the report says so:
+the IMU feeds only the filters, and nominal MPPI on the true state never looks at the detector. ``estimators`` and
+``faults`` fly a part of the grid (the rest stays as it is in the folder, or unflown).
 
-Laps: 10 per cell for the moderate faults with the filter and for the fault-free races, 6 elsewhere (``quick``: a
-smoke run, 2 laps, the moderate level on the filter only). With ``levers``, PixelMPC's filter cells of the moderate
-level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown again with each
-named set of levers (:data:`LEVER_SETS`) on: ``model``, the disturbance observer in the controller's model
+Laps: 10 per cell for the moderate faults and the fault-free races (the true state's too: the filters' cells are
+set against it lap for lap, on the same seeds), 6 for the severe level (``quick``: a smoke run, 2 laps, the
+moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, PixelMPC's cells
+of the moderate level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown
+again with each named set of levers (:data:`LEVER_SETS`) that applies to the loop on: on the particle filter every
+set, on the Kalman filter and the true state the ``model`` set (the others are the particle filter's guards), so
+every filter cell with a lever has its true-state cell with the same lever. ``model``, the disturbance observer in
+the controller's model
 (``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
 (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
@@ -44,10 +49,11 @@ from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, LEVELS, Faults, fault_level
 
 CONTROLLERS = ("mppi", "pixelmpc")
-ESTIMATORS = ("pf", "truth")
+ESTIMATORS = ("pf", "eskf", "truth")
+ESTIMATOR_LABELS = {"pf": "particle filter", "eskf": "ESKF", "truth": "truth"}
 NONE = "none"  # the fault-free race
 FAULTS = (NONE, *FAULT_LEVELS, COMBINED)
-IMU_FAULTS = ("imu_bias", "imu_noise")  # read only by the filter
+IMU_FAULTS = ("imu_bias", "imu_noise")  # read only by the filters
 DETECTOR_FAULTS = ("miss", "false", "pixel_noise", "detection_delay")  # nominal MPPI on the truth never detects
 DIVERGED_M = 2.0  # m: a failed lap whose estimate strayed this far from the truth failed by its estimate
 SEED = 200  # the first lap's seed, as the reproduce parts (no setting was tuned on it), so fault-free cells share
@@ -70,6 +76,7 @@ LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:
               "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)",
               "robust": f"the {' and '.join(COMBINED_LEVERS['robust'])} sets at once (not the bias states)"}
 FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
+CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
           "flip": "flip", "estimate_diverged": "estimate diverged"}
@@ -120,23 +127,37 @@ def _with_lever(spec: RaceSpec, lever: str | None, faults: Faults) -> RaceSpec:
     return spec
 
 
-def robustness_cells(quick: bool = False, levers: tuple = ()) -> list[RobustCell]:
+def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple | None = None,
+                     faults: tuple | None = None, levels: tuple | None = None) -> list[RobustCell]:
     """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; for
-    each set of ``levers`` (names of :data:`LEVER_SETS`) also PixelMPC's filter cells of the moderate level with it
-    on, where the 9-of-10 bar is set, and its fault-free one (what the levers cost)."""
+    each set of ``levers`` (names of :data:`LEVER_SETS`) that applies to the loop (:func:`applies`) also PixelMPC's
+    cells of the moderate level with it on, where the 9-of-10 bar is set, and its fault-free one (what the levers
+    cost). ``estimators``, ``faults`` and ``levels`` (names of :data:`ESTIMATORS`, :data:`FAULTS` and
+    :data:`~pixelmpc_jax.sim.faults.LEVELS`; None: all, or the particle filter only when ``quick``) keep a part of the
+    grid (the fault-free race belongs to every level)."""
+    estimators = estimators or (("pf",) if quick else ESTIMATORS)
+    faults_kept = faults or FAULTS
+    levels_kept = levels or LEVELS
+    for name, given, known in (("estimator", estimators, ESTIMATORS), ("fault", faults_kept, FAULTS),
+                               ("level", levels_kept, LEVELS)):
+        unknown = [value for value in given if value not in known]
+        if unknown:
+            raise ValueError(f"unknown {name} {unknown[0]!r}; choose from {', '.join(known)}")
     cells = []
-    for fault in FAULTS:
+    for fault in (f for f in FAULTS if f in faults_kept):
         for level in (None,) if fault == NONE else LEVELS[:1] if quick or fault == COMBINED else LEVELS:
+            if level is not None and level not in levels_kept:
+                continue
             faults = Faults() if fault == NONE else fault_level(fault, level)
-            for estimator in ESTIMATORS:
+            for estimator in (e for e in ESTIMATORS if e in estimators):
                 if estimator == "truth" and (level == "severe" or quick):
                     continue
                 for controller in CONTROLLERS:
                     if not reaches(fault, controller, estimator):
                         continue
-                    laps = _laps(level, estimator, quick)
-                    answers = estimator == "pf" and controller == "pixelmpc" and level in (None, "moderate")
-                    for lever in (None, *(levers if answers else ())):
+                    laps = _laps(level, quick)
+                    answers = controller == "pixelmpc" and level in (None, "moderate")
+                    for lever in (None, *(lv for lv in levers if answers and applies(lv, estimator))):
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
                                          *([lever] if lever else [])])
                         cells.append(RobustCell(Cell(name, race(controller, estimator, faults, lever)), fault,
@@ -144,11 +165,17 @@ def robustness_cells(quick: bool = False, levers: tuple = ()) -> list[RobustCell
     return cells
 
 
-def _laps(level: str | None, estimator: str, quick: bool) -> int:
-    """10 laps for the fault-free races and the moderate faults on the filter, 6 elsewhere, 2 when ``quick``."""
+def applies(levers: str, estimator: str) -> bool:
+    """Whether the set ``levers`` changes a loop on ``estimator``: the controller's sets everywhere, the particle
+    filter's guards on the particle filter only."""
+    return estimator == "pf" or all(lever in CONTROLLER_LEVERS for lever in COMBINED_LEVERS.get(levers, (levers,)))
+
+
+def _laps(level: str | None, quick: bool) -> int:
+    """10 laps for the fault-free races and the moderate faults, 6 for the severe ones, 2 when ``quick``."""
     if quick:
         return 2
-    return 10 if level is None or (level == "moderate" and estimator == "pf") else 6
+    return 10 if level in (None, "moderate") else 6
 
 
 def failure_cause(lap: dict) -> str | None:
@@ -172,6 +199,7 @@ def summarise(results: dict, cells: list[RobustCell]) -> list[dict]:
             continue
         laps, agg = res["laps"], res.get("aggregate", {})
         errors = [lap["max_position_error_m"] for lap in laps if lap.get("max_position_error_m") is not None]
+        squares = [lap["rms_position_error_m"] ** 2 for lap in laps if lap.get("rms_position_error_m") is not None]
         rows.append({
             "cell": rc.cell.name, "fault": rc.fault, "level": rc.level, "controller": rc.controller,
             "estimator": rc.estimator, "levers": rc.levers, "faults": rc.cell.spec.faults.active(),
@@ -180,14 +208,15 @@ def summarise(results: dict, cells: list[RobustCell]) -> list[dict]:
             **{key: agg.get(key) for key in ("time_vis_below_50_s", "time_vis_zero_s", "share_target_in_view",
                                              "mean_target_angle_deg")},
             "failures": failure_counts(laps, failure_cause), "max_position_error_m": max(errors) if errors else None,
+            "rms_position_error_m": float(np.sqrt(np.mean(squares))) if squares else None,
             "shared_from": res.get("shared_from"), "wall_time_s": res.get("wall_time_s"),
         })
     return rows
 
 
-def _column(controller: str, estimator: str, levers: str | None) -> str:
+def loop_label(controller: str, estimator: str, levers: str | None) -> str:
     lever = f" + {levers} levers" if levers else ""
-    return f"{LABELS[controller]}, {'filter' if estimator == 'pf' else 'truth'}{lever}"
+    return f"{LABELS[controller]}, {ESTIMATOR_LABELS[estimator]}{lever}"
 
 
 def _columns(rows: list[dict]) -> list[tuple]:
@@ -211,7 +240,7 @@ def _why(fault: str, level: str | None) -> str:
     return FAULT_LEVELS[fault][level].why
 
 
-def _failures(failures: dict) -> str:
+def failures_text(failures: dict) -> str:
     return ", ".join(f"{CAUSES.get(k, k)} {v}" for k, v in sorted(failures.items())) or "-"
 
 
@@ -219,7 +248,7 @@ def _glance_table(rows: list[dict]) -> list[str]:
     """Success per fault and level (rows) and loop (columns); "n/a" where the fault cannot reach the loop."""
     columns = _columns(rows)
     by_key = {(r["fault"], r["level"], r["controller"], r["estimator"], r["levers"]): r for r in rows}
-    lines = ["| fault | level | " + " | ".join(_column(*c) for c in columns) + " |",
+    lines = ["| fault | level | " + " | ".join(loop_label(*c) for c in columns) + " |",
              "|---|---|" + "---|" * len(columns)]
     for fault, level in _fault_rows(rows):
         cells = []
@@ -237,15 +266,17 @@ def _glance_table(rows: list[dict]) -> list[str]:
 
 def _detail_table(rows: list[dict]) -> list[str]:
     lines = ["| fault | level | loop | success | lap time [s] | vis < 50 % [s] | vis = 0 [s] | target in view | "
-             "target angle [deg] | failures | max position error [m] |", "|---" * 11 + "|"]
+             "target angle [deg] | failures | RMS position error [m] | max position error [m] |", "|---" * 12 + "|"]
     for r in rows:
         view = (r["share_target_in_view"] or {}).get("mean")
         error = f"{r['max_position_error_m']:.2f}" if r["max_position_error_m"] is not None else "-"
-        loop = _column(r["controller"], r["estimator"], r["levers"])
+        rms = r.get("rms_position_error_m")
+        rms = f"{rms:.3f}" if rms is not None else "-"
+        loop = loop_label(r["controller"], r["estimator"], r["levers"])
         lines.append(f"| {r['fault']} | {r['level'] or '-'} | {loop} | "
                      f"{r['successes']}/{r['num_laps']} | {fmt(r['lap_time_s'])} | {fmt(r['time_vis_below_50_s'])} | "
                      f"{fmt(r['time_vis_zero_s'])} | {'-' if view is None else f'{100 * view:.0f} %'} | "
-                     f"{fmt(r['mean_target_angle_deg'])} | {_failures(r['failures'])} | {error} |")
+                     f"{fmt(r['mean_target_angle_deg'])} | {failures_text(r['failures'])} | {rms} | {error} |")
     return lines
 
 
@@ -264,7 +295,7 @@ def _levers_lines(rows: list[dict]) -> list[str]:
     flown = [name for name in LEVER_SETS if any(r["levers"] == name for r in rows)]
     if not flown:
         return []
-    return ["Levers, each set flown apart on the filter cells: " + "; ".join(f"*{name}*: {LEVER_SETS[name]}"
+    return ["Levers, each set flown apart on the cells it applies to: " + "; ".join(f"*{name}*: {LEVER_SETS[name]}"
                                                                           for name in flown) + ".", ""]
 
 
@@ -273,9 +304,10 @@ def markdown_report(rows: list[dict], device: str, missing: list[str]) -> str:
     lines = ["# Robustness: faults a real flight brings", "",
              f"Device: {device}. Nominal MPPI and PixelMPC (`best` preset: vdof, border cost) at the paper's pace "
              "(8.5 m/s) on the AlphaPilot course, seeds from 200. The faults act on the world only: the controllers "
-             "keep their nominal model, the map and the detector's word (`pixelmpc_jax/sim/faults.py`). Laps: 10 for "
-             "the fault-free races and the moderate faults on the particle filter, 6 elsewhere (2 in a quick run). "
-             "\"n/a\": the fault cannot reach that loop (the IMU feeds only the filter; nominal MPPI on the truth "
+             "keep their nominal model, the map and the detector's word (`pixelmpc_jax/sim/faults.py`). Loops: the "
+             "particle filter of the paper, the error-state Kalman filter (ESKF) and the true state. Laps: 10 for "
+             "the fault-free races and the moderate faults, 6 for the severe ones (2 in a quick run). "
+             "\"n/a\": the fault cannot reach that loop (the IMU feeds only the filters; nominal MPPI on the truth "
              f"uses no detection). A failed lap whose estimate strayed more than {DIVERGED_M:g} m counts as "
              "\"estimate diverged\".", "", *_levers_lines(rows),
              "## Success at a glance (laps completed / flown)", "", *_glance_table(rows), "",
@@ -309,7 +341,7 @@ def plot_success(rows: list[dict], path: Path) -> None:
             ax.text(j, i, text, ha="center", va="center", fontsize=8)
     cmap = plt.get_cmap("RdYlGn").with_extremes(bad="lightgrey")
     image = ax.imshow(np.ma.masked_invalid(rate), cmap=cmap, vmin=0.0, vmax=1.0, aspect="auto")
-    ax.set_xticks(range(len(columns)), [_column(*c).replace(", ", "\n") for c in columns], fontsize=8)
+    ax.set_xticks(range(len(columns)), [loop_label(*c).replace(", ", "\n") for c in columns], fontsize=8)
     ax.set_yticks(range(len(faults)), [f"{fault} ({level})" if level else fault for fault, level in faults],
                   fontsize=8)
     ax.set_title("Laps completed under each fault (8.5 m/s, AlphaPilot)", fontsize=10)
@@ -334,15 +366,17 @@ def robustness_figure(rows: list[dict], out: Path) -> str:
 
 
 def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: tuple = (),
-                          reuse=(), run: bool = True) -> list[dict]:
+                          reuse=(), run: bool = True, estimators: tuple | None = None,
+                          faults: tuple | None = None, levels: tuple | None = None) -> list[dict]:
     """Fly the robustness grid into ``out`` (resumable per cell, each cell its own laps from :data:`SEED`) and write
-    its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows.
+    its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows. ``estimators``, ``faults``
+    and ``levels`` keep a part of the grid (:func:`robustness_cells`): the report then covers that part.
 
     ``reuse``: other grids' output folders whose finished cells answer a cell here (the same race, laps and seed:
     the fault-free races) and are copied, not flown. ``run=False``: only the report of the cells already finished.
     A cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun.
     """
-    cells = robustness_cells(quick=quick, levers=levers)
+    cells = robustness_cells(quick=quick, levers=levers, estimators=estimators, faults=faults, levels=levels)
     experiment = Experiment(
         tuple(rc.cell for rc in cells), summarise=lambda results: summarise(results, cells),
         report=lambda rows, missing: markdown_report(rows, device_line(), missing), plot=robustness_figure,

@@ -96,6 +96,7 @@ def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
         lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
+        lap["rms_position_error_m"] = float(np.sqrt(np.mean(errors**2))) if n else None
         lap["max_position_error_m"] = float(np.max(errors)) if n else None
     quaternions = np.asarray(log.states)[:n + 1, 3:7]
     # the body's z axis (the thrust) below the horizon: the world z of its third column, 1 - 2 (qx^2 + qy^2) < 0
