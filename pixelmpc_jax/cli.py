@@ -513,6 +513,9 @@ def _add_race(sub) -> None:
     _setting(p, "--target-prior", "target_prior", "what PixelMPC's pixel cost charges while the target is not "
              "detected: none, the paper's (no pixel cost), or map, its pixel projected from the map and the estimate",
              choices=TARGET_PRIORS)
+    _setting(p, "--look-ahead", "look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's pixel "
+             "cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, the "
+             "paper's", type=arg.float_in(0.0, 1e3))
     _setting(p, "--border-margin", "border_margin", "where the border cost starts, as a fraction of the image inside "
              "the border, in (0, 0.5]", type=arg.float_in(0.0, 0.5, lo_open=True))
     _setting(p, "--noise-exponent", "mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "

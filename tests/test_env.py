@@ -186,13 +186,14 @@ def test_an_estimator_config_that_cannot_work_is_refused():
         env_lib.EnvConfig(estimator="ekf")
 
 
-@pytest.mark.parametrize("kind", ["mppi", "pixelmpc"])
+@pytest.mark.parametrize("kind", ["mppi", "pixelmpc", "pixelmpc_look_ahead"])
 def test_a_policy_acts_within_the_control_bounds(world, kind):
     mppi_config = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=20)
     if kind == "mppi":
         policy = policies.nominal_mppi_policy(mppi_config)
     else:
-        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=mppi_config, pixel_model="projection"))
+        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(
+            mppi=mppi_config, pixel_model="projection", look_ahead=1.0 if kind.endswith("look_ahead") else 0.0))
     env = env_lib.make_env(CONFIG)
     state = env.reset(world, jax.random.PRNGKey(0))
     _, obs = env.observe(world, state, jax.random.PRNGKey(1))
@@ -207,7 +208,10 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     u, policy_state, prediction = jax.jit(policy.act)(policy_state, obs, world)
     lo, hi = np.asarray(mppi_config.u_min), np.asarray(mppi_config.u_max)
     assert u.shape == (4,) and np.all(np.asarray(u) >= lo) and np.all(np.asarray(u) <= hi)
-    assert prediction.shape == (21, 10 if kind == "mppi" else 12)
+    assert prediction.shape == (21, {"mppi": 10, "pixelmpc": 12, "pixelmpc_look_ahead": 14}[kind])
+    if kind == "pixelmpc_look_ahead":  # the next gate's pixel, from the map and the start: gate 1 straight ahead
+        next_pixel, _ = pixelmpc_lib.map_pixel_state(world.track.gate(1), obs.x_est, world.camera)
+        np.testing.assert_allclose(prediction[0, 12:], next_pixel, atol=1e-6)
     # the next tick's path windows follow the plan forward from the start
     progress = np.asarray(policy_state.step_progress)
     assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)

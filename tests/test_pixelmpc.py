@@ -232,3 +232,53 @@ def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(
     np.testing.assert_allclose(costs_of["near"], costs_of["near_free"], rtol=1e-6)  # past the limit: no pixel cost
     assert np.all(costs_of["far"] > costs_of["far_free"])  # below it the corner pixel costs every sample
     assert PM.ControllerConfig(box_size_limit=0.5) == PM.ControllerConfig()  # no box size: the limit flies nothing
+
+
+def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_reference_does(setup):
+    """With ``look_ahead`` the state carries the next gate's pixel too, and each predicted state past the target's
+    plane (and before the next gate's) is charged ``look_ahead`` times the next gate's pixel cost: the step equals a
+    generic MPPI with one-sample costs doing exactly that, from 1 m before gate 0 at 8 m/s (the samples pass it
+    within the 0.25 s the pixel is costed)."""
+    track, dof_params = setup
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
+    fast = PM.make_pixelmpc(config)
+    dt = SMALL.dt
+    centre, normal = track.gates.centre[0], track.gates.normal[0]
+    x0 = Q.hover_state(tuple(np.asarray(centre - 1.0 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
+    x0 = x0.at[7:].set(8.0 * normal)
+
+    def project(centre, x):
+        uv, _, in_front = C.project(centre, x, C.default_camera())
+        return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
+
+    def full_dynamics(X, u, p):
+        x_next = Q.step(X[:10], u, dt, Q.QuadParams())
+        return jnp.concatenate([x_next, project(p.target_centre, x_next), project(p.next_centre, x_next)])
+
+    def full_cost(X, u, t, p):
+        racing = one_state_racing(X, t, p.racing, config.racing)
+        in_prefix = t < config.pixel_steps
+        ahead = jnp.dot(X[:3] - p.target_centre, p.target_normal) < 0.0
+        before_next = jnp.dot(X[:3] - p.next_centre, p.next_normal) < 0.0
+        target = jnp.where(in_prefix & ahead & p.target_active, PM.pixel_cost(X[10:12], config), 0.0)
+        following = jnp.where(in_prefix & ~ahead & before_next & p.next_active, PM.pixel_cost(X[12:14], config), 0.0)
+        return racing + target + config.look_ahead * following
+
+    full = make_mppi(SMALL, full_dynamics, full_cost)
+    params = make_params(track, dof_params, config).replace(
+        next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
+    X0 = jnp.concatenate([x0, project(centre, x0), project(track.gates.centre[1], x0)])
+    key = jax.random.PRNGKey(3)
+    u_init = Q.hover_control(Q.QuadParams())
+    _, _, info_a = fast.step(fast.init(key, u_init), X0, params)
+    _, _, info_b = full.step(full.init(key, u_init), X0, params)
+    np.testing.assert_allclose(info_a.costs, info_b.costs, rtol=2e-5)
+    traj = info_a.nominal_trajectory
+    assert traj.shape[-1] == 14
+    np.testing.assert_allclose(traj[5, 12:], project(track.gates.centre[1], traj[5, :10]), atol=1e-6)
+    # the term charges something: without the next gate (none after the target) the costs are lower
+    _, _, alone = fast.step(fast.init(key, u_init), X0, params.replace(next_active=jnp.asarray(False)))
+    assert float(jnp.max(info_a.costs - alone.costs)) > 0.0
+    assert float(jnp.min(info_a.costs - alone.costs)) >= 0.0
+    with pytest.raises(ValueError, match="look_ahead must be a finite weight"):
+        PM.ControllerConfig(look_ahead=-1.0)

@@ -14,7 +14,11 @@ The robot follows the paper's quadrotor model; the target gate's pixel follows a
 
 The cost is the racing cost of Eq. (19) plus the pixel cost of Eq. (18), ``c_pixel * L1(uv_t, centre)``,
 counted over the first ``t_f`` seconds of the horizon, only while the detector reports the target, and
-for each predicted state only until it passes the target gate's plane (the target then switches).
+for each predicted state only until it passes the target gate's plane (the target then switches). With
+``ControllerConfig.look_ahead`` > 0 (beyond the paper) the state also carries the next gate's pixel state, from the
+map and the estimate (map-aided, :func:`map_pixel_state`), moved by the same pixel model, and each predicted state
+past the target's plane (but not the next gate's) is charged ``look_ahead`` times the next gate's pixel cost: the
+plan then sees the gate it will have to find once it has passed the target.
 The pixel does not feed back into the robot, so the pixel model runs only over those first
 ``n_f = t_f / dt`` steps (an MPPI :class:`~pixelmpc_jax.control.rollout.Prefix`); the rest of the horizon
 rolls out the robot alone. Both costs are then evaluated once over all the predicted states (a
@@ -122,6 +126,9 @@ class ControllerConfig:
             (:data:`TARGET_PRIORS`): "none", the paper's (no pixel cost until it is detected, so a gate that has
             just become the target is not looked for); "map", the map-aided prior (its pixel projected from the
             map and the estimate, :func:`map_pixel_state`), charged like a detected one.
+        look_ahead: the weight, relative to the target's, of the next gate's pixel cost on the predicted states
+            past the target's plane (0: none, the paper's; the state then holds one pixel). The next gate's
+            pixel starts from the map and the estimate (map-aided: the detector reports only the target).
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -138,8 +145,13 @@ class ControllerConfig:
     model_latency_ticks: int = 0
     disturbance_time_constant_s: float | None = None
     target_prior: str = "none"
+    look_ahead: float = 0.0
 
     def __post_init__(self):
+        if isinstance(self.look_ahead, bool) or not (isinstance(self.look_ahead, (int, float))
+                                                     and 0.0 <= self.look_ahead < math.inf):
+            raise ValueError(f"look_ahead must be a finite weight >= 0, got {self.look_ahead!r}")
+        object.__setattr__(self, "look_ahead", float(self.look_ahead))
         if self.target_prior not in TARGET_PRIORS:
             raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
         if self.pixel_model not in PIXEL_MODELS:
@@ -173,6 +185,11 @@ class ControllerConfig:
             object.__setattr__(self, "box_size_limit", None)
 
     @property
+    def pixel_dim(self) -> int:
+        """The size of one gate's pixel state: ``[u, v]``, or ``[u, v, s]`` with the vdof pixel model."""
+        return 3 if self.pixel_model == "vdof" else 2
+
+    @property
     def pixel_steps(self) -> int:
         """n_f: horizon steps over which the pixel is modelled and costed."""
         return min(int(round(self.t_f / self.mppi.dt)), self.mppi.horizon)
@@ -195,6 +212,9 @@ class PixelMPCParams:
         camera: the onboard camera (projection model only).
         disturbance: (3,) m/s^2, the estimated external acceleration the robot model adds (with
             ``ControllerConfig.disturbance_time_constant_s``; None without).
+        next_active: () bool, there is a gate after the target (with ``ControllerConfig.look_ahead``; None
+            without).
+        next_centre, next_normal: (3,) the next gate's centre and normal (with ``look_ahead``; None without).
     """
 
     racing: costs.RacingParams
@@ -204,6 +224,9 @@ class PixelMPCParams:
     target_normal: jax.Array
     camera: camera_lib.Camera
     disturbance: jax.Array | None = None
+    next_active: jax.Array | None = None
+    next_centre: jax.Array | None = None
+    next_normal: jax.Array | None = None
 
 
 def pixel_cost(uv: jax.Array, config: ControllerConfig) -> jax.Array:
@@ -275,8 +298,8 @@ def make_pixelmpc(config: ControllerConfig | None = None,
                   quad_params: quadrotor.QuadParams | None = None) -> Controller:
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.
 
-    The controller's state is X = [x (10,); uv (2,)] ([x; uv; s] (13,) for "vdof");
-    ``step(state, X0, params: PixelMPCParams)``.
+    The controller's state is X = [x (10,); uv (2,)] ([x; uv; s] (13,) for "vdof"), with ``look_ahead`` > 0
+    followed by the next gate's pixel state; ``step(state, X0, params: PixelMPCParams)``.
     The initial pixel ``uv`` is the detector's (normalised) target pixel; with the projection model it
     is recomputed from the pose at every step. ``config`` defaults to ``ControllerConfig()`` (built here, not at
     import: building it creates arrays, which would start the JAX backend before ``jax.distributed``).
@@ -293,39 +316,74 @@ def make_pixelmpc(config: ControllerConfig | None = None,
     def dynamics(X, u, p):
         return jnp.concatenate([robot_step(X, u, p), X[quadrotor.STATE_DIM:]])
 
+    P = config.pixel_dim
+    gates = 2 if config.look_ahead > 0 else 1  # the target's pixel state, and the next gate's with the look-ahead
+
+    def each_gate(pixel_step):
+        """``pixel_step(x, pixel (P,), u, p) -> next pixel`` over the target's pixel state, and the next gate's with
+        the look-ahead (one call per gate, batched)."""
+        if gates == 1:
+            return lambda x, pixels, u, p: pixel_step(x, pixels, u, p)
+        return lambda x, pixels, u, p: jax.vmap(lambda one: pixel_step(x, one, u, p))(
+            pixels.reshape(gates, P)).reshape(-1)
+
     if config.pixel_model == "dof":
-        def prefix_dynamics(X, u, p):
-            x, uv = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
-            uv_dot = dof_lib.pixel_velocity(p.dof, x[quadrotor.QUAT], uv, u)
-            return jnp.concatenate([robot_step(X, u, p), uv + dt * uv_dot])
+        def dof_step(x, uv, u, p):
+            return uv + dt * dof_lib.pixel_velocity(p.dof, x[quadrotor.QUAT], uv, u)
+
+        step_pixels = each_gate(dof_step)
 
     elif config.pixel_model == "vdof":
+        def vdof_step(x, pixel, u, p):
+            return pixel + dt * vdof_lib.pixel_state_velocity(p.dof, x, pixel, u)
+
+        step_pixels = each_gate(vdof_step)
+
+    if config.pixel_model in LEARNED_PIXEL_MODELS:
         def prefix_dynamics(X, u, p):
-            x, pixel = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
-            pixel_dot = vdof_lib.pixel_state_velocity(p.dof, x, pixel, u)
-            return jnp.concatenate([robot_step(X, u, p), pixel + dt * pixel_dot])
+            x, pixels = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
+            return jnp.concatenate([robot_step(X, u, p), step_pixels(x, pixels, u, p)])
 
     else:
+        def project_gate(x_next, centre, p):
+            uv, _, in_front = camera_lib.project(centre, x_next, p.camera)
+            # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
+            return jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
+
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u, p)
-            uv, _, in_front = camera_lib.project(p.target_centre, x_next, p.camera)
-            # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
-            uv = jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
-            return jnp.concatenate([x_next, uv])
+            uvs = [project_gate(x_next, p.target_centre, p)]
+            if gates == 2:
+                uvs.append(project_gate(x_next, p.next_centre, p))
+            return jnp.concatenate([x_next, *uvs])
+
+    def ahead_of(X, centre, normal):
+        """(T, N) bool: the predicted position is before the plane of the gate at ``centre``, facing ``normal``."""
+        offset = [X[..., i] - centre[i] for i in range(3)]  # elementwise, as in racing_costs
+        return offset[0] * normal[0] + offset[1] * normal[1] + offset[2] * normal[2] < 0.0
+
+    def gate_pixel_cost(X, k, counted):
+        """The pixel cost of the k-th gate's pixel state where ``counted`` (T, N)."""
+        start = quadrotor.STATE_DIM + k * P
+        if config.box_size_limit is not None:  # vdof: not once the gate fills the view
+            counted = counted & (X[..., start + 2] < config.box_size_limit)
+        uv = X[..., start:start + 2]  # a pixel state may carry more than the pixel
+        return counted.astype(X.dtype) * pixel_cost(uv, config)
 
     def trajectory_cost(X, U, steps, p):
         """X (T, N, 12) -> (T, N): the racing cost, plus over the first n_f steps the pixel cost of each predicted
-        state while the target is detected and not yet passed (the gate's plane still ahead)."""
+        state while the target is detected and not yet passed (the gate's plane still ahead); with the look-ahead,
+        ``look_ahead`` times the next gate's once past the target's plane and before the next gate's."""
         total = costs.racing_costs(X, steps, p.racing, config.racing)
         if n_f == 0:
             return total
-        offset = [X[..., i] - p.target_centre[i] for i in range(3)]  # elementwise, as in racing_costs
-        ahead = offset[0] * p.target_normal[0] + offset[1] * p.target_normal[1] + offset[2] * p.target_normal[2] < 0.0
-        counted = (steps < n_f)[:, None] & p.target_active & ahead
-        if config.box_size_limit is not None:  # vdof: not once the gate fills the view
-            counted = counted & (X[..., quadrotor.STATE_DIM + 2] < config.box_size_limit)
-        uv = X[..., quadrotor.STATE_DIM:quadrotor.STATE_DIM + 2]  # a pixel state may carry more than the pixel
-        return total + counted.astype(X.dtype) * pixel_cost(uv, config)
+        ahead = ahead_of(X, p.target_centre, p.target_normal)
+        in_prefix = (steps < n_f)[:, None]
+        total = total + gate_pixel_cost(X, 0, in_prefix & p.target_active & ahead)
+        if gates == 2:
+            beyond = in_prefix & p.next_active & ~ahead & ahead_of(X, p.next_centre, p.next_normal)
+            total = total + config.look_ahead * gate_pixel_cost(X, 1, beyond)
+        return total
 
     cost = TrajectoryCost(trajectory_cost)  # one call over the whole horizon: the prefix shares it
     prefix = Prefix(n_f, prefix_dynamics, cost) if n_f > 0 else None

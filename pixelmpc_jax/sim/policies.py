@@ -153,7 +153,8 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
                     quad_params: quadrotor.QuadParams | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
     size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
-    (``config.target_prior``: an undetected target's pixel from the map and the estimate); the learned pixel
+    (``config.target_prior``: an undetected target's pixel from the map and the estimate); with
+    ``config.look_ahead`` the next gate's pixel state follows, from the map and the estimate; the learned pixel
     model's weights come from ``world.dof``."""
     config = config or pixelmpc_lib.ControllerConfig()
     quad_params = quad_params or quadrotor.QuadParams()
@@ -172,12 +173,23 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             corners, active = detection.corners, detection.found
         if config.pixel_model == "vdof":
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
+        gates = world.track.gates
         params = pixelmpc_lib.PixelMPCParams(
-            racing=racing, dof=world.dof, target_active=active,
-            target_centre=world.track.gates.centre[obs.target_gate],
-            target_normal=world.track.gates.normal[obs.target_gate], camera=world.camera, disturbance=disturbance,
+            racing=racing, dof=world.dof, target_active=active, target_centre=gates.centre[obs.target_gate],
+            target_normal=gates.normal[obs.target_gate], camera=world.camera, disturbance=disturbance,
         )
-        return jnp.concatenate([obs.x_est, uv0.astype(obs.x_est.dtype)]), params
+        pixels = [uv0]
+        if config.look_ahead > 0:  # the next gate, map-aided (the detector reports the target only)
+            following = obs.target_gate + 1
+            next_gate = jnp.minimum(following, world.track.num_gates - 1)
+            uv_next, corners_next = pixelmpc_lib.map_pixel_state(world.track.gate(next_gate), obs.x_est,
+                                                                 world.camera)
+            if config.pixel_model == "vdof":
+                uv_next = vdof_lib.initial_pixel_state(uv_next, corners_next)
+            pixels.append(uv_next)
+            params = params.replace(next_active=following < world.track.num_gates,
+                                    next_centre=gates.centre[next_gate], next_normal=gates.normal[next_gate])
+        return jnp.concatenate([obs.x_est, *(pixel.astype(obs.x_est.dtype) for pixel in pixels)]), params
 
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
                          quad_params, config.model_latency_ticks, config.disturbance_time_constant_s)

@@ -33,7 +33,7 @@ from pixelmpc_jax.world.course import COURSES
 # Settings added after races were recorded: left out of the record while at their defaults, so every race flown
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
-                  ("config", "disturbance_time_constant_s"), ("config", "target_prior"))
+                  ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"))
 
 
 def _default_config() -> ControllerConfig:
