@@ -18,27 +18,16 @@ import json
 
 import jax
 
-from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import make_row, measure
-from pixelmpc_jax.perception import detector as detector_lib
+from pixelmpc_jax.apps.bench.particle_filter_step import estimator_scene
 from pixelmpc_jax.perception import eskf
 from pixelmpc_jax.platform_info import device_line
-from pixelmpc_jax.sim.plant import hover_tick_imu
-from pixelmpc_jax.world import camera as camera_lib
-from pixelmpc_jax.world import course as course_lib
-from pixelmpc_jax.world import render as render_lib
 
 TICK_TARGET_MS = 1.0  # the bar for one tick on the project's 2-core CPU
 
 
 def _problem(config: eskf.ESKFConfig):
-    track = course_lib.load_course()
-    camera = camera_lib.default_camera()
-    gate_index = 2
-    x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)
-    detection = detector_lib.detect_from_geometry(
-        track.gate(gate_index), x_true, camera, jax.random.PRNGKey(1), 0.5, 0.0, gate_index)
-    imu = hover_tick_imu(timing.CONTROL_DT)
+    track, camera, x_true, detection, imu = estimator_scene()
     holder = {"state": eskf.eskf_init(x_true, config, spread=(0.5, 0.03, 0.2))}
 
     def step():

@@ -28,15 +28,21 @@ from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import render as render_lib
 
 
-def _problem(particles: int):
-    config = pf.PFConfig(num_particles=particles)
+def estimator_scene():
+    """What an estimator's bench tick is fed: (track, camera, the true pose 6 m before gate 3, a noisy geometric
+    detection of that gate, a hover tick of preintegrated IMU samples)."""
     track = course_lib.load_course()
     camera = camera_lib.default_camera()
     gate_index = 2
     x_true = render_lib.pose_before_gate(track.gate(gate_index), 6.0, 0.3, 0.2)
     detection = detector_lib.detect_from_geometry(
         track.gate(gate_index), x_true, camera, jax.random.PRNGKey(1), 0.5, 0.0, gate_index)
-    imu = hover_tick_imu(timing.CONTROL_DT)
+    return track, camera, x_true, detection, hover_tick_imu(timing.CONTROL_DT)
+
+
+def _problem(particles: int):
+    config = pf.PFConfig(num_particles=particles)
+    track, camera, x_true, detection, imu = estimator_scene()
     holder = {"state": pf.pf_init(jax.random.PRNGKey(0), x_true, config, spread=(0.5, 0.03, 0.2))}
 
     def step():
