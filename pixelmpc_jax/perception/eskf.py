@@ -553,8 +553,23 @@ def _step(state: ESKFState, imu: ImuInput, imu_valid, detection: CornerInput, de
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _eskf_step_jit(state, imu, imu_valid, detection, delay_ticks, gates, camera, config):
-    return _step(state, imu, imu_valid, detection, delay_ticks, gates, camera, config)
+def _eskf_step_jit(state, imu, detection, delay_ticks, gates, camera, config):
+    """The compiled tick on raw inputs: ``imu`` the IMU's ``(delta_q, delta_v, delta_p, dt)`` or None, ``detection``
+    its ``(corners, corners_visible, found, gate_id)`` or None. Their conversions run here, in the compiled call:
+    done eagerly on the host they cost about as much as the filter itself."""
+    dtype = state.latest.x.dtype
+    if imu is None:
+        imu_input, imu_valid = _no_imu(dtype), jnp.asarray(False)
+    else:
+        imu_input, imu_valid = ImuInput(*(jnp.asarray(field, dtype) for field in imu)), jnp.asarray(True)
+    if detection is None:
+        corners = _no_corners(dtype)
+    else:
+        corners_xy, corners_visible, found, gate_id = detection
+        gate_id = jnp.asarray(gate_id, jnp.int32)
+        detected = jnp.asarray(corners_visible, bool) & jnp.asarray(found, bool) & (gate_id >= 0)
+        corners = CornerInput(corners=jnp.asarray(corners_xy, dtype), detected=detected, gate_id=gate_id)
+    return _step(state, imu_input, imu_valid, corners, jnp.asarray(delay_ticks, jnp.int32), gates, camera, config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -571,28 +586,31 @@ def _check_state(state: ESKFState, config: ESKFConfig) -> None:
                          f"with another config?)")
 
 
-def _imu_input(imu, dtype) -> tuple[ImuInput, bool]:
+IMU_FIELDS = {"delta_q": (4,), "delta_v": (3,), "delta_p": (3,), "dt": ()}
+DETECTION_FIELDS = {"corners": (NUM_CORNERS, 2), "corners_visible": (NUM_CORNERS,), "found": (), "gate_id": ()}
+
+
+def _imu_fields(imu) -> tuple | None:
+    """The tick's IMU as its raw fields, shapes checked (None: no IMU)."""
     if imu is None:
-        return _no_imu(dtype), False
-    expected = {"delta_q": (4,), "delta_v": (3,), "delta_p": (3,), "dt": ()}
-    for name, shape in expected.items():
+        return None
+    for name, shape in IMU_FIELDS.items():
         if not hasattr(imu, name) or jnp.shape(getattr(imu, name)) != shape:
             raise ValueError(f"imu must be one tick's preintegrated IMU (sim.plant.TickIMU) with delta_q (4,), "
                              f"delta_v (3,), delta_p (3,), dt (); {name} is "
                              f"{jnp.shape(getattr(imu, name)) if hasattr(imu, name) else 'missing'}")
-    return ImuInput(*(jnp.asarray(getattr(imu, name), dtype) for name in expected)), True
+    return tuple(getattr(imu, name) for name in IMU_FIELDS)
 
 
-def _corner_input(detection, dtype) -> CornerInput:
+def _detection_fields(detection) -> tuple | None:
+    """The detection as its raw fields, shapes checked (None: nothing delivered)."""
     if detection is None:
-        return _no_corners(dtype)
-    shapes = tuple(jnp.shape(getattr(detection, n, None)) for n in ("corners", "corners_visible", "found", "gate_id"))
-    if shapes != ((NUM_CORNERS, 2), (NUM_CORNERS,), (), ()):
+        return None
+    shapes = tuple(jnp.shape(getattr(detection, name, None)) for name in DETECTION_FIELDS)
+    if shapes != tuple(DETECTION_FIELDS.values()):
         raise ValueError(f"detection must be one detector.Detection with corners (4, 2), corners_visible (4,), "
                          f"found () and gate_id (); got shapes {shapes}")
-    gate_id = jnp.asarray(detection.gate_id, jnp.int32)
-    detected = jnp.asarray(detection.corners_visible, bool) & jnp.asarray(detection.found, bool) & (gate_id >= 0)
-    return CornerInput(corners=jnp.asarray(detection.corners, dtype), detected=detected, gate_id=gate_id)
+    return tuple(getattr(detection, name) for name in DETECTION_FIELDS)
 
 
 def _check_delay(delay_ticks, config: ESKFConfig) -> None:
@@ -660,11 +678,8 @@ def eskf_step(state: ESKFState, imu, detection, delay_ticks, track, camera: came
     """
     _check_state(state, config)
     _check_delay(delay_ticks, config)
-    dtype = state.latest.x.dtype
-    imu_input, imu_valid = _imu_input(imu, dtype)
     gates = getattr(track, "gates", track)
-    return _eskf_step_jit(state, imu_input, jnp.asarray(imu_valid), _corner_input(detection, dtype),
-                          jnp.asarray(delay_ticks, jnp.int32), gates, camera, config)
+    return _eskf_step_jit(state, _imu_fields(imu), _detection_fields(detection), delay_ticks, gates, camera, config)
 
 
 def eskf_estimate(state: ESKFState) -> ESKFEstimate:
