@@ -511,7 +511,8 @@ def _add_race(sub) -> None:
     _setting(p, "--pixel-cost", "pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image centre, "
              "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
     _setting(p, "--target-prior", "target_prior", "what PixelMPC's pixel cost charges while the target is not "
-             "detected: none, the paper's (no pixel cost), or map, its pixel projected from the map and the estimate",
+             "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
+             "or kept, its last pixel moved on by the pixel model since it was last seen",
              choices=TARGET_PRIORS)
     _setting(p, "--look-ahead", "look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's pixel "
              "cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, the "

@@ -216,3 +216,34 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     progress = np.asarray(policy_state.step_progress)
     assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, policy_state.racing_constants, constants))
+
+
+def test_the_kept_pixel_charges_a_lost_target_with_the_pixel_its_model_predicted(world):
+    """``target_prior="kept"``: once the target has been seen, a tick without a detection is planned from the pixel
+    the controller's pixel model predicted for it at the last tick, and charged; a new target not yet seen is not,
+    nor is a lost one under the paper's prior."""
+    mppi_config = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=20)
+    env = env_lib.make_env(CONFIG)
+    state = env.reset(world, jax.random.PRNGKey(0))
+    _, seen = env.observe(world, state, jax.random.PRNGKey(1))
+    assert bool(seen.detection.found)
+    lost = seen._replace(detection=seen.detection.replace(found=jnp.asarray(False)))
+    switched = lost._replace(target_gate=lost.target_gate + 1)
+    for prior in ("kept", "none"):
+        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=mppi_config, pixel_model="projection",
+                                                                        target_prior=prior))
+        act = jax.jit(policy.act)
+        first = jax.jit(policy.init)(jax.random.PRNGKey(2), world)
+        _, after_seen, prediction = act(first, seen, world)
+        if prior == "none":
+            assert after_seen.kept is None
+            continue
+        np.testing.assert_array_equal(after_seen.kept.pixel, prediction[1, 10:12])
+        assert bool(after_seen.kept.valid) and int(after_seen.kept.gate) == int(seen.target_gate)
+        _, after_lost, kept_prediction = act(after_seen, lost, world)
+        np.testing.assert_allclose(kept_prediction[0, 10:12], prediction[1, 10:12], atol=1e-6)  # planned from it
+        assert bool(after_lost.kept.valid)  # charged, and kept alive for the next tick
+        _, after_switch, _ = act(after_seen, switched, world)
+        assert not bool(after_switch.kept.valid)  # the next target starts unseen
+        _, never, _ = act(first, lost, world)
+        assert not bool(never.kept.valid)

@@ -56,7 +56,7 @@ IMAGE_CENTRE = (0.5, 0.5)
 # What the pixel cost charges while the detector does not report the target: "none", the paper's (no pixel cost
 # until the target is detected); "map", a map-aided prior (the target's pixel projected from the map and the
 # estimate, see :func:`map_pixel_state`).
-TARGET_PRIORS = ("none", "map")
+TARGET_PRIORS = ("none", "map", "kept")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 
 
@@ -125,7 +125,9 @@ class ControllerConfig:
         target_prior: what the pixel cost charges while the detector does not report the target
             (:data:`TARGET_PRIORS`): "none", the paper's (no pixel cost until it is detected, so a gate that has
             just become the target is not looked for); "map", the map-aided prior (its pixel projected from the
-            map and the estimate, :func:`map_pixel_state`), charged like a detected one.
+            map and the estimate, :func:`map_pixel_state`), charged like a detected one; "kept", the pixel kept
+            alive (once the target has been detected, its pixel state as the pixel model predicted it for this
+            tick from the last, under the command sent: no map needed, ``sim.policies.KeptPixel``).
         look_ahead: the weight, relative to the target's, of the next gate's pixel cost on the predicted states
             past the target's plane (0: none, the paper's; the state then holds one pixel). The next gate's
             pixel starts from the map and the estimate (map-aided: the detector reports only the target).

@@ -49,6 +49,7 @@ class RacingPolicyState(NamedTuple):
         pending: (L, 4) the last L commands sent, oldest first, with a model latency of L ticks (None without).
         disturbance: (3,) m/s^2, the estimated external acceleration (None without a disturbance model).
         expected: (10,) the model's prediction of the next tick's estimate (NaN before the first; None without).
+        kept: the target's pixel state kept alive while undetected (:class:`KeptPixel`; None without).
     """
 
     mppi: Any
@@ -57,6 +58,22 @@ class RacingPolicyState(NamedTuple):
     pending: jax.Array | None = None
     disturbance: jax.Array | None = None
     expected: jax.Array | None = None
+    kept: Any = None
+
+
+class KeptPixel(NamedTuple):
+    """The target's pixel state as the controller's pixel model predicts it for this tick, from the last tick's:
+    what charges the pixel cost while the detector does not report the target (``target_prior="kept"``).
+
+    Attributes:
+        pixel: (P,) the pixel state predicted under the command sent (the nominal prediction's second state).
+        valid: () bool, the pixel descends from a detection of ``gate``.
+        gate: () int, the target it belongs to (a new target starts unseen).
+    """
+
+    pixel: jax.Array
+    valid: jax.Array
+    gate: jax.Array
 
 
 DISTURBANCE_MAX = 10.0  # m/s^2 per axis: the estimated external acceleration is clipped to this
@@ -84,16 +101,18 @@ def disturbance_update(disturbance: jax.Array, expected: jax.Array, x_est: jax.A
 
 def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
                   quad_params: quadrotor.QuadParams, latency_ticks: int = 0,
-                  disturbance_tau: float | None = None) -> Policy:
+                  disturbance_tau: float | None = None, kept_pixel_dim: int = 0) -> Policy:
     """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
 
-    ``build(obs, world, racing_params, disturbance) -> (x0, params)`` makes the controller's state and params from
-    an observation (``disturbance``: (3,) or None); the nominal trajectory's first 10 columns must be the robot
-    state. Each tick cuts the racing cost's path windows (Eq. 19) around the progress the previous plan predicted
-    for each step, from the per-track constants ``init`` computed for the episode's world. With ``latency_ticks``
-    L the controller plans from the estimate rolled forward through its last L commands (:func:`predict_through`),
-    which a plant with that actuation latency has not applied yet. With ``disturbance_tau`` the model's external
-    acceleration is estimated each tick (:func:`disturbance_update`).
+    ``build(obs, world, racing_params, disturbance, kept) -> (x0, params)`` makes the controller's state and params
+    from an observation (``disturbance``: (3,) or None; ``kept``: a :class:`KeptPixel` or None); the nominal
+    trajectory's first 10 columns must be the robot state. With ``kept_pixel_dim`` P the policy keeps the target's
+    pixel state alive: the next P columns of the nominal prediction's second state, valid while the params'
+    ``target_active`` held for the same target. Each tick cuts the racing cost's path windows (Eq. 19) around the
+    progress the previous plan predicted for each step, from the per-track constants ``init`` computed for the
+    episode's world. With ``latency_ticks`` L the controller plans from the estimate rolled forward through its last
+    L commands (:func:`predict_through`), which a plant with that actuation latency has not applied yet. With
+    ``disturbance_tau`` the model's external acceleration is estimated each tick (:func:`disturbance_update`).
     """
     horizon, dt = mppi_config.horizon, mppi_config.dt
 
@@ -102,8 +121,10 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         pending = jnp.broadcast_to(hover, (latency_ticks, hover.shape[0])) if latency_ticks else None
         observer = (jnp.zeros(3, jnp.float32), jnp.full((quadrotor.STATE_DIM,), jnp.nan, jnp.float32)) \
             if disturbance_tau else (None, None)
+        kept = KeptPixel(jnp.zeros((kept_pixel_dim,), jnp.float32), jnp.asarray(False), jnp.asarray(-1, jnp.int32)) \
+            if kept_pixel_dim else None
         return RacingPolicyState(ctrl.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
-                                 costs.racing_constants(world.track, cost_config), pending, *observer)
+                                 costs.racing_constants(world.track, cost_config), pending, *observer, kept)
 
     def act(state: RacingPolicyState, obs: Observation, world: World):
         # First tick: no previous plan, every step's path window starts at the current progress.
@@ -115,8 +136,13 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
             disturbance = disturbance_update(state.disturbance, state.expected, x_now, disturbance_tau)
         if latency_ticks:
             obs = obs._replace(x_est=predict_through(x_now, state.pending, quad_params, dt, disturbance))
-        x0, params = build(obs, world, racing, disturbance)
+        x0, params = build(obs, world, racing, disturbance, state.kept)
         u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
+        kept = state.kept
+        if kept_pixel_dim:
+            pixel = info.nominal_trajectory[1, quadrotor.STATE_DIM:quadrotor.STATE_DIM + kept_pixel_dim]
+            kept = KeptPixel(pixel.astype(kept.pixel.dtype), jnp.asarray(params.target_active, bool),
+                             jnp.asarray(obs.target_gate, jnp.int32))
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
         pending, expected = state.pending, state.expected
@@ -126,7 +152,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         if latency_ticks:
             pending = jnp.concatenate([pending[1:], u[None].astype(pending.dtype)])
         return (u, RacingPolicyState(mppi_state, next_progress, state.racing_constants, pending, disturbance,
-                                     expected), info.nominal_trajectory)
+                                     expected, kept), info.nominal_trajectory)
 
     return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
 
@@ -143,7 +169,7 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params, disturbance=bool(disturbance_tau))
 
-    def build(obs, world, racing, disturbance):
+    def build(obs, world, racing, disturbance, kept):
         return obs.x_est, racing if disturbance is None else (racing, disturbance)
 
     return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks, disturbance_tau)
@@ -153,14 +179,15 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
                     quad_params: quadrotor.QuadParams | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
     size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
-    (``config.target_prior``: an undetected target's pixel from the map and the estimate); with
+    (``config.target_prior``: an undetected target's pixel from the map and the estimate), or since it was first
+    seen with the kept-alive one (the pixel the controller's pixel model predicted for this tick, from the last); with
     ``config.look_ahead`` the next gate's pixel state follows, from the map and the estimate; the learned pixel
     model's weights come from ``world.dof``."""
     config = config or pixelmpc_lib.ControllerConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
 
-    def build(obs, world, racing, disturbance):
+    def build(obs, world, racing, disturbance, kept):
         detection = obs.detection
         if config.target_prior == "map":  # an undetected target's pixel from the map and the estimate
             mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
@@ -173,6 +200,10 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             corners, active = detection.corners, detection.found
         if config.pixel_model == "vdof":
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
+        if config.target_prior == "kept":  # an undetected target's pixel as the pixel model moved it since it was seen
+            alive = ~detection.found & kept.valid & (kept.gate == obs.target_gate)
+            uv0 = jnp.where(alive, kept.pixel.astype(uv0.dtype), uv0)
+            active = detection.found | alive
         gates = world.track.gates
         params = pixelmpc_lib.PixelMPCParams(
             racing=racing, dof=world.dof, target_active=active, target_centre=gates.centre[obs.target_gate],
@@ -191,5 +222,6 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
                                     next_centre=gates.centre[next_gate], next_normal=gates.normal[next_gate])
         return jnp.concatenate([obs.x_est, *(pixel.astype(obs.x_est.dtype) for pixel in pixels)]), params
 
+    kept_pixel_dim = config.pixel_dim if config.target_prior == "kept" else 0
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
-                         quad_params, config.model_latency_ticks, config.disturbance_time_constant_s)
+                         quad_params, config.model_latency_ticks, config.disturbance_time_constant_s, kept_pixel_dim)
