@@ -122,7 +122,7 @@ def _race_spec(args):
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
     fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
               "course": args.course, "detector": args.detector, "estimator": args.estimator,
-              "max_time_s": args.max_time, "dof_weights": args.dof_weights}
+              "max_time_s": args.max_time, "dof_weights": args.dof_weights, "camera_tilt_deg": args.camera_tilt}
     spec = base.replace(config=_controller_config(args, base.config),
                         **{name: value for name, value in fields.items() if value is not None})
     spec = arg.with_faults(args, spec)
@@ -463,6 +463,7 @@ def _add_race(sub) -> None:
     """``pixelmpc race``: laps in the closed loop. The race's own flags set a RaceSpec field; each controller
     flag sets one controller setting (:func:`_setting`)."""
     from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS
+    from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
     from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
     from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
     from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
@@ -539,6 +540,10 @@ def _add_race(sub) -> None:
                    help="laps per batched (vmapped) call; raise it on a GPU (default 1)")
     p.add_argument("--perturb", action="store_true", default=None,
                    help="perturb the gates per lap within the AlphaPilot bounds")
+    p.add_argument("--camera-tilt", type=arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), default=None,
+                   metavar="DEG", help="the onboard camera tilted up on its mount by DEG degrees, in "
+                   f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
+                   "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection")
     p.add_argument("--max-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=None,
                    help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default {LAP_TIME_LIMIT_S:g})")
     _setting(p, "--model-latency", "model_latency_ticks", "ticks of actuation latency the controller's model "

@@ -285,3 +285,26 @@ def test_a_cell_another_grid_flew_is_copied_not_flown(flown, tmp_path, monkeypat
         assert (tmp_path / "second" / f"trajectories_again_{cell.name}.npz").exists()
     with pytest.raises(AssertionError, match="flown again"):  # another seed is another race
         grid.run_grid(renamed[:1], tmp_path / "third", laps=2, seed=1, progress=False, reuse=[first])
+
+
+def test_a_tilted_camera_is_a_race_setting_both_controllers_fly_and_the_packaged_pixel_models_refuse():
+    import math
+
+    projection = ControllerConfig(pixel_model="projection", pixel_cost="border")
+    spec = RaceSpec("pixelmpc", projection, speed=8.0)
+    tilted = spec.replace(camera_tilt_deg=20)
+    assert "camera_tilt_deg" not in spec.record()  # a race flown before the setting keeps its record and key
+    assert tilted.camera_tilt_deg == 20.0 and tilted.key() != spec.key()
+    assert RaceSpec.from_record(json.loads(json.dumps(tilted.record()))) == tilted
+    prepared = race.prepare(tilted)
+    assert float(prepared.camera.tilt) == pytest.approx(math.radians(20.0))
+    assert float(race.prepare(spec).camera.tilt) == 0.0
+    from pixelmpc_jax.apps.racing.presets import nominal_of
+
+    assert nominal_of(tilted).camera_tilt_deg == 20.0  # nominal MPPI flies the same camera
+    for bad in (-1.0, 61.0, float("nan"), True):
+        with pytest.raises(ValueError, match="camera_tilt_deg"):
+            spec.replace(camera_tilt_deg=bad)
+    for model in ("dof", "vdof"):
+        with pytest.raises(ValueError, match="trained for the untilted camera"):
+            RaceSpec("pixelmpc", ControllerConfig(pixel_model=model), camera_tilt_deg=20.0)

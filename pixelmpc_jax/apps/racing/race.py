@@ -6,6 +6,7 @@ Laps are run in batches (``vmap`` of the episode); after every batch ``metrics.j
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -20,6 +21,7 @@ from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.strict_json import write_json_atomic
+from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
@@ -67,7 +69,8 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
                                                estimator=spec.estimator, guards=spec.guards, faults=spec.faults)
     if dof_params is None:
         dof_params = spec.packaged_dof()
-    base = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params)
+    camera = camera_lib.default_camera(tilt=math.radians(spec.camera_tilt_deg))
+    base = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params, camera=camera)
     return _Flight(episode_lib.make_runner(policy, episode_config), base, policy.name, sample_devices)
 
 

@@ -33,7 +33,9 @@ from pixelmpc_jax.world.course import COURSES
 # Settings added after races were recorded: left out of the record while at their defaults, so every race flown
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
-                  ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"))
+                  ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
+                  ("camera_tilt_deg",))
+CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
 
 def _default_config() -> ControllerConfig:
@@ -67,6 +69,10 @@ class RaceSpec:
             to none for a race on the true state.
         faults: what the world does beyond the controller's model (:class:`~pixelmpc_jax.sim.faults.Faults`;
             none by default).
+        camera_tilt_deg: the onboard camera's upward tilt on its mount, deg (0: the paper's), in
+            [0, :data:`CAMERA_TILT_MAX_DEG`]; the detector, the controller and the visibility measure all see through
+            it. The packaged learned pixel models were trained for the untilted camera, so a tilted race flies the
+            projection pixel model, nominal MPPI, or weights trained for the tilt.
     """
 
     controller: str = "mppi"
@@ -82,6 +88,7 @@ class RaceSpec:
     dof_weights: str | None = None
     guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)
+    camera_tilt_deg: float = 0.0
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -97,6 +104,11 @@ class RaceSpec:
         # one spelling per race: floats as floats, no settings that fly nothing, no runtime-only settings
         object.__setattr__(self, "speed", float(self.speed))
         object.__setattr__(self, "max_time_s", float(self.max_time_s))
+        if isinstance(self.camera_tilt_deg, bool) or not (isinstance(self.camera_tilt_deg, (int, float))
+                                                          and 0.0 <= self.camera_tilt_deg <= CAMERA_TILT_MAX_DEG):
+            raise ValueError(f"camera_tilt_deg must be an upward tilt in [0, {CAMERA_TILT_MAX_DEG:g}] deg, "
+                             f"got {self.camera_tilt_deg!r}")
+        object.__setattr__(self, "camera_tilt_deg", float(self.camera_tilt_deg))
         mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
         if self.controller == "mppi":
             config = ControllerConfig(mppi=mppi, racing=self.config.racing,
@@ -110,6 +122,11 @@ class RaceSpec:
                              f"and {type(self.guards).__name__}")
         if self.estimator != "pf":  # the filter's guards fly nothing on the true state
             object.__setattr__(self, "guards", GuardConfig())
+        if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
+                                                       or self.dof_weights in _packaged_variants()):
+            raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
+                             f"with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection pixel model or "
+                             f"weights trained for that camera")
         packaged_dof_name = self.dof_weights in _packaged_variants()
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
