@@ -129,7 +129,10 @@ def test_the_space_file_gets_one_clear_line_per_bad_entry(tmp_path, capsys):
     good = {k: bad[k] for k in ("mppi.noise_exponent", "mppi.num_samples")}
     path.write_text(json.dumps(good))
     assert load_space(str(path), preset("best"))["mppi.num_samples"].integer
-    assert set(load_space("hand-tuned", preset("best"))) == set(SPACES["hand-tuned"])
+    for name in SPACES:  # every named space is one the best preset's race takes
+        assert set(load_space(name, preset("best"))) == set(SPACES[name])
+    levers = load_space("levers", preset("best"))
+    assert levers["target_prior"].choices == ("none", "map", "kept") and levers["look_ahead"].choices == (0, 1, 3)
 
 
 class StubFly:
