@@ -28,28 +28,22 @@ from pixelmpc_jax.control.pixelmpc import ControllerConfig
 # c_pixel 9e6, box size limit 0.5, t_f 1 s, lambda 200, white noise): the settings the hand tuning moved, each over
 # the range the 4-lap probes spanned and somewhat beyond. The tuned `best` preset sits near two edges (lambda 747,
 # border margin 0.076): a further search would widen those.
+HAND_TUNED_SPACE = {
+    "c_pixel": {"low": 2e6, "high": 3e7, "log": True},
+    "border_margin": {"low": 0.05, "high": 0.3},
+    "box_size_limit": {"low": 0.3, "high": 0.8},
+    "mppi.temperature": {"low": 50.0, "high": 800.0, "log": True},
+    "mppi.noise_exponent": {"low": 0.0, "high": 2.0},
+    "t_f": {"low": 0.5, "high": 1.5},
+}
 SPACES = {
-    "hand-tuned": {
-        "c_pixel": {"low": 2e6, "high": 3e7, "log": True},
-        "border_margin": {"low": 0.05, "high": 0.3},
-        "box_size_limit": {"low": 0.3, "high": 0.8},
-        "mppi.temperature": {"low": 50.0, "high": 800.0, "log": True},
-        "mppi.noise_exponent": {"low": 0.0, "high": 2.0},
-        "t_f": {"low": 0.5, "high": 1.5},
-    },
+    "hand-tuned": HAND_TUNED_SPACE,
     # "levers": the same ranges, with the levers against the first second after a switch (docs/visibility.md) as
     # choices: the target's prior while undetected (the paper's none, the map's, the kept-alive pixel) and the
     # look-ahead's weight on the next gate (0, the paper's)
-    "levers": {
-        "c_pixel": {"low": 2e6, "high": 3e7, "log": True},
-        "border_margin": {"low": 0.05, "high": 0.3},
-        "box_size_limit": {"low": 0.3, "high": 0.8},
-        "mppi.temperature": {"low": 50.0, "high": 800.0, "log": True},
-        "mppi.noise_exponent": {"low": 0.0, "high": 2.0},
-        "t_f": {"low": 0.5, "high": 1.5},
-        "target_prior": {"choices": ["none", "map", "kept"]},
-        "look_ahead": {"choices": [0.0, 1.0, 3.0]},
-    },
+    "levers": {**HAND_TUNED_SPACE,
+               "target_prior": {"choices": ["none", "map", "kept"]},
+               "look_ahead": {"choices": [0.0, 1.0, 3.0]}},
 }
 NOT_SEARCHED = {"mppi.sample_devices": "how a step runs, not what it computes (a race always records 1)"}
 _NUMERIC = {"float": float, "float | None": float, "int": int, "int | None": int}  # annotations a range may take
