@@ -4,6 +4,7 @@ validation, and ``race --config``. No lap is flown: the lap-flying function is a
 import functools
 import json
 import time
+from pathlib import Path
 
 import pytest
 
@@ -15,6 +16,7 @@ from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.apps.tuning import search
 from pixelmpc_jax.apps.tuning.space import SPACES, SpaceError, load_space, with_settings
 from pixelmpc_jax.sim.metrics import MEASURE
+from pixelmpc_jax.world import course as course_lib
 
 # nominal MPPI on the stub's seeds: (lap time s, avoidable s) per target speed
 NOMINAL = {8.0: (34.0, 2.0), 8.5: (32.0, 4.0), 10.0: (28.0, 6.0)}
@@ -222,6 +224,23 @@ def test_validation_flies_the_best_trial_beside_the_preset_and_copies_what_was_f
     assert record["rows"][2]["gain"] == pytest.approx(1.0) and record["rows"][2]["lap_time_change"] == 0.0
     text = (tmp_path / "tune" / "validation.md").read_text()
     assert "held-out seeds 100-102" in text and text.count("| 3/3 |") == 3 + len(NOMINAL)
+    # each row beside nominal MPPI at its own lap time: nominal's own row is its own frontier point
+    nominal_row = record["rows"][2]
+    for figure in ("vis_below_50_s", "share_target_in_view", "mean_target_angle_deg"):
+        assert nominal_row[f"frontier_{figure}"] == pytest.approx(nominal_row[figure])
+    # on a course nobody tuned on: every cell, nominal MPPI's too, flies it, into a folder of its own
+    generated = tmp_path / "generated.json"
+    course_lib.write_course(course_lib.generate_course(seed=5, num_gates=6), generated)
+    courses, stub = [], StubFly()
+
+    def on_course(cells, out, laps, seed):
+        courses.extend(cell.spec.course for cell in cells)
+        assert Path(out).name == "validation_course"
+        return stub(cells, out, laps, seed)
+
+    record = search.validate(study, s, tmp_path / "tune", seed=100, laps=3, fly=on_course, course=str(generated))
+    assert record["course"] == "generated.json" and courses == [str(generated)] * (len(NOMINAL) + 2)
+    assert "course generated.json" in (tmp_path / "tune" / "validation_course.md").read_text()
 
 
 def test_race_config_flies_a_saved_record_and_flags_still_override(monkeypatch, tmp_path, capsys):

@@ -41,6 +41,9 @@ def add_tune(sub) -> None:
     p.add_argument("--validate-seed", type=arg.seed, default=None,
                    help="then fly the best trial, the preset and nominal MPPI on held-out seeds from this one")
     p.add_argument("--validate-laps", type=arg.positive_int, default=10, help="held-out laps (default 10)")
+    p.add_argument("--validate-course", type=arg.course, default=None, metavar="FILE",
+                   help="with --validate-seed, also fly the validation on this course (a course file, e.g. one "
+                        "`pixelmpc course` generated that no one tuned on)")
 
     def check(args) -> None:
         """The search space, checked before anything runs: one line per bad entry, exit code 2."""
@@ -77,4 +80,8 @@ def _cmd_tune(args) -> int:
     if args.validate_seed is not None:
         record = search.validate(study, setup, args.out, args.validate_seed, args.validate_laps, reuse=args.reuse)
         print(report.validation_markdown(record))
+        if args.validate_course is not None:
+            record = search.validate(study, setup, args.out, args.validate_seed, args.validate_laps,
+                                     reuse=args.reuse, course=args.validate_course)
+            print(report.validation_markdown(record))
     return 0

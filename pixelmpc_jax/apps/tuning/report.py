@@ -91,6 +91,10 @@ def _f(value, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _in_view(share) -> str:
+    return "-" if share is None else f"{100 * share:.1f}"
+
+
 def _percent(change) -> str:
     return "-" if change is None else f"{100 * change:+.1f} %"
 
@@ -160,9 +164,11 @@ def _plot_tradeoff(ax, done: list[dict], points: list[dict], setup, best) -> Non
     ax.legend(fontsize=7)
 
 
-def validation_record(built: dict, best, setup, results: dict) -> dict:
+def validation_record(built: dict, best, setup, results: dict, course: str | None = None) -> dict:
     """The validation table's record from :func:`frontier.build` over the tuned, preset and nominal-at-target cells
-    (in that order) of the held-out ``results``."""
+    (in that order) of the held-out ``results`` (flown on ``course``; None: the base race's). Each row holds its
+    raw time below 50 %, share of time with the target in view and mean angle to it beside nominal MPPI's at the
+    same lap time (``nominal_<figure>``)."""
     at_target = next(p for p in built["nominal"] if p["speed"] == setup.base.speed)
     labels = (f"tuned (trial {best.number})", f"{setup.preset} preset (hand-tuned)",
               f"nominal MPPI at {setup.base.speed:g} m/s")
@@ -173,9 +179,12 @@ def validation_record(built: dict, best, setup, results: dict) -> dict:
         rows.append({"label": label, "cell": row["name"], "gain": row["frontier_gain"],
                      "gain_interval": row["frontier_gain_interval"], "laps_completed": row["laps_completed"],
                      "laps": row["laps"], "lap_time_s": row["lap_time_s"], "lap_time_two_sigma_s":
-                     row["lap_time_two_sigma_s"], "lap_time_change": change, "avoidable_s": row["avoidable_s"]})
+                     row["lap_time_two_sigma_s"], "lap_time_change": change, "avoidable_s": row["avoidable_s"],
+                     **{key: row[key] for figure in frontier.SAME_LAP_TIME_FIGURES
+                        for key in (figure, f"frontier_{figure}")}})
     copied = {name: done["shared_from"] for name, done in results.items() if done.get("shared_from")}
     return json_safe({"rows": rows, "nominal": built["nominal"], "copied": copied, "setup": setup.record(),
+                      "course": course if course is None else Path(course).name,
                       "tuned": {"trial": best.number, "training_objective": best.value,
                                 "training_feasible": best.user_attrs.get("feasible"), "settings": dict(best.params)},
                       "measured": built["measured"]})
@@ -185,19 +194,26 @@ def validation_markdown(record: dict) -> str:
     """The validation table in Markdown, with the tuned settings and how it was measured."""
     m, d = record["measured"], record["measured"]["device"]
     setup = record["setup"]
-    lines = [f"# Tuned against hand-tuned: held-out seeds {m['seeds'][0]}-{m['seeds'][1]}", "",
+    course = f", course {record['course']}" if record.get("course") else ""
+    lines = [f"# Tuned against hand-tuned: held-out seeds {m['seeds'][0]}-{m['seeds'][1]}{course}", "",
              "Frontier gain: nominal MPPI's avoidable low-visibility time at the row's lap time over the row's (above "
              f"1: better than flying slower), with its {m['gain_interval']}. Lap time change: against nominal MPPI at "
-             "the same target. Means over the completed laps.", "",
+             "the same target. Raw time below 50 % (nothing excused), share of time with the target in view and mean "
+             "angle to it: the row's, and nominal MPPI's at the same lap time in brackets. Means over the completed "
+             "laps.", "",
              "| controller | frontier gain [90 % interval] | laps completed | lap time [s] | lap time vs nominal "
-             "| avoidable [s] |", "|---|---|---|---|---|---|"]
+             "| avoidable [s] | raw < 50 % [s] | in view [%] | angle [deg] |", "|---|---|---|---|---|---|---|---|---|"]
     for row in record["rows"]:
         gain = _f(row["gain"])
         if row["gain_interval"]:
             gain += " [{:.2f}, {:.2f}]".format(*row["gain_interval"])
         lap = "-" if row["lap_time_s"] is None else f"{row['lap_time_s']:.1f} ± {row['lap_time_two_sigma_s']:.1f}"
+        raw = f"{_f(row.get('vis_below_50_s'))} ({_f(row.get('frontier_vis_below_50_s'))})"
+        in_view = (f"{_in_view(row.get('share_target_in_view'))} "
+                   f"({_in_view(row.get('frontier_share_target_in_view'))})")
+        angle = f"{_f(row.get('mean_target_angle_deg'), 1)} ({_f(row.get('frontier_mean_target_angle_deg'), 1)})"
         lines.append(f"| {row['label']} | {gain} | {row['laps_completed']}/{row['laps']} | {lap} | "
-                     f"{_percent(row['lap_time_change'])} | {_f(row['avoidable_s'])} |")
+                     f"{_percent(row['lap_time_change'])} | {_f(row['avoidable_s'])} | {raw} | {in_view} | {angle} |")
     tuned = record["tuned"]
     lines += ["", f"Tuned settings (trial {tuned['trial']}; training objective {tuned['training_objective']:.3f}, "
               f"{'feasible' if tuned['training_feasible'] else 'infeasible'} on seeds {setup['seed']}-"

@@ -285,10 +285,12 @@ def run_tune(setup: TuneSetup, out: Path, trials: int, minutes: float | None = N
 
 
 def validate(study, setup: TuneSetup, out: Path, seed: int, laps: int = 10, fly: Fly = fly_grid,
-             reuse=()) -> dict:
+             reuse=(), course: str | None = None) -> dict:
     """Fly the study's best trial, the base preset and the nominal frontier on the held-out seeds ``seed ..
     seed + laps - 1`` (races already flown in a ``reuse`` grid folder are copied, not flown) into
-    ``out/validation/``; write ``validation.json`` and ``validation.md``; returns the table's record."""
+    ``out/validation/``; write ``validation.json`` and ``validation.md``; returns the table's record. With
+    ``course`` (a name or a course file, e.g. a generated course nobody tuned on) every cell flies that course
+    instead, into ``out/validation_course/``, ``validation_course.json`` and ``validation_course.md``."""
     trial = report.best_trial(study)
     if trial is None:
         raise ValueError("the study holds no completed trial to validate: run the search first")
@@ -297,14 +299,20 @@ def validate(study, setup: TuneSetup, out: Path, seed: int, laps: int = 10, fly:
     hand = grid.Cell(f"preset_{setup.preset}", setup.base)
     at_target = frontier.nominal_cell(setup.base.speed, setup.base.max_time_s)
     cells = setup.nominal_cells() + [hand, tuned]
-    folder = Path(out) / "validation"
+    if course is not None:
+        cells = [dataclasses.replace(cell, spec=cell.spec.replace(course=course)) for cell in cells]
+        tuned, hand = cells[-1], cells[-2]
+        at_target = dataclasses.replace(at_target, spec=at_target.spec.replace(course=course))
+    name = "validation" if course is None else "validation_course"
+    folder = Path(out) / name
     shared = adopt(cells, folder, laps, seed, reuse)
-    print(f"validation on seeds {seed}-{seed + laps - 1}: {len(cells) - len(shared)} cell(s) to fly, "
-          f"{len(shared)} copied ({', '.join(shared) or 'none'}) -> {folder}", flush=True)
+    print(f"validation on seeds {seed}-{seed + laps - 1}{'' if course is None else f', course {course}'}: "
+          f"{len(cells) - len(shared)} cell(s) to fly, {len(shared)} copied ({', '.join(shared) or 'none'}) -> "
+          f"{folder}", flush=True)
     results = fly(cells, folder, laps, seed)
     built = frontier.build(results, setup.nominal_speeds, [tuned, hand, at_target], laps, seed,
                            setup.base.max_time_s)
-    record = report.validation_record(built, trial, setup, results)
-    write_json_atomic(Path(out) / "validation.json", record)
-    (Path(out) / "validation.md").write_text(report.validation_markdown(record))
+    record = report.validation_record(built, trial, setup, results, course)
+    write_json_atomic(Path(out) / f"{name}.json", record)
+    (Path(out) / f"{name}.md").write_text(report.validation_markdown(record))
     return record
