@@ -55,7 +55,7 @@ STATE_DIM = quadrotor.STATE_DIM + 2
 IMAGE_CENTRE = (0.5, 0.5)
 # What the pixel cost charges while the detector does not report the target: "none", the paper's (no pixel cost
 # until the target is detected); "map", a map-aided prior (the target's pixel projected from the map and the
-# estimate, see :func:`map_pixel_state`).
+# estimate, see :func:`map_pixel_state`); "kept", the pixel kept alive by the pixel model once it was detected.
 TARGET_PRIORS = ("none", "map", "kept")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 

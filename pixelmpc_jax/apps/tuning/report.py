@@ -168,7 +168,7 @@ def validation_record(built: dict, best, setup, results: dict, course: str | Non
     """The validation table's record from :func:`frontier.build` over the tuned, preset and nominal-at-target cells
     (in that order) of the held-out ``results`` (flown on ``course``; None: the base race's). Each row holds its
     raw time below 50 %, share of time with the target in view and mean angle to it beside nominal MPPI's at the
-    same lap time (``nominal_<figure>``)."""
+    same lap time (``frontier_<figure>``)."""
     at_target = next(p for p in built["nominal"] if p["speed"] == setup.base.speed)
     labels = (f"tuned (trial {best.number})", f"{setup.preset} preset (hand-tuned)",
               f"nominal MPPI at {setup.base.speed:g} m/s")
