@@ -94,7 +94,7 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
 def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
     """Every race flag lands in the RaceSpec (each controller flag in its field of the configuration); execution
     flags beside it."""
-    from pixelmpc_jax.apps.racing import compare
+    from pixelmpc_jax.apps.racing import compare, presets
 
     seen = {}
 
@@ -110,8 +110,10 @@ def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
               "--samples", "256", "--batch", "2", "--video", "--clearance", "0.2"])
     mppi = dataclasses.replace(paper_mppi_config(num_samples=256, temperature=100.0), noise_exponent=1.0)
     racing = RacingCostConfig(heading_weight=0.5, vehicle_radius=0.2)
+    best = presets.preset("best").config  # what no flag names stays the default preset's
     config = ControllerConfig(mppi=mppi, racing=racing, pixel_model="projection",
-                            t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2)
+                            t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2,
+                            target_prior=best.target_prior, look_ahead=best.look_ahead)
     assert seen["spec"] == RaceSpec("pixelmpc", config, speed=9.0, laps=3, seed=5, perturb=True, course="straight",
                                     detector="image", estimator="pf", max_time_s=20.0)
     assert seen["batch_size"] == 2 and seen["video"] is True and seen["out"] == tmp_path

@@ -3,12 +3,14 @@ parser lists every job, each argument is checked as parsed, each job calls its l
 ``experiments/`` and ``benchmarks/`` is a thin call of one of them."""
 
 import ast
+import dataclasses
 import re
 from pathlib import Path
 
 import pytest
 
 from pixelmpc_jax import cli
+from pixelmpc_jax.apps.racing import presets
 
 ROOT = Path(__file__).resolve().parent.parent
 JOBS = {"experiment": ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe"),
@@ -90,14 +92,30 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert seen["table2"] == {"laps": 3, "pixel_model": "projection", "quick": False, "seed": 200}
     assert "# the tables" in capsys.readouterr().out
 
-    def run_frontier(speeds, cells, out, laps, seed, course=None):
-        seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course)
+    def run_frontier(speeds, cells, out, laps, seed, course=None, reuse=()):
+        seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course, reuse)
+        seen["frontier_cells"] = cells
         (out / "REPORT.md").write_text("frontier\n")
 
     monkeypatch.setattr(frontier, "run_frontier", run_frontier)
     assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "border", "--speeds", "9",
                      "7", "9", "--course", "straight"]) == 0
-    assert seen["frontier"] == ((7.0, 9.0), ["border", "border"], 10, 0, "straight")
+    assert seen["frontier"] == ((7.0, 9.0), ["border", "border"], 10, 0, "straight", ())
+    # --cells preset: the best preset and the exact projection flying every other setting of it
+    grid_folder = tmp_path / "validation"
+    grid_folder.mkdir()
+    (grid_folder / "results.json").write_text("{}")
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "g"), "--cells", "preset", "--speeds", "7",
+                     "10", "--seed", "500", "--reuse", str(grid_folder)]) == 0
+    best, exact = seen["frontier_cells"]
+    assert best.spec == presets.preset("best")
+    assert exact.spec.config.pixel_model == "projection" and best.spec.config.pixel_model == "vdof"
+    assert dataclasses.replace(exact.spec.config, pixel_model="vdof", box_size_limit=best.spec.config.box_size_limit) \
+        == best.spec.config
+    assert seen["frontier"][3:] == (500, None, (grid_folder,))
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["experiment", "frontier", "--out", str(tmp_path / "h"), "--reuse", str(tmp_path)])
+    assert refused.value.code == 2 and "no grid at" in capsys.readouterr().err
 
     def probe(out, **kwargs):
         seen["probe"] = kwargs

@@ -11,7 +11,8 @@ from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.experiments.reproduce import SEED
 from pixelmpc_jax.arguments import SEED_MAX
 
-FRONTIER_CELLS = ("all", "border")  # frontier --cells: both pixel costs and models, or the border cost alone
+# frontier --cells: both pixel costs and models, the border cost alone, or the best preset beside the exact projection
+FRONTIER_CELLS = ("all", "border", "preset")
 
 
 def add_experiment(sub) -> None:
@@ -162,14 +163,19 @@ def _add_frontier(jobs) -> None:
                    help=f"first seed, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)")
     p.add_argument("--quick", action="store_true", help="4 nominal speeds and the 2 border-cost cells, 4 laps")
     p.add_argument("--cells", choices=FRONTIER_CELLS, default="all",
-                   help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default) or "
-                        "border (the border cost alone, at each model's weight of the 4-lap sweep)")
+                   help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default), "
+                        "border (the border cost alone, at each model's weight of the 4-lap sweep) or preset (the "
+                        "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
+                        "of knowing where the gate is)")
     p.add_argument("--speeds", type=arg.target_speed, nargs="+", default=None, metavar="M_S",
                    help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (at least 2; default "
                         "6 7 8 8.5 9.1 10 12 14, quick 6 8 8.5 10)")
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
+                   help="grid folders (another frontier's, a tune validation's) whose finished cells with the same "
+                        "race, laps and seed are copied, not flown again")
     p.set_defaults(func=_cmd_frontier, validate=_two_speeds, precheck=_check_course)
 
 
@@ -194,13 +200,17 @@ def _cmd_frontier(args) -> int:
     changes = {}
     if args.cells == "border":
         changes["cells"] = frontier.border_cells()
+    elif args.cells == "preset":
+        from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
+
+        changes["cells"] = frontier.ceiling_cells(PAPER_PACE_SPEED)
     if args.speeds:
         changes["nominal_speeds"] = tuple(sorted(set(args.speeds)))
     if args.laps is not None:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
     frontier.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps, seed=args.seed,
-                          course=args.course)
+                          course=args.course, reuse=tuple(args.reuse))
     _print_report(args.out)
     return 0
 

@@ -91,6 +91,16 @@ def preset_cells(speed: float) -> tuple:
             pixel_cell("projection", "border", 9e6, speed=speed))
 
 
+def ceiling_cells(speed: float) -> tuple:
+    """The ``best`` preset at ``speed`` and the exact projection flying every other setting of it: the ceiling of
+    knowing where the gate is, against which the preset's learned pixel model is measured."""
+    from pixelmpc_jax.apps.racing.presets import preset
+
+    best = preset("best").replace(speed=speed)
+    exact = best.replace(config=dataclasses.replace(best.config, pixel_model="projection"))
+    return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_projection_v{speed:g}", exact)
+
+
 def default_cells() -> tuple:
     """The paper's L1 cost at c_pixel 9e6 and the border cost at the sweep's weight, each with the projection and
     the DOF, 8 m/s."""
@@ -287,14 +297,15 @@ def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s:
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
                  dof_params=None, max_time_s: float = LAP_TIME_LIMIT_S, course: str | None = None,
-                 camera_tilt_deg: float | None = None) -> dict:
+                 camera_tilt_deg: float | None = None, reuse=()) -> dict:
     """Fly the frontier (:func:`frontier_experiment`) into ``out`` with
     :func:`~pixelmpc_jax.apps.experiments.skeleton.run` (resumable per cell) and write ``frontier.json``,
     ``REPORT.md`` and ``frontier.png``; returns the frontier. Only the cells of this run (settings, laps, seed,
     weights) count. Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
-    KeyboardInterrupt is raised again."""
+    KeyboardInterrupt is raised again. A cell whose race a finished cell of a grid folder in ``reuse`` already flew
+    (the same settings, laps and seed, e.g. a tune validation's nominal points) is copied from there."""
     experiment = frontier_experiment(nominal_speeds, cells, laps, seed, max_time_s, course, camera_tilt_deg)
-    return skeleton.run(experiment, out, laps, seed, progress, dof_params)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse)
 
 
 def _f(value, digits: int = 2, sigma=None) -> str:
