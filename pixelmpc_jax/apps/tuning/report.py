@@ -122,7 +122,7 @@ def plot(rows: list[dict], points: list[dict], setup, best, path: Path) -> None:
     done = [r for r in rows if r["state"] == "COMPLETE"]
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.8))
     for feasible, style, label in ((True, "go", "feasible: the frontier gain"),
-                                   (False, "rx", "infeasible: -(lost laps + excess / bound)")):
+                                   (False, "rx", "infeasible: -(lost laps + excess / bound + view shortfall)")):
         picked = [r for r in done if bool(r["feasible"]) == feasible]
         left.plot([r["number"] for r in picked], [r["score"] for r in picked], style, ms=5, label=label)
     running, best_so_far = [], float("-inf")
@@ -151,8 +151,8 @@ def _plot_tradeoff(ax, done: list[dict], points: list[dict], setup, best) -> Non
         ax.axvline((1 + setup.bound) * at_target["lap_time_s"], color="grey", ls=":", lw=1,
                    label=f"lap-time bound (+{100 * setup.bound:g} % on nominal at {setup.base.speed:g} m/s)")
     shown = [r for r in done if r["lap_time_s"] is not None and r["avoidable_s"] is not None]
-    for feasible, marker, label in ((True, "o", "trial, every lap within the bound"),
-                                    (False, "x", "trial, laps lost or over the bound")):
+    for feasible, marker, label in ((True, "o", "trial, feasible (every lap, the bound, the view)"),
+                                    (False, "x", "trial, laps lost, over the bound or seeing less")):
         picked = [r for r in shown if bool(r["feasible"]) == feasible]
         ax.scatter([r["lap_time_s"] for r in picked], [r["avoidable_s"] for r in picked], marker=marker, s=22,
                    c="tab:green" if feasible else "tab:red", label=label)
