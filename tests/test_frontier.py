@@ -150,7 +150,7 @@ def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, c
 def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch, capsys):
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None):
+    def stop(speeds, cells, out, laps, seed, course=None, reuse=()):
         seen.update(speeds=speeds, cells=cells, laps=laps)
         raise KeyboardInterrupt
 
