@@ -465,7 +465,7 @@ def _add_race(sub) -> None:
     from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS
     from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
     from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
-    from pixelmpc_jax.control.pixelmpc import PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
+    from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
     from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
     from pixelmpc_jax.sim.controllers import CONTROLLERS
     from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
@@ -513,11 +513,15 @@ def _add_race(sub) -> None:
              "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
     _setting(p, "--target-prior", "target_prior", "what PixelMPC's pixel cost charges while the target is not "
              "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
-             "or kept, its last pixel moved on by the pixel model since it was last seen",
+             "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
+             "and from the map before",
              choices=TARGET_PRIORS)
     _setting(p, "--look-ahead", "look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's pixel "
              "cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, the "
              "paper's", type=arg.float_in(0.0, 1e3))
+    _setting(p, "--look-ahead-model", "look_ahead_model", "what predicts the next gate's pixel along the horizon with "
+             "the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
+             "through each predicted pose (map-aided)", choices=LOOK_AHEAD_MODELS)
     _setting(p, "--border-margin", "border_margin", "where the border cost starts, as a fraction of the image inside "
              "the border, in (0, 0.5]", type=arg.float_in(0.0, 0.5, lo_open=True))
     _setting(p, "--noise-exponent", "mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "

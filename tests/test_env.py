@@ -247,3 +247,32 @@ def test_the_kept_pixel_charges_a_lost_target_with_the_pixel_its_model_predicted
         assert not bool(after_switch.kept.valid)  # the next target starts unseen
         _, never, _ = act(first, lost, world)
         assert not bool(never.kept.valid)
+
+
+def test_the_seeded_pixel_charges_an_unseen_target_from_the_map_and_a_lost_one_from_its_model(world):
+    """``target_prior="seeded"``: a target not detected since it became the target is planned from its pixel from the
+    map and the estimate, tick after tick, and is not taken for seen; once detected and then lost it is planned from
+    the pixel the model predicted, as with "kept"."""
+    mppi_config = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=20)
+    env = env_lib.make_env(CONFIG)
+    state = env.reset(world, jax.random.PRNGKey(0))
+    _, seen = env.observe(world, state, jax.random.PRNGKey(1))
+    lost = seen._replace(detection=seen.detection.replace(found=jnp.asarray(False)))
+    # the next target, seen from 1.5 m aside: off the image centre, where the detector's absent pixel would sit
+    switched = lost._replace(target_gate=lost.target_gate + 1, x_est=lost.x_est.at[1].add(1.5))
+    policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=mppi_config, pixel_model="projection",
+                                                                    target_prior="seeded"))
+    act = jax.jit(policy.act)
+    first = jax.jit(policy.init)(jax.random.PRNGKey(2), world)
+    _, after_seen, prediction = act(first, seen, world)
+    assert bool(after_seen.kept.valid)
+    _, after_lost, kept_prediction = act(after_seen, lost, world)
+    np.testing.assert_allclose(kept_prediction[0, 10:12], prediction[1, 10:12], atol=1e-6)  # the model's pixel
+    assert bool(after_lost.kept.valid)
+    mapped, _ = pixelmpc_lib.map_pixel_state(world.track.gate(switched.target_gate), switched.x_est, world.camera)
+    assert np.abs(mapped - prediction[1, 10:12]).max() > 0.02  # the two sources differ here
+    state = after_seen
+    for _ in range(2):  # unseen after the switch: from the map at every tick, never taken for seen
+        _, state, switch_prediction = act(state, switched, world)
+        np.testing.assert_allclose(switch_prediction[0, 10:12], mapped, atol=1e-6)
+        assert not bool(state.kept.valid) and int(state.kept.gate) == int(switched.target_gate)

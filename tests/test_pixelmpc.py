@@ -282,3 +282,48 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     assert float(jnp.min(info_a.costs - alone.costs)) >= 0.0
     with pytest.raises(ValueError, match="look_ahead must be a finite weight"):
         PM.ControllerConfig(look_ahead=-1.0)
+
+
+def test_the_projection_look_ahead_predicts_the_next_gate_from_the_map_and_the_target_by_the_pixel_model(setup):
+    """``look_ahead_model="projection"`` with a learned pixel model: the target's pixel follows the DOF, the next
+    gate's is its centre projected through each predicted pose; the step equals a generic MPPI with one-sample costs
+    doing exactly that, from 1 m before gate 0 at 8 m/s."""
+    track, dof_params = setup
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="dof", look_ahead=0.5,
+                                 look_ahead_model="projection")
+    assert config.next_pixel_dim == 2
+    fast = PM.make_pixelmpc(config)
+    dt = SMALL.dt
+    centre, normal = track.gates.centre[0], track.gates.normal[0]
+    x0 = Q.hover_state(tuple(np.asarray(centre - 1.0 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
+    x0 = x0.at[7:].set(8.0 * normal)
+
+    def project(centre, x):
+        uv, _, in_front = C.project(centre, x, C.default_camera())
+        return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
+
+    def full_dynamics(X, u, p):
+        x_next = Q.step(X[:10], u, dt, Q.QuadParams())
+        uv = X[10:12] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:12], u)
+        return jnp.concatenate([x_next, uv, project(p.next_centre, x_next)])
+
+    prefix_steps = config.pixel_steps
+    params = make_params(track, dof_params, config).replace(
+        next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
+    X0 = jnp.concatenate([x0, jnp.asarray([0.52, 0.47]), project(track.gates.centre[1], x0)])
+    key = jax.random.PRNGKey(3)
+    u_init = Q.hover_control(Q.QuadParams())
+    u0, stepped, info_a = fast.step(fast.init(key, u_init), X0, params)
+    controls = jnp.concatenate([u0[None], stepped.plan[:-1]])  # the updated plan (the state holds it shifted)
+    traj = np.asarray(info_a.nominal_trajectory)
+    assert traj.shape[-1] == 14
+    for t in range(prefix_steps):  # the nominal prediction under the plan, state by state, as the reference makes it
+        np.testing.assert_allclose(traj[t + 1, 10:], full_dynamics(traj[t], controls[t], params)[10:],
+                                   atol=1e-5)
+    np.testing.assert_allclose(traj[prefix_steps + 3, 10:], traj[prefix_steps, 10:])  # carried after n_f
+    # the same config with the DOF predicting the next gate too moves it otherwise
+    own = PM.make_pixelmpc(dataclasses.replace(config, look_ahead_model="own"))
+    _, _, info_own = own.step(own.init(key, u_init), X0, params)
+    assert np.abs(np.asarray(info_own.nominal_trajectory)[prefix_steps, 12:] - traj[prefix_steps, 12:]).max() > 1e-3
+    with pytest.raises(ValueError, match="look_ahead_model must be one of"):
+        PM.ControllerConfig(look_ahead_model="map")

@@ -56,7 +56,8 @@ IMAGE_CENTRE = (0.5, 0.5)
 # What the pixel cost charges while the detector does not report the target: "none", the paper's (no pixel cost
 # until the target is detected); "map", a map-aided prior (the target's pixel projected from the map and the
 # estimate, see :func:`map_pixel_state`); "kept", the pixel kept alive by the pixel model once it was detected.
-TARGET_PRIORS = ("none", "map", "kept")
+TARGET_PRIORS = ("none", "map", "kept", "seeded")
+LOOK_AHEAD_MODELS = ("own", "projection")  # what predicts the next gate's pixel with the look-ahead
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 
 
@@ -127,10 +128,16 @@ class ControllerConfig:
             just become the target is not looked for); "map", the map-aided prior (its pixel projected from the
             map and the estimate, :func:`map_pixel_state`), charged like a detected one; "kept", the pixel kept
             alive (once the target has been detected, its pixel state as the pixel model predicted it for this
-            tick from the last, under the command sent: no map needed, ``sim.policies.KeptPixel``).
+            tick from the last, under the command sent: no map needed, ``sim.policies.KeptPixel``); "seeded", the
+            kept pixel once the target has been detected, and before that the map-aided prior (so a gate that has
+            just become the target is looked for from the first tick, as the look-ahead looked for it before).
         look_ahead: the weight, relative to the target's, of the next gate's pixel cost on the predicted states
             past the target's plane (0: none, the paper's; the state then holds one pixel). The next gate's
             pixel starts from the map and the estimate (map-aided: the detector reports only the target).
+        look_ahead_model: what predicts the next gate's pixel along the horizon with the look-ahead
+            (:data:`LOOK_AHEAD_MODELS`): "own", the controller's pixel model; "projection", the gate's centre from
+            the map projected through each predicted pose (map-aided, as the next gate's pixel already starts; the
+            target's pixel stays the pixel model's). The projection pixel model always predicts it so.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -148,6 +155,7 @@ class ControllerConfig:
     disturbance_time_constant_s: float | None = None
     target_prior: str = "none"
     look_ahead: float = 0.0
+    look_ahead_model: str = "own"
 
     def __post_init__(self):
         if isinstance(self.look_ahead, bool) or not (isinstance(self.look_ahead, (int, float))
@@ -158,6 +166,8 @@ class ControllerConfig:
             raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
         if self.pixel_model not in PIXEL_MODELS:
             raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
+        if self.look_ahead_model not in LOOK_AHEAD_MODELS:
+            raise ValueError(f"look_ahead_model must be one of {LOOK_AHEAD_MODELS}, got {self.look_ahead_model!r}")
         if not (0.0 <= self.t_f < math.inf):
             raise ValueError(f"t_f must be a finite number >= 0 seconds, got {self.t_f!r}")
         if not (0.0 <= self.pixel_cost_scale < math.inf):
@@ -185,11 +195,21 @@ class ControllerConfig:
                              f"{self.mppi.dt:g} s, got {tau!r}")
         if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
             object.__setattr__(self, "box_size_limit", None)
+        if self.pixel_model == "projection":  # its own model is the projection
+            object.__setattr__(self, "look_ahead_model", "own")
 
     @property
     def pixel_dim(self) -> int:
-        """The size of one gate's pixel state: ``[u, v]``, or ``[u, v, s]`` with the vdof pixel model."""
+        """The size of the target's pixel state: ``[u, v]``, or ``[u, v, s]`` with the vdof pixel model."""
         return 3 if self.pixel_model == "vdof" else 2
+
+    @property
+    def next_pixel_dim(self) -> int:
+        """The size of the next gate's pixel state: 0 without the look-ahead, ``[u, v]`` where the projection
+        predicts it, else :attr:`pixel_dim`."""
+        if self.look_ahead == 0:
+            return 0
+        return 2 if self.look_ahead_model == "projection" else self.pixel_dim
 
     @property
     def pixel_steps(self) -> int:
@@ -301,7 +321,8 @@ def make_pixelmpc(config: ControllerConfig | None = None,
     """Compose robot dynamics, the pixel model, the racing and pixel costs into one MPPI controller.
 
     The controller's state is X = [x (10,); uv (2,)] ([x; uv; s] (13,) for "vdof"), with ``look_ahead`` > 0
-    followed by the next gate's pixel state; ``step(state, X0, params: PixelMPCParams)``.
+    followed by the next gate's pixel state (``[u, v]`` with the projection look-ahead model);
+    ``step(state, X0, params: PixelMPCParams)``.
     The initial pixel ``uv`` is the detector's (normalised) target pixel; with the projection model it
     is recomputed from the pose at every step. ``config`` defaults to ``ControllerConfig()`` (built here, not at
     import: building it creates arrays, which would start the JAX backend before ``jax.distributed``).
@@ -320,11 +341,12 @@ def make_pixelmpc(config: ControllerConfig | None = None,
 
     P = config.pixel_dim
     gates = 2 if config.look_ahead > 0 else 1  # the target's pixel state, and the next gate's with the look-ahead
+    projected_next = gates == 2 and config.look_ahead_model == "projection"  # the next gate's pixel, map-aided
 
     def each_gate(pixel_step):
         """``pixel_step(x, pixel (P,), u, p) -> next pixel`` over the target's pixel state, and the next gate's with
-        the look-ahead (one call per gate, batched)."""
-        if gates == 1:
+        the look-ahead (one call per gate, batched) unless the projection predicts it."""
+        if gates == 1 or projected_next:
             return lambda x, pixels, u, p: pixel_step(x, pixels, u, p)
         return lambda x, pixels, u, p: jax.vmap(lambda one: pixel_step(x, one, u, p))(
             pixels.reshape(gates, P)).reshape(-1)
@@ -341,17 +363,21 @@ def make_pixelmpc(config: ControllerConfig | None = None,
 
         step_pixels = each_gate(vdof_step)
 
+    def project_gate(x_next, centre, p):
+        uv, _, in_front = camera_lib.project(centre, x_next, p.camera)
+        # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
+        return jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
+
     if config.pixel_model in LEARNED_PIXEL_MODELS:
         def prefix_dynamics(X, u, p):
             x, pixels = X[:quadrotor.STATE_DIM], X[quadrotor.STATE_DIM:]
-            return jnp.concatenate([robot_step(X, u, p), step_pixels(x, pixels, u, p)])
+            x_next = robot_step(X, u, p)
+            if projected_next:
+                return jnp.concatenate([x_next, step_pixels(x, pixels[:P], u, p),
+                                        project_gate(x_next, p.next_centre, p)])
+            return jnp.concatenate([x_next, step_pixels(x, pixels, u, p)])
 
     else:
-        def project_gate(x_next, centre, p):
-            uv, _, in_front = camera_lib.project(centre, x_next, p.camera)
-            # behind the camera the projection means nothing: the pixel goes far off the image (the worst cost)
-            return jnp.where(in_front, uv, behind_camera_pixel(uv.dtype))
-
         def prefix_dynamics(X, u, p):
             x_next = robot_step(X, u, p)
             uvs = [project_gate(x_next, p.target_centre, p)]
@@ -367,7 +393,7 @@ def make_pixelmpc(config: ControllerConfig | None = None,
     def gate_pixel_cost(X, k, counted):
         """The pixel cost of the k-th gate's pixel state where ``counted`` (T, N)."""
         start = quadrotor.STATE_DIM + k * P
-        if config.box_size_limit is not None:  # vdof: not once the gate fills the view
+        if config.box_size_limit is not None and not (k == 1 and projected_next):  # vdof: not once it fills the view
             counted = counted & (X[..., start + 2] < config.box_size_limit)
         uv = X[..., start:start + 2]  # a pixel state may carry more than the pixel
         return counted.astype(X.dtype) * pixel_cost(uv, config)

@@ -63,7 +63,8 @@ class RacingPolicyState(NamedTuple):
 
 class KeptPixel(NamedTuple):
     """The target's pixel state as the controller's pixel model predicts it for this tick, from the last tick's:
-    what charges the pixel cost while the detector does not report the target (``target_prior="kept"``).
+    what charges the pixel cost while the detector does not report the target (``target_prior="kept"`` or
+    ``"seeded"``).
 
     Attributes:
         pixel: (P,) the pixel state predicted under the command sent (the nominal prediction's second state).
@@ -107,8 +108,8 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
     ``build(obs, world, racing_params, disturbance, kept) -> (x0, params)`` makes the controller's state and params
     from an observation (``disturbance``: (3,) or None; ``kept``: a :class:`KeptPixel` or None); the nominal
     trajectory's first 10 columns must be the robot state. With ``kept_pixel_dim`` P the policy keeps the target's
-    pixel state alive: the next P columns of the nominal prediction's second state, valid while the params'
-    ``target_active`` held for the same target. Each tick cuts the racing cost's path windows (Eq. 19) around the
+    pixel state alive: the next P columns of the nominal prediction's second state, valid while it descends from a
+    detection of the same target. Each tick cuts the racing cost's path windows (Eq. 19) around the
     progress the previous plan predicted for each step, from the per-track constants ``init`` computed for the
     episode's world. With ``latency_ticks`` L the controller plans from the estimate rolled forward through its last
     L commands (:func:`predict_through`), which a plant with that actuation latency has not applied yet. With
@@ -141,8 +142,8 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         kept = state.kept
         if kept_pixel_dim:
             pixel = info.nominal_trajectory[1, quadrotor.STATE_DIM:quadrotor.STATE_DIM + kept_pixel_dim]
-            kept = KeptPixel(pixel.astype(kept.pixel.dtype), jnp.asarray(params.target_active, bool),
-                             jnp.asarray(obs.target_gate, jnp.int32))
+            tracked = obs.detection.found | (kept.valid & (kept.gate == obs.target_gate))
+            kept = KeptPixel(pixel.astype(kept.pixel.dtype), tracked, jnp.asarray(obs.target_gate, jnp.int32))
         robot_plan = info.nominal_trajectory[:, :quadrotor.STATE_DIM]
         next_progress = costs.plan_progress(world.track, robot_plan, obs.progress_s, horizon)
         pending, expected = state.pending, state.expected
@@ -180,7 +181,8 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
     size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
     (``config.target_prior``: an undetected target's pixel from the map and the estimate), or since it was first
-    seen with the kept-alive one (the pixel the controller's pixel model predicted for this tick, from the last); with
+    seen with the kept-alive one (the pixel the controller's pixel model predicted for this tick, from the last), or
+    always with the seeded one (kept alive once seen, from the map and the estimate before it is first seen); with
     ``config.look_ahead`` the next gate's pixel state follows, from the map and the estimate; the learned pixel
     model's weights come from ``world.dof``."""
     config = config or pixelmpc_lib.ControllerConfig()
@@ -189,9 +191,11 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
 
     def build(obs, world, racing, disturbance, kept):
         detection = obs.detection
-        if config.target_prior == "map":  # an undetected target's pixel from the map and the estimate
+        prior = config.target_prior
+        if prior in ("map", "seeded"):  # the target's pixel from the map and the estimate
             mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
                                                                   world.camera)
+        if prior == "map":  # an undetected target's pixel from the map and the estimate
             uv0 = jnp.where(detection.found, detection.centre, mapped)
             corners = jnp.where(detection.found, detection.corners, mapped_corners)
             active = jnp.asarray(True)
@@ -200,10 +204,14 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             corners, active = detection.corners, detection.found
         if config.pixel_model == "vdof":
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
-        if config.target_prior == "kept":  # an undetected target's pixel as the pixel model moved it since it was seen
+        if prior in ("kept", "seeded"):  # an undetected target's pixel as the pixel model moved it since it was seen
             alive = ~detection.found & kept.valid & (kept.gate == obs.target_gate)
             uv0 = jnp.where(alive, kept.pixel.astype(uv0.dtype), uv0)
             active = detection.found | alive
+        if prior == "seeded":  # a target not detected since it became the target: its pixel from the map
+            seed = mapped if config.pixel_model != "vdof" else vdof_lib.initial_pixel_state(mapped, mapped_corners)
+            uv0 = jnp.where(active, uv0, seed.astype(uv0.dtype))
+            active = jnp.asarray(True)
         gates = world.track.gates
         params = pixelmpc_lib.PixelMPCParams(
             racing=racing, dof=world.dof, target_active=active, target_centre=gates.centre[obs.target_gate],
@@ -215,13 +223,13 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             next_gate = jnp.minimum(following, world.track.num_gates - 1)
             uv_next, corners_next = pixelmpc_lib.map_pixel_state(world.track.gate(next_gate), obs.x_est,
                                                                  world.camera)
-            if config.pixel_model == "vdof":
+            if config.next_pixel_dim == 3:  # predicted by vdof
                 uv_next = vdof_lib.initial_pixel_state(uv_next, corners_next)
             pixels.append(uv_next)
             params = params.replace(next_active=following < world.track.num_gates,
                                     next_centre=gates.centre[next_gate], next_normal=gates.normal[next_gate])
         return jnp.concatenate([obs.x_est, *(pixel.astype(obs.x_est.dtype) for pixel in pixels)]), params
 
-    kept_pixel_dim = config.pixel_dim if config.target_prior == "kept" else 0
+    kept_pixel_dim = config.pixel_dim if config.target_prior in ("kept", "seeded") else 0
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
                          quad_params, config.model_latency_ticks, config.disturbance_time_constant_s, kept_pixel_dim)

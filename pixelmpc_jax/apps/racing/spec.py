@@ -34,7 +34,7 @@ from pixelmpc_jax.world.course import COURSES
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
                   ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
-                  ("camera_tilt_deg",))
+                  ("camera_tilt_deg",), ("config", "look_ahead_model"))
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
 
