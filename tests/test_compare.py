@@ -102,11 +102,15 @@ def test_the_presets():
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
     assert best.config.pixel_model == "vdof" and best.key() != paper.key()
     # best flies the tuned trial it names (the search's best feasible trial), exactly as the search recorded it
-    record = Path(__file__).resolve().parent.parent / "experiments" / "results" / "tune_levers" / "best.json"
+    results = Path(__file__).resolve().parent.parent / "experiments" / "results"
+    record = results / "tune_look_ahead" / "best.json"
     trial = RaceSpec.from_record(json.loads(record.read_text())).replace(laps=1, seed=0)
     assert trial.key() == best.key()
     assert best.config.racing.vehicle_radius == presets.BEST_VEHICLE_RADIUS_M == 0.3
-    assert best.config.target_prior == "kept" and best.config.look_ahead == 1.0
+    assert best.config.target_prior == "kept" and best.config.look_ahead_model == "projection"
+    # the preset before it, the search without the projection look-ahead, as that search recorded it
+    former = RaceSpec.from_record(json.loads((results / "tune_levers" / "best.json").read_text()))
+    assert former.config == presets.LEVERS_BEST and former.config.look_ahead_model == "own"
     assert best.config != presets.HAND_TUNED_BEST and presets.HAND_TUNED_BEST.box_size_limit == 0.5
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         presets.preset("fast")

@@ -51,19 +51,32 @@ HAND_TUNED_BEST = ControllerConfig(pixel_model="vdof", pixel_cost="border", c_pi
 
 
 def _tuned_best() -> ControllerConfig:
-    """Trial 34 of `pixelmpc tune --space levers --trials 40 --preset best --seed 0 --laps 4`
-    (experiments/results/tune_levers/best.json), exactly: the highest honest frontier gain on the training seeds
-    0-3 among the trials that met every constraint (every lap, the lap-time bound, and against nominal MPPI at the
-    same lap time no more raw time below 50 %, no less time in view, no larger angle to the target). It charges a
-    lost target with the pixel its own model predicted (``target_prior="kept"``) and the next gate past the
-    target's plane (``look_ahead=1``); with the clearance :data:`BEST_VEHICLE_RADIUS_M` in its racing cost. The
-    search's choice was fixed before any held-out seed was flown."""
-    mppi = dataclasses.replace(ControllerConfig().mppi, temperature=168.690300419533,
-                               noise_exponent=0.4441930346769977)
+    """Trial 43 of `pixelmpc tune --space FILE --trials 58 --preset best --seed 0 --laps 4` over the projection
+    look-ahead (experiments/results/tune_look_ahead/, flown on an H200), exactly: the highest honest frontier gain on
+    the training seeds 0-3 among the trials that met every constraint (every lap, the lap-time bound, and against
+    nominal MPPI at the same lap time no more raw time below 50 %, no less time in view, no larger angle to the
+    target). The target's pixel is vdof's, from the detector; a lost target is charged with the pixel vdof predicted
+    (``target_prior="kept"``); the next gate past the target's plane is charged too (``look_ahead``), its pixel
+    projected from the map through each predicted pose (``look_ahead_model="projection"``: map-aided, as the next
+    gate is not detected); with the clearance :data:`BEST_VEHICLE_RADIUS_M` in its racing cost. The search's
+    choice was fixed before any held-out seed was flown. The preset before it (the same search without the
+    projection look-ahead, experiments/results/tune_levers/) is :data:`LEVERS_BEST`."""
+    mppi = dataclasses.replace(ControllerConfig().mppi, temperature=598.7074210245881,
+                               noise_exponent=1.9472405359199139)
     return ControllerConfig(mppi=mppi, racing=costs.RacingCostConfig(vehicle_radius=BEST_VEHICLE_RADIUS_M),
-                            pixel_model="vdof", pixel_cost="border", c_pixel=2511626.187039876,
-                            border_margin=0.07624783275561625, box_size_limit=0.7890223346530837,
-                            t_f=0.9640303263524299, target_prior="kept", look_ahead=1.0)
+                            pixel_model="vdof", pixel_cost="border", c_pixel=5396200.071549226,
+                            border_margin=0.07087070657067912, box_size_limit=0.7808035217509199,
+                            t_f=1.295720939283083, target_prior="kept", look_ahead=0.5557764371515419,
+                            look_ahead_model="projection")
+
+
+# The `best` preset before the projection look-ahead: trial 34 of `pixelmpc tune --space levers --trials 40`
+# (experiments/results/tune_levers/best.json), the next gate's pixel predicted by vdof (kept to compare against).
+LEVERS_BEST = ControllerConfig(
+    mppi=dataclasses.replace(ControllerConfig().mppi, temperature=168.690300419533, noise_exponent=0.4441930346769977),
+    racing=costs.RacingCostConfig(vehicle_radius=BEST_VEHICLE_RADIUS_M), pixel_model="vdof", pixel_cost="border",
+    c_pixel=2511626.187039876, border_margin=0.07624783275561625, box_size_limit=0.7890223346530837,
+    t_f=0.9640303263524299, target_prior="kept", look_ahead=1.0)
 
 
 def preset(name: str) -> RaceSpec:
