@@ -32,11 +32,12 @@ WHY = {
     "best": "the best measured on the speed frontier at the paper's pace (8.5 m/s), low visibility counted from the "
             "tick a gate becomes the target: the vdof pixel model (velocity and the gate's apparent size) under the "
             "border pixel cost, charging a lost target with the pixel its own model predicted and the next gate past "
-            "the target's plane, its settings found by `pixelmpc tune --space levers` (40 trials on seeds 0-3; "
-            "experiments/results/tune_levers/), with a 0.3 m clearance to the frames in its racing cost (the "
-            "vehicle's 0.1 m plus the filter's error). On held-out seeds 500-509, 10/10 laps: frontier gain 1.47 "
-            "(90 % interval 1.22-1.84) at +4.1 % lap time on AlphaPilot, 3.07 (2.33-4.03) at +6.3 % on a generated "
-            "course nobody tuned on (2-core AMD EPYC, 2026-11-26; experiments/results/best_heldout/)",
+            "the target's plane, that gate's pixel projected from the map along the horizon; its settings found by "
+            "`pixelmpc tune` (58 trials on seeds 0-3; experiments/results/tune_look_ahead/), with a 0.3 m clearance "
+            "to the frames in its racing cost (the vehicle's 0.1 m plus the filter's error). On held-out seeds "
+            "700-709, 10/10 laps: frontier gain 6.15 (90 % interval 5.12-7.08) at +10.8 % lap time on AlphaPilot, "
+            "6.16 (5.22-7.16) at +11.2 % on a course generated after the choice (NVIDIA H200, 2026-11-26; "
+            "experiments/results/best_heldout_700/)",
 }
 
 # best's clearance to the gate frames, floor and walls in its racing cost (the vehicle's 0.1 m elsewhere; the world's
