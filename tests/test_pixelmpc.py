@@ -234,6 +234,19 @@ def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(
     assert PM.ControllerConfig(box_size_limit=0.5) == PM.ControllerConfig()  # no box size: the limit flies nothing
 
 
+def _before_gate_0(track):
+    """1 m before gate 0, facing it at 8 m/s."""
+    centre, normal = track.gates.centre[0], track.gates.normal[0]
+    x0 = Q.hover_state(tuple(np.asarray(centre - 1.0 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
+    return x0.at[7:].set(8.0 * normal)
+
+
+def _project(centre, x):
+    """The pixel of ``centre`` seen from ``x``, far off the image behind the camera (as the projection model)."""
+    uv, _, in_front = C.project(centre, x, C.default_camera())
+    return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
+
+
 def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_reference_does(setup):
     """With ``look_ahead`` the state carries the next gate's pixel too, and each predicted state past the target's
     plane (and before the next gate's) is charged ``look_ahead`` times the next gate's pixel cost: the step equals a
@@ -243,17 +256,11 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
     fast = PM.make_pixelmpc(config)
     dt = SMALL.dt
-    centre, normal = track.gates.centre[0], track.gates.normal[0]
-    x0 = Q.hover_state(tuple(np.asarray(centre - 1.0 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
-    x0 = x0.at[7:].set(8.0 * normal)
-
-    def project(centre, x):
-        uv, _, in_front = C.project(centre, x, C.default_camera())
-        return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
+    centre, x0 = track.gates.centre[0], _before_gate_0(track)
 
     def full_dynamics(X, u, p):
         x_next = Q.step(X[:10], u, dt, Q.QuadParams())
-        return jnp.concatenate([x_next, project(p.target_centre, x_next), project(p.next_centre, x_next)])
+        return jnp.concatenate([x_next, _project(p.target_centre, x_next), _project(p.next_centre, x_next)])
 
     def full_cost(X, u, t, p):
         racing = one_state_racing(X, t, p.racing, config.racing)
@@ -267,7 +274,7 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     full = make_mppi(SMALL, full_dynamics, full_cost)
     params = make_params(track, dof_params, config).replace(
         next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
-    X0 = jnp.concatenate([x0, project(centre, x0), project(track.gates.centre[1], x0)])
+    X0 = jnp.concatenate([x0, _project(centre, x0), _project(track.gates.centre[1], x0)])
     key = jax.random.PRNGKey(3)
     u_init = Q.hover_control(Q.QuadParams())
     _, _, info_a = fast.step(fast.init(key, u_init), X0, params)
@@ -275,7 +282,7 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     np.testing.assert_allclose(info_a.costs, info_b.costs, rtol=2e-5)
     traj = info_a.nominal_trajectory
     assert traj.shape[-1] == 14
-    np.testing.assert_allclose(traj[5, 12:], project(track.gates.centre[1], traj[5, :10]), atol=1e-6)
+    np.testing.assert_allclose(traj[5, 12:], _project(track.gates.centre[1], traj[5, :10]), atol=1e-6)
     # the term charges something: without the next gate (none after the target) the costs are lower
     _, _, alone = fast.step(fast.init(key, u_init), X0, params.replace(next_active=jnp.asarray(False)))
     assert float(jnp.max(info_a.costs - alone.costs)) > 0.0
@@ -294,23 +301,17 @@ def test_the_projection_look_ahead_predicts_the_next_gate_from_the_map_and_the_t
     assert config.next_pixel_dim == 2
     fast = PM.make_pixelmpc(config)
     dt = SMALL.dt
-    centre, normal = track.gates.centre[0], track.gates.normal[0]
-    x0 = Q.hover_state(tuple(np.asarray(centre - 1.0 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
-    x0 = x0.at[7:].set(8.0 * normal)
-
-    def project(centre, x):
-        uv, _, in_front = C.project(centre, x, C.default_camera())
-        return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
+    x0 = _before_gate_0(track)
 
     def full_dynamics(X, u, p):
         x_next = Q.step(X[:10], u, dt, Q.QuadParams())
         uv = X[10:12] + dt * dof.pixel_velocity(p.dof, X[3:7], X[10:12], u)
-        return jnp.concatenate([x_next, uv, project(p.next_centre, x_next)])
+        return jnp.concatenate([x_next, uv, _project(p.next_centre, x_next)])
 
     prefix_steps = config.pixel_steps
     params = make_params(track, dof_params, config).replace(
         next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
-    X0 = jnp.concatenate([x0, jnp.asarray([0.52, 0.47]), project(track.gates.centre[1], x0)])
+    X0 = jnp.concatenate([x0, jnp.asarray([0.52, 0.47]), _project(track.gates.centre[1], x0)])
     key = jax.random.PRNGKey(3)
     u_init = Q.hover_control(Q.QuadParams())
     u0, stepped, info_a = fast.step(fast.init(key, u_init), X0, params)
