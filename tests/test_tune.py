@@ -135,6 +135,10 @@ def test_the_space_file_gets_one_clear_line_per_bad_entry(tmp_path, capsys):
         assert set(load_space(name, preset("best"))) == set(SPACES[name])
     levers = load_space("levers", preset("best"))
     assert levers["target_prior"].choices == ("none", "map", "kept") and levers["look_ahead"].choices == (0, 1, 3)
+    # the named space of the search that chose today's best is the one that search recorded
+    recorded = Path(__file__).resolve().parent.parent / "experiments" / "results" / "tune_look_ahead" / "trials.json"
+    look_ahead = load_space("look-ahead", preset("best"))
+    assert {name: p.record() for name, p in look_ahead.items()} == json.loads(recorded.read_text())["setup"]["space"]
 
 
 class StubFly:

@@ -44,6 +44,14 @@ SPACES = {
     "levers": {**HAND_TUNED_SPACE,
                "target_prior": {"choices": ["none", "map", "kept"]},
                "look_ahead": {"choices": [0.0, 1.0, 3.0]}},
+    # "look-ahead": the search that chose today's `best`: the next gate's pixel projected from the map along the
+    # horizon (look_ahead_model, fixed), its weight over a range, the hand-tuned ranges with the pixel weight from
+    # 1e6 and the box size limit to 0.9 (the base preset's kept prior is not searched)
+    "look-ahead": {**HAND_TUNED_SPACE,
+                   "c_pixel": {"low": 1e6, "high": 3e7, "log": True},
+                   "box_size_limit": {"low": 0.3, "high": 0.9},
+                   "look_ahead": {"low": 0.25, "high": 3.0, "log": True},
+                   "look_ahead_model": {"choices": ["projection"]}},
 }
 NOT_SEARCHED = {"mppi.sample_devices": "how a step runs, not what it computes (a race always records 1)"}
 _NUMERIC = {"float": float, "float | None": float, "int": int, "int | None": int}  # annotations a range may take
