@@ -52,7 +52,7 @@ HAND_TUNED_BEST = ControllerConfig(pixel_model="vdof", pixel_cost="border", c_pi
 
 
 def _tuned_best() -> ControllerConfig:
-    """Trial 43 of `pixelmpc tune --space FILE --trials 58 --preset best --seed 0 --laps 4` over the projection
+    """Trial 43 of `pixelmpc tune --space look-ahead --preset best --seed 0 --laps 4` (58 trials) over the projection
     look-ahead (experiments/results/tune_look_ahead/, flown on an H200), exactly: the highest honest frontier gain on
     the training seeds 0-3 among the trials that met every constraint (every lap, the lap-time bound, and against
     nominal MPPI at the same lap time no more raw time below 50 %, no less time in view, no larger angle to the
