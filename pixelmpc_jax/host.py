@@ -100,12 +100,38 @@ def use_compilation_cache(path: str | None = None, min_compile_s: float = 0.5) -
     return path
 
 
+def _swallows_exceptions(frame) -> bool:
+    """Whether an exception raised at ``frame`` would be printed and dropped instead of reaching the main code:
+    inside a garbage-collector callback (JAX registers one) or a ``__del__`` method."""
+    import gc
+
+    callbacks = {getattr(callback, "__code__", None) for callback in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in callbacks or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+REDELIVER_S = 0.01  # a signal that arrived where its exception would be dropped is delivered again this much later
+
+
 def stop_on_sigterm() -> None:
     """Make SIGTERM (what a batch scheduler or ``kill`` sends) stop the process as Ctrl-C does: it raises
-    KeyboardInterrupt in the main thread, so every command keeps what it had finished, as on Ctrl-C."""
+    KeyboardInterrupt in the main thread, so every command keeps what it had finished, as on Ctrl-C. Ctrl-C
+    (SIGINT) gets the same handler where it has Python's own. A signal that lands inside a garbage-collector
+    callback or a ``__del__``, where Python would print the exception and go on, is delivered again once that code
+    has returned."""
+    import _thread
     import signal
+    import threading
 
     def interrupt(signum, frame):
+        if _swallows_exceptions(frame):
+            threading.Timer(REDELIVER_S, _thread.interrupt_main, args=(signum,)).start()
+            return
         raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
 
     signal.signal(signal.SIGTERM, interrupt)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # Python's own Ctrl-C, not a host's handler
+        signal.signal(signal.SIGINT, interrupt)
