@@ -14,6 +14,7 @@ import pytest
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import eskf as E
 from pixelmpc_jax.sim import faults as faults_lib
 from pixelmpc_jax.sim import plant as plant_lib
@@ -110,6 +111,7 @@ def _chi2_band(dof):
     ("gyro_bias_std", -0.1), ("velocity_walk", -1e-3), ("border_margin_px", math.nan),
     ("measurement_sigma_px", 0.0), ("gate_chi2", -3.0), ("robust_loss", "l2"), ("robust_threshold", 0.0),
     ("max_delay_ticks", -1), ("max_delay_ticks", 2.5), ("max_delay_ticks", True), ("gravity", "9.81"),
+    ("map_sigma_m", -0.1),
 ])
 def test_a_bad_config_raises_one_line(field, value):
     with pytest.raises(ValueError, match=field) as error:
@@ -322,6 +324,38 @@ def test_a_false_detection_far_from_the_prediction_changes_nothing(course, fligh
     true_estimates, true_info = runs["true"]
     assert np.sum(true_info.accepted[tick]) >= 2
     assert np.max(np.abs(true_estimates.covariance[tick] - none_estimates.covariance[tick])) > 1e-5
+
+
+def test_a_map_sigma_adds_the_gates_offset_to_the_corners_noise_and_moves_the_estimate_less(course):
+    """A gate standing 0.3 m beside its mapped place (sideways, 5.5 px in the image), seen from 6 m before it by a
+    filter sure of its pose to 5 cm: with ``map_sigma_m`` each corner's prior
+    innovation covariance is the exact map's plus sigma^2 H_p H_p^T (H_p the corners' Jacobian with respect to the
+    position), the joint NIS is smaller, and the estimate moves less toward the pose that explains the moved gate."""
+    track, camera = course
+    gate = track.gate(0)
+    x0 = track.start.at[0:3].set(gate.centre - 6.0 * gate.normal)
+    moved = gate.replace(centre=gate.centre + 0.3 * gate.rotation[:, 1])  # along the gate's lateral axis
+    detection = detector_lib.detect_from_geometry(moved, x0, camera, gate_id=0)
+    assert bool(detection.found) and int(np.sum(detection.corners_visible)) == 4
+    sigma = 0.2
+    runs = {}
+    for name, config in (("exact", CONFIG), ("map", dataclasses.replace(CONFIG, map_sigma_m=sigma)),
+                         ("tiny", dataclasses.replace(CONFIG, map_sigma_m=1e-4))):
+        state = E.eskf_init(x0, config, (0.05, 0.01, 0.1))
+        runs[name] = E.eskf_step(state, None, detection, 0, track, camera, config)[1:]
+    (exact, exact_info), (mapped, map_info), (tiny, _) = runs["exact"], runs["map"], runs["tiny"]
+    assert np.all(exact_info.accepted) and np.all(map_info.accepted)
+    _, H, _ = E.reproject_corners(x0, gate.corners(), camera)
+    H_pos = np.asarray(H)[..., 0:3]
+    expected = np.asarray(exact_info.innovation_cov) + sigma**2 * H_pos @ np.swapaxes(H_pos, -1, -2)
+    np.testing.assert_allclose(map_info.innovation_cov, expected, rtol=1e-4)
+    assert float(map_info.nis) < 0.8 * float(exact_info.nis)
+    moved_exact = np.abs(np.asarray(E.state_error(x0, exact.mean)))  # [dp, dv, dtheta]
+    moved_map = np.abs(np.asarray(E.state_error(x0, mapped.mean)))
+    assert np.linalg.norm(moved_exact[0:3]) > 0.05 and moved_exact[8] > 0.01  # a step sideways and a turn (yaw)
+    assert np.linalg.norm(moved_map[0:3]) < 0.5 * np.linalg.norm(moved_exact[0:3])
+    assert moved_map[8] < 0.5 * moved_exact[8]
+    np.testing.assert_allclose(tiny.mean, exact.mean, atol=1e-5)
 
 
 def test_a_detection_two_ticks_late_gives_the_on_time_estimate(course, flights):

@@ -95,6 +95,24 @@ def test_the_controller_levers_fly_on_every_loop_and_the_guards_on_the_particle_
     assert "pixelmpc_pf_wind_moderate_robust" in cells and "mppi_eskf_wind_moderate_model" not in cells
 
 
+def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
+    cells = _by_name(R.robustness_cells(levers=("map",)))
+    for controller in ("mppi", "pixelmpc"):  # a filter's setting changes no controller: both fly it
+        for fault in ("none", "map_moderate", "wind_moderate"):
+            spec = cells[f"{controller}_eskf_{fault}_map"].cell.spec
+            assert spec.eskf.map_sigma_m == R.MAP_SIGMA_M and spec.estimator == "eskf"
+            assert spec.config == cells[f"{controller}_eskf_{fault}"].cell.spec.config
+        assert f"{controller}_eskf_map_severe_map" not in cells
+        for estimator in ("pf", "truth"):
+            assert not any(name.endswith("_map") and name.startswith(f"{controller}_{estimator}_") for name in cells)
+    assert cells["pixelmpc_eskf_none"].cell.spec.eskf.map_sigma_m == 0.0
+    # the setting belongs to the Kalman filter: a race on another loop drops it, and the default adds no key
+    lever_spec = cells["pixelmpc_eskf_map_moderate_map"].cell.spec
+    assert lever_spec.replace(estimator="pf").eskf == RaceSpec().eskf
+    assert "eskf" not in cells["pixelmpc_eskf_none"].cell.spec.record()
+    assert RaceSpec.from_record(lever_spec.record()) == lever_spec
+
+
 def test_a_part_of_the_grid_by_estimator_and_fault():
     cells = R.robustness_cells(estimators=("eskf", "truth"), faults=("none", "wind", "imu_bias"))
     assert {rc.estimator for rc in cells} == {"eskf", "truth"} and {rc.fault for rc in cells} == {"none", "wind",

@@ -21,7 +21,8 @@ camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU'
 - Update. The 4 inner corners of the gate the detection names are projected into the camera; per detected corner
   (not within ``ESKFConfig.border_margin_px`` of the image border), the innovation is the detected minus the
   predicted pixel (px), ``H`` its Jacobian with respect to the error state (:func:`reproject_corners`, analytic,
-  checked against ``jax.jacfwd``), ``R = sigma^2 I``. A corner whose Mahalanobis distance ``d^2 = r^T S_k^-1 r``
+  checked against ``jax.jacfwd``), ``R = sigma^2 I`` (plus the corners' shared share of a gate's offset from the map
+  with ``ESKFConfig.map_sigma_m``). A corner whose Mahalanobis distance ``d^2 = r^T S_k^-1 r``
   under its own prior innovation covariance ``S_k`` exceeds ``ESKFConfig.gate_chi2`` is rejected; an accepted one
   is reweighted by a Huber (or Cauchy) weight ``w(d)``, its noise inflated to ``R / w``. With
   ``ESKFConfig.joint_gate`` the accepted corners are then gated together: when their joint ``r^T S^-1 r`` exceeds
@@ -122,6 +123,12 @@ class ESKFConfig:
         joint_gate: also reject the whole detection when its accepted corners together fail the chi-square gate
             (:data:`CHI2_JOINT_999`); False: the per-corner gate only.
         max_delay_ticks: the latest a detection may arrive, in control ticks; the window's length.
+        map_sigma_m: m, std per axis of each gate's position in the map (0: the map is exact, the default). A gate
+            placed off its mapped position moves all its corners together; with this > 0 the corners' noise gains
+            that shared part, ``sigma^2 H_p H_p^T`` (``H_p`` their Jacobian with respect to the position, which is
+            minus that with respect to the gate's), in the gate, the weights and the update alike. The offset is
+            taken afresh at each detection (not kept as a state), so a gate seen for long still pulls the
+            estimate onto itself, more slowly.
         gravity: m/s^2 along world -z.
     """
 
@@ -141,10 +148,12 @@ class ESKFConfig:
     joint_gate: bool = True
     max_delay_ticks: int = 3
     gravity: float = GRAVITY
+    map_sigma_m: float = 0.0
 
     def __post_init__(self):
         for name in ("accel_noise_density", "gyro_noise_density", "accel_bias_walk", "gyro_bias_walk",
-                     "accel_bias_std", "gyro_bias_std", "velocity_walk", "attitude_walk", "border_margin_px"):
+                     "accel_bias_std", "gyro_bias_std", "velocity_walk", "attitude_walk", "border_margin_px",
+                     "map_sigma_m"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                       and value >= 0):
@@ -454,6 +463,10 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
 
     r_var = jnp.asarray(config.measurement_sigma_px**2, dtype)
     S_corner = H @ P @ jnp.swapaxes(H, -1, -2) + r_var * jnp.eye(2, dtype=dtype)  # (4, 2, 2), >= R: invertible
+    map_var = config.map_sigma_m**2
+    if map_var > 0:  # the gate's offset from the map, shared by its corners (static: an exact map adds nothing)
+        H_pos = H[..., 0:3]
+        S_corner = S_corner + map_var * H_pos @ jnp.swapaxes(H_pos, -1, -2)
     a, b, c, d = S_corner[:, 0, 0], S_corner[:, 0, 1], S_corner[:, 1, 0], S_corner[:, 1, 1]
     ru, rv = residual[:, 0], residual[:, 1]
     mahalanobis2 = (d * ru * ru - (b + c) * ru * rv + a * rv * rv) / (a * d - b * c)  # (4,)
@@ -463,6 +476,8 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     H_used = jnp.where(rows[:, None], H.reshape(2 * NUM_CORNERS, ERROR_DIM), 0.0)  # (8, 15)
     r_used = jnp.where(rows, residual.reshape(2 * NUM_CORNERS), 0.0)  # (8,)
     HPHt = H_used @ P @ H_used.T
+    if map_var > 0:  # the map's share of the corners' noise, on the used rows (the others have H = 0)
+        HPHt = HPHt + map_var * H_used[:, 0:3] @ H_used[:, 0:3].T
     # rows not used have H = 0 and r = 0: R on their diagonal, nothing in the sum
     nis = r_used @ _solve_spd(HPHt + r_var * jnp.eye(2 * NUM_CORNERS, dtype=dtype), r_used)
     if config.joint_gate:  # all or nothing: a rejected detection uses no row
@@ -477,7 +492,11 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     gain = _solve_spd(HPHt + jnp.diag(noise), H_used @ P).T  # (15, 8), K = P H^T S^-1
     dx = gain @ r_used
     I_KH = jnp.eye(ERROR_DIM, dtype=dtype) - gain @ H_used
-    cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
+    if map_var > 0:  # Joseph form with the whole measurement noise, the corners' own and the map's
+        map_noise = map_var * H_used[:, 0:3] @ H_used[:, 0:3].T
+        cov = I_KH @ P @ I_KH.T + gain @ (jnp.diag(noise) + map_noise) @ gain.T
+    else:
+        cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
     x, bias = inject(belief.x, belief.bias, dx)
     reset = jnp.eye(ERROR_DIM, dtype=dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's new frame
     updated = ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))

@@ -12,16 +12,19 @@ Laps: 10 per cell for the moderate faults and the fault-free races (the true sta
 set against it lap for lap, on the same seeds), 6 for the severe level (``quick``: a smoke run, 2 laps, the
 moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, PixelMPC's cells
 of the moderate level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown
-again with each named set of levers (:data:`LEVER_SETS`) that applies to the loop on: on the particle filter every
-set, on the Kalman filter and the true state the ``model`` set (the others are the particle filter's guards), so
-every filter cell with a lever has its true-state cell with the same lever. ``model``, the disturbance observer in
+again with each named set of levers (:data:`LEVER_SETS`) that applies to the loop on: on the particle filter its
+guards and the ``model`` set, on the Kalman filter its ``map`` setting and the ``model`` set, on the true state the
+``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever. The
+filters' settings change no controller, so nominal MPPI flies the Kalman filter's ``map`` setting too (the guards'
+sets stay PixelMPC's, as the particle filter's grid was flown). ``model``, the disturbance observer in
 the controller's model
 (``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
 (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
-and gate sets at once (:data:`COMBINED_LEVERS`). The sets fly apart, so each is measured on its own. The ``best``
-preset already keeps a clearance to the frames widened by the filter's error
+and gate sets at once (:data:`COMBINED_LEVERS`); ``map``, the Kalman filter told how far a gate may stand from
+the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``). The sets fly apart, so each is measured on its own.
+The ``best`` preset already keeps a clearance to the frames widened by the filter's error
 (:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
@@ -44,6 +47,7 @@ from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
 from pixelmpc_jax.apps.racing.grid import Cell, fmt
 from pixelmpc_jax.apps.racing.presets import preset
 from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, LEVELS, Faults, fault_level
@@ -76,6 +80,12 @@ LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:
               "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)",
               "robust": f"the {' and '.join(COMBINED_LEVERS['robust'])} sets at once (not the bias states)"}
 FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
+# the Kalman filter told how far a gate may stand from the map: a tape-measured course's accuracy (the moderate map
+# fault moves each gate 0.3 m horizontally, 0.21 m per horizontal axis on average)
+MAP_SIGMA_M = 0.2
+ESKF_SETTINGS = {"map": ESKFConfig(map_sigma_m=MAP_SIGMA_M)}
+LEVER_SETS["map"] = (f"the ESKF told that each gate stands within {MAP_SIGMA_M:g} m per axis (1 sigma) of the map "
+                     "(ESKFConfig.map_sigma_m)")
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
@@ -124,6 +134,8 @@ def _with_lever(spec: RaceSpec, lever: str | None, faults: Faults) -> RaceSpec:
                                                        disturbance_time_constant_s=DISTURBANCE_TIME_CONSTANT_S))
     if lever in FILTER_GUARDS:
         return spec.replace(guards=FILTER_GUARDS[lever])
+    if lever in ESKF_SETTINGS:
+        return spec.replace(eskf=ESKF_SETTINGS[lever])
     return spec
 
 
@@ -156,8 +168,9 @@ def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple 
                     if not reaches(fault, controller, estimator):
                         continue
                     laps = _laps(level, quick)
-                    answers = controller == "pixelmpc" and level in (None, "moderate")
-                    for lever in (None, *(lv for lv in levers if answers and applies(lv, estimator))):
+                    answers = level in (None, "moderate")
+                    for lever in (None, *(lv for lv in levers if answers and applies(lv, estimator)
+                                          and (controller == "pixelmpc" or lv in ESKF_SETTINGS))):
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
                                          *([lever] if lever else [])])
                         cells.append(RobustCell(Cell(name, race(controller, estimator, faults, lever)), fault,
@@ -166,9 +179,14 @@ def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple 
 
 
 def applies(levers: str, estimator: str) -> bool:
-    """Whether the set ``levers`` changes a loop on ``estimator``: the controller's sets everywhere, the particle
-    filter's guards on the particle filter only."""
-    return estimator == "pf" or all(lever in CONTROLLER_LEVERS for lever in COMBINED_LEVERS.get(levers, (levers,)))
+    """Whether the set ``levers`` changes a loop on ``estimator``: the controller's sets everywhere, the Kalman
+    filter's settings on the Kalman filter only, the particle filter's guards on the particle filter only."""
+    sets = COMBINED_LEVERS.get(levers, (levers,))
+    if all(lever in CONTROLLER_LEVERS for lever in sets):
+        return True
+    if all(lever in ESKF_SETTINGS for lever in sets):
+        return estimator == "eskf"
+    return estimator == "pf"
 
 
 def _laps(level: str | None, quick: bool) -> int:

@@ -66,7 +66,8 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
         sample_devices = usable_sample_devices(spec.config.mppi.num_samples)
     policy = spec.policy(sample_devices=sample_devices)
     episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
-                                               estimator=spec.estimator, guards=spec.guards, faults=spec.faults)
+                                               estimator=spec.estimator, guards=spec.guards, eskf=spec.eskf,
+                                               faults=spec.faults)
     if dof_params is None:
         dof_params = spec.packaged_dof()
     camera = camera_lib.default_camera(tilt=math.radians(spec.camera_tilt_deg))

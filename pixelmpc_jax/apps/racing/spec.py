@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
+from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.faults import Faults
@@ -34,7 +35,7 @@ from pixelmpc_jax.world.course import COURSES
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
                   ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
-                  ("camera_tilt_deg",), ("config", "look_ahead_model"))
+                  ("camera_tilt_deg",), ("config", "look_ahead_model"), ("eskf",))
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
 
@@ -67,6 +68,8 @@ class RaceSpec:
             race that does not evaluate the DOF.
         guards: the particle filter's guards (:class:`~pixelmpc_jax.perception.filter_guards.GuardConfig`); reset
             to none for a race on the true state.
+        eskf: the error-state Kalman filter's settings (:class:`~pixelmpc_jax.perception.eskf.ESKFConfig`); reset
+            to the defaults for a race on another estimator.
         faults: what the world does beyond the controller's model (:class:`~pixelmpc_jax.sim.faults.Faults`;
             none by default).
         camera_tilt_deg: the onboard camera's upward tilt on its mount, deg (0: the paper's), in
@@ -87,6 +90,7 @@ class RaceSpec:
     max_time_s: float = LAP_TIME_LIMIT_S
     dof_weights: str | None = None
     guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
+    eskf: ESKFConfig = dataclasses.field(default_factory=ESKFConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)
     camera_tilt_deg: float = 0.0
 
@@ -120,8 +124,12 @@ class RaceSpec:
         if not isinstance(self.faults, Faults) or not isinstance(self.guards, GuardConfig):
             raise ValueError(f"faults must be a Faults and guards a GuardConfig, got {type(self.faults).__name__} "
                              f"and {type(self.guards).__name__}")
+        if not isinstance(self.eskf, ESKFConfig):
+            raise ValueError(f"eskf must be an ESKFConfig, got {type(self.eskf).__name__}")
         if self.estimator != "pf":  # the filter's guards fly nothing on the true state
             object.__setattr__(self, "guards", GuardConfig())
+        if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
+            object.__setattr__(self, "eskf", ESKFConfig())
         if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
                                                        or self.dof_weights in _packaged_variants()):
             raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
