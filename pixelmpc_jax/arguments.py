@@ -13,6 +13,7 @@ SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would 
 TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
 T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer pixel-cost horizon t_f acts as 2 s)
 GUARD = "guard:"  # the dest of a race flag that sets one of the particle filter's guards: GUARD + its field
+ESKF = "eskf:"  # the dest of a race flag that sets one of the Kalman filter's settings: ESKF + its field
 
 
 def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
@@ -174,8 +175,9 @@ def fault(text: str) -> dict:
 
 
 def add_fault_flags(p: argparse.ArgumentParser) -> None:
-    """The race's faults (``--fault``, repeatable) and the particle filter's guards against them (each guard flag
-    sets one field of ``RaceSpec.guards``: dest :data:`GUARD` + its field)."""
+    """The race's faults (``--fault``, repeatable), the particle filter's guards against them (each guard flag
+    sets one field of ``RaceSpec.guards``: dest :data:`GUARD` + its field) and the Kalman filter's settings (dest
+    :data:`ESKF` + a field of ``RaceSpec.eskf``)."""
     from pixelmpc_jax.sim.faults import FAULT_LEVELS
 
     p.add_argument("--fault", type=fault, action="append", default=None, metavar="NAME=VALUE",
@@ -199,6 +201,11 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
                    metavar="ACCEL,GYRO",
                    help="with --estimator pf: the filter estimates its IMU's biases, each particle carrying its "
                         "own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)")
+    p.add_argument("--eskf-map-sigma", type=float_in(0.0, 100.0, unit="m"), default=None, dest=ESKF + "map_sigma_m",
+                   metavar="M",
+                   help="with --estimator eskf: each gate stands within M m per axis (1 sigma) of where the map "
+                        "says, so a gate's corners share that offset in the filter's update (0.2 for a "
+                        "tape-measured course; default: 0, an exact map)")
 
 
 def imu_bias_std(text: str) -> tuple:
@@ -214,8 +221,9 @@ def imu_bias_std(text: str) -> tuple:
 
 
 def with_faults(args, spec):
-    """``spec`` (a RaceSpec) with the faults of the ``--fault`` entries (in order: a later entry of a setting wins)
-    and the filter's guards the guard flags set."""
+    """``spec`` (a RaceSpec) with the faults of the ``--fault`` entries (in order: a later entry of a setting wins),
+    the particle filter's guards the guard flags set and the Kalman filter's settings its flags set (a ValueError
+    when the race flies another estimator)."""
     import dataclasses
 
     if args.fault:
@@ -223,7 +231,14 @@ def with_faults(args, spec):
         spec = spec.replace(faults=dataclasses.replace(spec.faults, **settings))
     guards = {dest[len(GUARD):]: value for dest, value in vars(args).items() if dest.startswith(GUARD)
               and value is not None}
-    return spec.replace(guards=dataclasses.replace(spec.guards, **guards)) if guards else spec
+    if guards:
+        spec = spec.replace(guards=dataclasses.replace(spec.guards, **guards))
+    eskf = {dest[len(ESKF):]: value for dest, value in vars(args).items() if dest.startswith(ESKF)
+            and value is not None}
+    if eskf and spec.estimator != "eskf":
+        raise ValueError(f"--eskf-{next(iter(eskf)).removesuffix('_m').replace('_', '-')} sets the Kalman "
+                         f"filter: fly it with --estimator eskf")
+    return spec.replace(eskf=dataclasses.replace(spec.eskf, **eskf)) if eskf else spec
 
 
 def course(text: str) -> str:

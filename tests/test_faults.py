@@ -418,6 +418,24 @@ def test_the_fault_flags_make_the_race(tmp_path):
     assert plain.faults == F.Faults() and plain.guards == guards_lib.GuardConfig()
 
 
+def test_the_map_sigma_flag_sets_the_kalman_filter_and_needs_it(tmp_path, capsys):
+    args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
+                                          "--eskf-map-sigma", "0.2"])
+    spec, _ = cli._race_spec(args)
+    assert spec.eskf.map_sigma_m == 0.2 and spec.guards == guards_lib.GuardConfig()
+    plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
+    assert plain.eskf.map_sigma_m == 0.0
+    for argv, message in ((["--eskf-map-sigma", "0.2"], "--eskf-map-sigma sets the Kalman filter"),
+                          (["--estimator", "eskf", "--eskf-map-sigma", "-1"], "must be a finite number in [0, 100] m")):
+        try:
+            code = cli.main(["race", "--out", str(tmp_path / "never"), *argv])
+        except SystemExit as stop:  # argparse's own refusal
+            code = stop.code
+        err = capsys.readouterr().err
+        assert code == cli.EXIT_USAGE and message in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "never").exists()
+
+
 def test_the_bias_flag_gives_the_filter_bias_states(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "pf",
                                           "--pf-imu-bias", "0.3,0.02"])
