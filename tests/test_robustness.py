@@ -111,6 +111,13 @@ def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
     assert lever_spec.replace(estimator="pf").eskf == RaceSpec().eskf
     assert "eskf" not in cells["pixelmpc_eskf_none"].cell.spec.record()
     assert RaceSpec.from_record(lever_spec.record()) == lever_spec
+    # with the observer at once: PixelMPC on the Kalman filter only
+    both = _by_name(R.robustness_cells(levers=("model-map",)))
+    spec = both["pixelmpc_eskf_combined_moderate_model-map"].cell.spec
+    assert spec.eskf.map_sigma_m == R.MAP_SIGMA_M
+    assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
+    assert not any(name.endswith("model-map") and "_eskf_" not in name for name in both)
+    assert "mppi_eskf_combined_moderate_model-map" not in both
 
 
 def test_a_part_of_the_grid_by_estimator_and_fault():

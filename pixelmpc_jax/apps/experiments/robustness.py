@@ -13,18 +13,18 @@ set against it lap for lap, on the same seeds), 6 for the severe level (``quick`
 moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, PixelMPC's cells
 of the moderate level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown
 again with each named set of levers (:data:`LEVER_SETS`) that applies to the loop on: on the particle filter its
-guards and the ``model`` set, on the Kalman filter its ``map`` setting and the ``model`` set, on the true state the
-``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever. The
-filters' settings change no controller, so nominal MPPI flies the Kalman filter's ``map`` setting too (the guards'
-sets stay PixelMPC's, as the particle filter's grid was flown). ``model``, the disturbance observer in
-the controller's model
-(``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency in its model
-(``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
+guards and the ``model`` set, on the Kalman filter its ``map`` setting, the ``model`` set and both, on the true
+state the ``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever.
+The filters' settings change no controller, so nominal MPPI flies the Kalman filter's ``map`` setting too (the
+guards' sets stay PixelMPC's, as the particle filter's grid was flown). ``model``, the disturbance observer in the
+controller's model (``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency
+in its model (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
 and gate sets at once (:data:`COMBINED_LEVERS`); ``map``, the Kalman filter told how far a gate may stand from
-the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``). The sets fly apart, so each is measured on its own.
-The ``best`` preset already keeps a clearance to the frames widened by the filter's error
+the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the model and map sets at once. The
+sets fly apart, so each is measured on its own. The ``best`` preset already keeps a clearance to the frames
+widened by the filter's error
 (:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
 
 Per cell: the success rate, the lap time of the completed laps, the visibility figures and the failures by cause.
@@ -86,6 +86,8 @@ MAP_SIGMA_M = 0.2
 ESKF_SETTINGS = {"map": ESKFConfig(map_sigma_m=MAP_SIGMA_M)}
 LEVER_SETS["map"] = (f"the ESKF told that each gate stands within {MAP_SIGMA_M:g} m per axis (1 sigma) of the map "
                      "(ESKFConfig.map_sigma_m)")
+COMBINED_LEVERS["model-map"] = ("model", "map")
+LEVER_SETS["model-map"] = "the model and map sets at once (the Kalman filter's counterpart of robust)"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
@@ -181,12 +183,13 @@ def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple 
 def applies(levers: str, estimator: str) -> bool:
     """Whether the set ``levers`` changes a loop on ``estimator``: the controller's sets everywhere, the Kalman
     filter's settings on the Kalman filter only, the particle filter's guards on the particle filter only."""
-    sets = COMBINED_LEVERS.get(levers, (levers,))
-    if all(lever in CONTROLLER_LEVERS for lever in sets):
-        return True
-    if all(lever in ESKF_SETTINGS for lever in sets):
-        return estimator == "eskf"
-    return estimator == "pf"
+
+    def one(lever):
+        if lever in CONTROLLER_LEVERS:
+            return True
+        return estimator == ("eskf" if lever in ESKF_SETTINGS else "pf")
+
+    return all(one(lever) for lever in COMBINED_LEVERS.get(levers, (levers,)))
 
 
 def _laps(level: str | None, quick: bool) -> int:
