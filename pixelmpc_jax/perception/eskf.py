@@ -21,10 +21,10 @@ camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU'
 - Update. The 4 inner corners of the gate the detection names are projected into the camera; per detected corner
   (not within ``ESKFConfig.border_margin_px`` of the image border), the innovation is the detected minus the
   predicted pixel (px), ``H`` its Jacobian with respect to the error state (:func:`reproject_corners`, analytic,
-  checked against ``jax.jacfwd``), ``R = sigma^2 I`` (with ``ESKFConfig.map_sigma_m``, plus the gate's offset from the map,
-  which its corners share). A corner whose Mahalanobis distance ``d^2 = r^T S_k^-1 r``
-  under its own prior innovation covariance ``S_k`` exceeds ``ESKFConfig.gate_chi2`` is rejected; an accepted one
-  is reweighted by a Huber (or Cauchy) weight ``w(d)``, its noise inflated to ``R / w``. With
+  checked against ``jax.jacfwd``), ``R = sigma^2 I`` (with ``ESKFConfig.map_sigma_m``, plus the gate's offset from
+  the map, which its corners share). A corner whose Mahalanobis distance ``d^2 = r^T S_k^-1 r`` under its own
+  prior innovation covariance ``S_k`` exceeds ``ESKFConfig.gate_chi2`` is rejected; an accepted one is reweighted
+  by a Huber (or Cauchy) weight ``w(d)``, its noise inflated to ``R / w``. With
   ``ESKFConfig.joint_gate`` the accepted corners are then gated together: when their joint ``r^T S^-1 r`` exceeds
   the 99.9 % quantile of chi-square with two degrees of freedom per corner, the whole detection is rejected. A
   false detection (another gate's image under the target's name) moves every corner a little, each within its own
