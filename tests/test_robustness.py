@@ -58,9 +58,12 @@ def test_each_set_of_levers_flies_the_filter_cells_again_on_its_own():
     guarded = cells["pixelmpc_pf_miss_moderate_filter"].cell.spec
     assert guarded.guards == R.GUARDS and guarded.config.disturbance_time_constant_s is None
     assert cells["pixelmpc_pf_none_model"].cell.spec.faults == Faults()  # what the levers cost without faults
-    # the levers answer PixelMPC's bar: its filter cells only, fault-free and moderate
-    assert not any(name.startswith("mppi") and name.endswith(("_model", "_filter")) for name in cells)
-    assert len(cells) == len(R.robustness_cells(quick=True)) + 2 * (len(FAULT_LEVELS) + 2)
+    # the guards answer PixelMPC's bar; the controller's model flies nominal MPPI too, on the same cells
+    nominal = cells["mppi_pf_wind_moderate_model"].cell.spec
+    assert nominal.controller == "mppi" and nominal.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
+    assert nominal.guards == GuardConfig() and "mppi_pf_wind_moderate_filter" not in cells
+    nominal_cells = sum(rc.controller == "mppi" for rc in R.robustness_cells(quick=True))
+    assert len(cells) == len(R.robustness_cells(quick=True)) + 2 * (len(FAULT_LEVELS) + 2) + nominal_cells
     full = _by_name(R.robustness_cells(levers=("filter",)))
     assert "pixelmpc_pf_wind_severe_filter" not in full and "pixelmpc_pf_wind_moderate_filter" in full
     # the filter set's halves fly alone: the gate and the recovery without the bias states, and the reverse
@@ -92,7 +95,12 @@ def test_the_controller_levers_fly_on_every_loop_and_the_guards_on_the_particle_
         assert f"pixelmpc_{estimator}_wind_moderate_filter" not in cells
         assert f"pixelmpc_{estimator}_wind_moderate_robust" not in cells
         assert f"pixelmpc_{estimator}_wind_severe_model" not in cells
-    assert "pixelmpc_pf_wind_moderate_robust" in cells and "mppi_eskf_wind_moderate_model" not in cells
+    assert "pixelmpc_pf_wind_moderate_robust" in cells and "mppi_pf_wind_moderate_robust" not in cells
+    for estimator in ("eskf", "truth", "pf"):  # nominal MPPI flies the observer on every loop, as PixelMPC does
+        spec = cells[f"mppi_{estimator}_drag_moderate_model"].cell.spec
+        assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S and spec.controller == "mppi"
+        assert dataclasses.replace(spec.config, disturbance_time_constant_s=None) == \
+            cells[f"mppi_{estimator}_drag_moderate"].cell.spec.config
 
 
 def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
@@ -111,13 +119,13 @@ def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
     assert lever_spec.replace(estimator="pf").eskf == RaceSpec().eskf
     assert "eskf" not in cells["pixelmpc_eskf_none"].cell.spec.record()
     assert RaceSpec.from_record(lever_spec.record()) == lever_spec
-    # with the observer at once: PixelMPC on the Kalman filter only
+    # with the observer at once: on the Kalman filter only, both controllers
     both = _by_name(R.robustness_cells(levers=("model-map",)))
     spec = both["pixelmpc_eskf_combined_moderate_model-map"].cell.spec
     assert spec.eskf.map_sigma_m == R.MAP_SIGMA_M
     assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
     assert not any(name.endswith("model-map") and "_eskf_" not in name for name in both)
-    assert "mppi_eskf_combined_moderate_model-map" not in both
+    assert both["mppi_eskf_combined_moderate_model-map"].cell.spec.eskf.map_sigma_m == R.MAP_SIGMA_M
 
 
 def test_a_part_of_the_grid_by_estimator_and_fault():
@@ -133,6 +141,12 @@ def test_a_part_of_the_grid_by_estimator_and_fault():
     moderate = R.robustness_cells(estimators=("eskf",), faults=("none", "wind"), levels=("moderate",))
     assert {rc.cell.name for rc in moderate} == {"mppi_eskf_none", "pixelmpc_eskf_none", "mppi_eskf_wind_moderate",
                                                  "pixelmpc_eskf_wind_moderate"}
+    nominal = R.robustness_cells(estimators=("eskf",), faults=("none", "drag"), levels=("moderate",), levers=("model",),
+                                 controllers=("mppi",))
+    assert [rc.cell.name for rc in nominal] == ["mppi_eskf_none", "mppi_eskf_none_model", "mppi_eskf_drag_moderate",
+                                                "mppi_eskf_drag_moderate_model"]
+    with pytest.raises(ValueError, match="unknown controller 'pid'"):
+        R.robustness_cells(controllers=("pid",))
 
 
 @pytest.mark.parametrize("lap, cause", [

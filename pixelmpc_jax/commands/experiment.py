@@ -80,7 +80,7 @@ def _cmd_table4(args) -> int:
 
 
 def _add_robustness(jobs) -> None:
-    from pixelmpc_jax.apps.experiments.robustness import ESTIMATORS, FAULTS, LEVER_SETS
+    from pixelmpc_jax.apps.experiments.robustness import CONTROLLERS, ESTIMATORS, FAULTS, LEVER_SETS
     from pixelmpc_jax.sim.faults import LEVELS
 
     p = jobs.add_parser("robustness", help="the faults of a real flight: nominal MPPI and the best preset at the "
@@ -97,11 +97,15 @@ def _add_robustness(jobs) -> None:
                    help="fly and report only these faults (default: all, with none and combined)")
     p.add_argument("--levels", nargs="+", choices=LEVELS, default=None,
                    help="fly and report only these fault levels (default: both; the fault-free race is in each)")
+    p.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=None,
+                   help="fly and report only these controllers (default: both)")
     p.add_argument("--levers", nargs="*", choices=tuple(LEVER_SETS), default=None,
-                   help="also fly PixelMPC's moderate cells with each set of levers on, apart: model (the "
-                        "disturbance observer, the latency in the model; on every loop), filter (the particle "
+                   help="also fly the moderate cells with each set of levers on, apart: model (the disturbance "
+                        "observer, the latency in the model; on every loop, both controllers), filter (the particle "
                         "filter's guards), gate and bias (the guards' two halves alone), robust (model and gate at "
-                        "once); the guards on the particle filter only; no name: all five")
+                        "once); the guards on the particle filter and PixelMPC only; map (the Kalman filter told how "
+                        "far a gate may stand from the map) and model-map (model and map at once) on the Kalman "
+                        "filter; no name: all")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="other grids' output folders whose finished fault-free cells are copied, not flown")
     p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
@@ -115,7 +119,8 @@ def _cmd_robustness(args) -> int:
     robustness_experiment(args.out, quick=args.quick, levers=levers, reuse=args.reuse, run=not args.report_only,
                           estimators=tuple(args.estimators) if args.estimators else None,
                           faults=tuple(args.faults) if args.faults else None,
-                          levels=tuple(args.levels) if args.levels else None)
+                          levels=tuple(args.levels) if args.levels else None,
+                          controllers=tuple(args.controllers) if args.controllers else None)
     _print_report(args.out)
     return 0
 

@@ -6,17 +6,18 @@ and PixelMPC with the ``best`` preset fly each at the preset's pace, the paper's
 each filter's estimate, the particle filter's (``pf``) and the error-state Kalman filter's (``eskf``), and the
 moderate level also on the true state. A fault that cannot reach a loop is left out there, and the report says so:
 the IMU feeds only the filters, and nominal MPPI on the true state never looks at the detector. ``estimators`` and
-``faults`` fly a part of the grid (the rest stays as it is in the folder, or unflown).
+``faults`` (and ``controllers``) fly a part of the grid (the rest stays as it is in the folder, or unflown).
 
 Laps: 10 per cell for the moderate faults and the fault-free races (the true state's too: the filters' cells are
 set against it lap for lap, on the same seeds), 6 for the severe level (``quick``: a smoke run, 2 laps, the
-moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, PixelMPC's cells
-of the moderate level, where the bar of 9 laps in 10 is set, and its fault-free one (what a lever costs) are flown
-again with each named set of levers (:data:`LEVER_SETS`) that applies to the loop on: on the particle filter its
+moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, the cells
+of the moderate level, where the bars are set, and the fault-free ones (what a lever costs) are flown again with each
+named set of levers (:data:`LEVER_SETS`) that applies to the loop and the controller on: on the particle filter its
 guards and the ``model`` set, on the Kalman filter its ``map`` setting, the ``model`` set and both, on the true
 state the ``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever.
-The filters' settings change no controller, so nominal MPPI flies the Kalman filter's ``map`` setting too (the
-guards' sets stay PixelMPC's, as the particle filter's grid was flown). ``model``, the disturbance observer in the
+Nominal MPPI flies the ``model`` set too (its own bar: within a lap of its true-state cell) and, as the filters'
+settings change no controller, the Kalman filter's ``map`` setting (the guards' sets stay PixelMPC's, as the
+particle filter's grid was flown). ``model``, the disturbance observer in the
 controller's model (``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency
 in its model (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
@@ -142,18 +143,22 @@ def _with_lever(spec: RaceSpec, lever: str | None, faults: Faults) -> RaceSpec:
 
 
 def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple | None = None,
-                     faults: tuple | None = None, levels: tuple | None = None) -> list[RobustCell]:
-    """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; for
-    each set of ``levers`` (names of :data:`LEVER_SETS`) that applies to the loop (:func:`applies`) also PixelMPC's
-    cells of the moderate level with it on, where the 9-of-10 bar is set, and its fault-free one (what the levers
-    cost). ``estimators``, ``faults`` and ``levels`` (names of :data:`ESTIMATORS`, :data:`FAULTS` and
-    :data:`~pixelmpc_jax.sim.faults.LEVELS`; None: all, or the particle filter only when ``quick``) keep a part of the
-    grid (the fault-free race belongs to every level)."""
+                     faults: tuple | None = None, levels: tuple | None = None,
+                     controllers: tuple | None = None) -> list[RobustCell]:
+    """The grid's cells (module docstring): per fault and level, per controller and estimator that it reaches; for each
+    set of ``levers`` (names of :data:`LEVER_SETS`) that applies to the loop (:func:`applies`) also the cells of the
+    moderate level with it on, where the bars are set, and the fault-free ones (what the levers cost): PixelMPC's
+    with every set, nominal MPPI's with the controller's model and the Kalman filter's settings. ``estimators``,
+    ``faults`` and ``levels`` (names of :data:`ESTIMATORS`, :data:`FAULTS` and
+    :data:`~pixelmpc_jax.sim.faults.LEVELS`; None: all, or the particle filter only when ``quick``) keep a part of
+    the grid (the fault-free race belongs to every level), and ``controllers`` (of :data:`CONTROLLERS`; None: both)
+    the controllers flown."""
     estimators = estimators or (("pf",) if quick else ESTIMATORS)
     faults_kept = faults or FAULTS
     levels_kept = levels or LEVELS
+    controllers_kept = controllers or CONTROLLERS
     for name, given, known in (("estimator", estimators, ESTIMATORS), ("fault", faults_kept, FAULTS),
-                               ("level", levels_kept, LEVELS)):
+                               ("level", levels_kept, LEVELS), ("controller", controllers_kept, CONTROLLERS)):
         unknown = [value for value in given if value not in known]
         if unknown:
             raise ValueError(f"unknown {name} {unknown[0]!r}; choose from {', '.join(known)}")
@@ -166,18 +171,24 @@ def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple 
             for estimator in (e for e in ESTIMATORS if e in estimators):
                 if estimator == "truth" and (level == "severe" or quick):
                     continue
-                for controller in CONTROLLERS:
+                for controller in (c for c in CONTROLLERS if c in controllers_kept):
                     if not reaches(fault, controller, estimator):
                         continue
                     laps = _laps(level, quick)
                     answers = level in (None, "moderate")
                     for lever in (None, *(lv for lv in levers if answers and applies(lv, estimator)
-                                          and (controller == "pixelmpc" or lv in ESKF_SETTINGS))):
+                                          and (controller == "pixelmpc" or _flies_nominal(lv)))):
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
                                          *([lever] if lever else [])])
                         cells.append(RobustCell(Cell(name, race(controller, estimator, faults, lever)), fault,
                                                 level, controller, estimator, lever, laps))
     return cells
+
+
+def _flies_nominal(levers: str) -> bool:
+    """Whether nominal MPPI flies the set ``levers``: the controller's model and the Kalman filter's settings, not the
+    particle filter's guards (which answer PixelMPC's bar)."""
+    return all(lever in CONTROLLER_LEVERS or lever in ESKF_SETTINGS for lever in COMBINED_LEVERS.get(levers, (levers,)))
 
 
 def applies(levers: str, estimator: str) -> bool:
@@ -388,16 +399,18 @@ def robustness_figure(rows: list[dict], out: Path) -> str:
 
 def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: tuple = (),
                           reuse=(), run: bool = True, estimators: tuple | None = None,
-                          faults: tuple | None = None, levels: tuple | None = None) -> list[dict]:
+                          faults: tuple | None = None, levels: tuple | None = None,
+                          controllers: tuple | None = None) -> list[dict]:
     """Fly the robustness grid into ``out`` (resumable per cell, each cell its own laps from :data:`SEED`) and write
-    its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows. ``estimators``, ``faults``
-    and ``levels`` keep a part of the grid (:func:`robustness_cells`): the report then covers that part.
+    its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows. ``estimators``, ``faults``,
+    ``levels`` and ``controllers`` keep a part of the grid (:func:`robustness_cells`): the report then covers that part.
 
     ``reuse``: other grids' output folders whose finished cells answer a cell here (the same race, laps and seed:
     the fault-free races) and are copied, not flown. ``run=False``: only the report of the cells already finished.
     A cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun.
     """
-    cells = robustness_cells(quick=quick, levers=levers, estimators=estimators, faults=faults, levels=levels)
+    cells = robustness_cells(quick=quick, levers=levers, estimators=estimators, faults=faults, levels=levels,
+                             controllers=controllers)
     experiment = Experiment(
         tuple(rc.cell for rc in cells), summarise=lambda results: summarise(results, cells),
         report=lambda rows, missing: markdown_report(rows, device_line(), missing), plot=robustness_figure,
