@@ -28,10 +28,11 @@ def test_every_point_of_both_curves_for_both_controllers_on_both_filters():
     assert by_name["mppi_eskf_wind_3"].cell.spec == grid["mppi_eskf_wind_moderate"]
 
 
-def test_levers_fly_pixelmpc_again_and_only_those_both_filters_take():
+def test_levers_fly_both_controllers_again_and_only_those_both_filters_take():
     points = C.curve_cells(estimators=("eskf",), levers=("model",))
     model = [p for p in points if p.levers == "model"]
-    assert {p.controller for p in model} == {"pixelmpc"} and len(model) == len(C.WIND_M_S) + len(C.DELAY_TICKS) - 1
+    per_controller = len(C.WIND_M_S) + len(C.DELAY_TICKS) - 1
+    assert {p.controller for p in model} == {"mppi", "pixelmpc"} and len(model) == 2 * per_controller
     assert all(p.cell.spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S for p in model)
     with pytest.raises(ValueError, match="do not fly on both filters"):
         C.curve_cells(levers=("gate",))

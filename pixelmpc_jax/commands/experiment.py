@@ -141,7 +141,8 @@ def _add_fault_curves(jobs) -> None:
     p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=ESTIMATORS,
                    help="the filters flown (default: both)")
     p.add_argument("--levers", nargs="*", choices=CONTROLLER_LEVERS, default=(),
-                   help="also fly PixelMPC at every point with these levers on (model: the disturbance observer)")
+                   help="also fly both controllers at every point with these levers on (model: the disturbance "
+                        "observer)")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (the robustness grid's) whose finished cells of the same race are copied")
     p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")

@@ -7,8 +7,8 @@ sweep the two faults whose size decides most where a filter stops helping: a ste
 ``best`` preset) at the preset's pace, on the particle filter's estimate and on the error-state Kalman filter's,
 :data:`LAPS` laps from the robustness grid's seed, so the fault-free point is the grid's fault-free cell (and is
 copied from a robustness folder passed in ``reuse``). With ``levers`` (names of
-:data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that apply to both filters: ``model``), PixelMPC flies
-every point once more with them on.
+:data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that apply to both filters: ``model``), both
+controllers fly every point once more with them on, as they do in the grid.
 
 Writes ``results.json`` (resumable per cell), ``curves.json``, ``REPORT.md`` and ``fault_curves.png``: success
 against wind and against delay, one line per controller and estimator, in one figure.
@@ -60,8 +60,8 @@ def faults_at(curve: str, value: float) -> Faults:
 
 def curve_cells(estimators: tuple = ESTIMATORS, levers: tuple = (), quick: bool = False) -> list[CurvePoint]:
     """Every point of both curves for each controller, estimator (of :data:`ESTIMATORS`) and set of ``levers`` (each
-    a set of :data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that applies to both filters; PixelMPC
-    only), the fault-free point once; ``quick``: the ends and the middle of each curve only."""
+    a set of :data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that applies to both filters; both
+    controllers), the fault-free point once; ``quick``: the ends and the middle of each curve only."""
     for estimator in estimators:
         if estimator not in ESTIMATORS:
             raise ValueError(f"unknown estimator {estimator!r}; the curves fly {', '.join(ESTIMATORS)}")
@@ -72,7 +72,7 @@ def curve_cells(estimators: tuple = ESTIMATORS, levers: tuple = (), quick: bool 
     points = []
     for estimator in estimators:
         for controller in robust_lib.CONTROLLERS:
-            for lever in (None, *(levers if controller == "pixelmpc" else ())):
+            for lever in (None, *levers):
                 suffix = f"_{lever}" if lever else ""
                 spec = robust_lib.race(controller, estimator, Faults(), lever)
                 points.append(CurvePoint(Cell(f"{controller}_{estimator}_none{suffix}", spec), None, 0.0, controller,
