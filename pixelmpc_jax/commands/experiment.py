@@ -107,7 +107,8 @@ def _add_robustness(jobs) -> None:
                         "far a gate may stand from the map) and model-map (model and map at once) on the Kalman "
                         "filter; no name: all")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
-                   help="other grids' output folders whose finished fault-free cells are copied, not flown")
+                   help="other grids' output folders whose finished cells of the same race (the fault-free "
+                        "ones, and any other flown the same) are copied, not flown")
     p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
     p.set_defaults(func=_cmd_robustness)
 
