@@ -206,6 +206,11 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
                    help="with --estimator eskf: each gate stands within M m per axis (1 sigma) of where the map "
                         "says, so a gate's corners share that offset in the filter's update (0.2 for a "
                         "tape-measured course; default: 0, an exact map)")
+    p.add_argument("--eskf-align", type=float_in(0.0, 60.0, unit="s"), default=None, dest=ESKF + "align_s",
+                   metavar="S",
+                   help="with --estimator eskf: the filter averages S s of its IMU's readings at rest before the lap "
+                        "(on the pad) and learns the gyro bias and the accelerometer's along gravity from them "
+                        "(2 is a usual pre-flight wait; default: 0, none)")
 
 
 def imu_bias_std(text: str) -> tuple:
@@ -236,7 +241,8 @@ def with_faults(args, spec):
     eskf = {dest[len(ESKF):]: value for dest, value in vars(args).items() if dest.startswith(ESKF)
             and value is not None}
     if eskf and spec.estimator != "eskf":
-        raise ValueError(f"--eskf-{next(iter(eskf)).removesuffix('_m').replace('_', '-')} sets the Kalman "
+        setting = next(iter(eskf)).removesuffix("_m").removesuffix("_s")  # the flag names the field less its unit
+        raise ValueError(f"--eskf-{setting.replace('_', '-')} sets the Kalman "
                          f"filter: fly it with --estimator eskf")
     return spec.replace(eskf=dataclasses.replace(spec.eskf, **eskf)) if eskf else spec
 

@@ -111,11 +111,49 @@ def _chi2_band(dof):
     ("gyro_bias_std", -0.1), ("velocity_walk", -1e-3), ("border_margin_px", math.nan),
     ("measurement_sigma_px", 0.0), ("gate_chi2", -3.0), ("robust_loss", "l2"), ("robust_threshold", 0.0),
     ("max_delay_ticks", -1), ("max_delay_ticks", 2.5), ("max_delay_ticks", True), ("gravity", "9.81"),
-    ("map_sigma_m", -0.1),
+    ("map_sigma_m", -0.1), ("align_s", -1.0), ("align_s", math.nan),
 ])
 def test_a_bad_config_raises_one_line(field, value):
     with pytest.raises(ValueError, match=field) as error:
         E.ESKFConfig(**{field: value})
+    assert "\n" not in str(error.value)
+
+
+def test_the_alignment_at_rest_learns_the_gyro_bias_and_the_accelerometers_along_gravity_only():
+    """Readings at rest, level: the gyro reads its bias, the accelerometer gravity's specific force plus its bias.
+    The update takes the gyro bias and the vertical accelerometer bias to within their readings' noise, and splits
+    each lateral reading between a tilt and a bias in proportion to their priors (it cannot tell them apart), so
+    the two together explain the reading. Without the bias the same readings leave the belief's mean alone."""
+    config = dataclasses.replace(CONFIG, align_s=2.0)
+    x0 = jnp.asarray([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], jnp.float32)
+    state = E.eskf_init(x0, config, SPREAD)
+    accel_bias, gyro_bias = np.asarray(ACCEL_BIAS, np.float32), np.asarray(GYRO_BIAS, np.float32)
+    accel = np.asarray([0.0, 0.0, config.gravity], np.float32) + accel_bias
+    aligned = E.eskf_align(state, accel, gyro_bias, config)
+    for leaf, anchor_leaf in zip(jax.tree_util.tree_leaves(aligned.latest), jax.tree_util.tree_leaves(aligned.anchor)):
+        np.testing.assert_array_equal(np.asarray(leaf), np.asarray(anchor_leaf))  # the window starts aligned
+    belief = aligned.latest
+    bias, cov = np.asarray(belief.bias), np.asarray(belief.cov)
+    noise_std = np.asarray([config.accel_noise_density, config.gyro_noise_density]) / math.sqrt(config.align_s)
+    np.testing.assert_allclose(bias[3:], gyro_bias, atol=1e-4)
+    assert abs(bias[2] - accel_bias[2]) < 1e-3
+    assert np.all(np.sqrt(np.diag(cov)[12:15]) < 1.01 * noise_std[1]) and np.sqrt(cov[11, 11]) < 1.01 * noise_std[0]
+    # across gravity: the tilt takes the share its prior gives it, the bias the rest, the two explain the reading
+    tilt_var, bias_var = (SPREAD[1] * config.gravity) ** 2, config.accel_bias_std**2
+    share = bias_var / (bias_var + tilt_var)
+    np.testing.assert_allclose(bias[:2], share * accel_bias[:2], rtol=0.02)
+    q = np.asarray(belief.x[3:7])
+    felt = np.asarray(quadrotor.rotation_matrix(jnp.asarray(q))).T @ np.asarray([0.0, 0.0, config.gravity])
+    np.testing.assert_allclose(felt[:2] + bias[:2], accel[:2], atol=2e-3)
+    assert np.sqrt(cov[9, 9]) < 0.9 * config.accel_bias_std and cov[9, 7] != 0.0  # tied to the tilt, learnt in part
+    kept = [0, 1, 2, 7, 8, 9]  # position and velocity: no reading at rest tells them (nor their prior ties them)
+    np.testing.assert_array_equal(np.asarray(belief.x)[kept], np.asarray(x0)[kept])
+    unbiased = E.eskf_align(state, np.asarray([0.0, 0.0, config.gravity], np.float32), np.zeros(3, np.float32),
+                            config).latest
+    np.testing.assert_allclose(np.asarray(unbiased.x), np.asarray(x0), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(unbiased.bias), 0.0, atol=1e-6)
+    with pytest.raises(ValueError, match="align_s > 0") as error:
+        E.eskf_align(state, accel, gyro_bias, CONFIG)
     assert "\n" not in str(error.value)
 
 

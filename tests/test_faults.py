@@ -418,14 +418,16 @@ def test_the_fault_flags_make_the_race(tmp_path):
     assert plain.faults == F.Faults() and plain.guards == guards_lib.GuardConfig()
 
 
-def test_the_map_sigma_flag_sets_the_kalman_filter_and_needs_it(tmp_path, capsys):
+def test_the_kalman_filter_flags_set_it_and_need_it(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
-                                          "--eskf-map-sigma", "0.2"])
+                                          "--eskf-map-sigma", "0.2", "--eskf-align", "2"])
     spec, _ = cli._race_spec(args)
-    assert spec.eskf.map_sigma_m == 0.2 and spec.guards == guards_lib.GuardConfig()
+    assert spec.eskf.map_sigma_m == 0.2 and spec.eskf.align_s == 2.0 and spec.guards == guards_lib.GuardConfig()
     plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
-    assert plain.eskf.map_sigma_m == 0.0
+    assert plain.eskf.map_sigma_m == 0.0 and plain.eskf.align_s == 0.0
     for argv, message in ((["--eskf-map-sigma", "0.2"], "--eskf-map-sigma sets the Kalman filter"),
+                          (["--eskf-align", "2"], "--eskf-align sets the Kalman filter"),
+                          (["--estimator", "eskf", "--eskf-align", "-1"], "must be a finite number in [0, 60] s"),
                           (["--estimator", "eskf", "--eskf-map-sigma", "-1"], "must be a finite number in [0, 100] m")):
         try:
             code = cli.main(["race", "--out", str(tmp_path / "never"), *argv])

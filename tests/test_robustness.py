@@ -12,6 +12,7 @@ from pixelmpc_jax.apps.experiments import robustness as R
 from pixelmpc_jax.apps.racing import grid, race
 from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
 from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, Faults, fault_level
 
@@ -126,6 +127,19 @@ def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
     assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
     assert not any(name.endswith("model-map") and "_eskf_" not in name for name in both)
     assert both["mppi_eskf_combined_moderate_model-map"].cell.spec.eskf.map_sigma_m == R.MAP_SIGMA_M
+
+
+def test_the_alignment_flies_on_the_kalman_filter_only_for_both_controllers():
+    cells = _by_name(R.robustness_cells(levers=("align",)))
+    for controller in ("mppi", "pixelmpc"):
+        for fault in ("none", "imu_bias_moderate", "imu_noise_moderate"):
+            spec = cells[f"{controller}_eskf_{fault}_align"].cell.spec
+            assert spec.eskf == ESKFConfig(align_s=R.ALIGN_S) and spec.estimator == "eskf"
+            assert spec.config == cells[f"{controller}_eskf_{fault}"].cell.spec.config
+            assert spec.faults == cells[f"{controller}_eskf_{fault}"].cell.spec.faults
+        assert f"{controller}_eskf_imu_bias_severe_align" not in cells
+    assert not any(name.endswith("_align") and "_eskf_" not in name for name in cells)
+    assert R.applies("align", "eskf") and not R.applies("align", "pf") and R._flies_nominal("align")
 
 
 def test_a_part_of_the_grid_by_estimator_and_fault():

@@ -129,6 +129,12 @@ class ESKFConfig:
             minus that with respect to the gate's), in the gate, the weights and the update alike. The offset is
             taken afresh at each detection (not kept as a state), so a gate seen for long still pulls the
             estimate onto itself, more slowly.
+        align_s: s of IMU readings at rest before the lap that :func:`eskf_align` averages (0: none, the default; the
+            lap's first tick is the filter's first input). On the pad the vehicle neither moves nor turns, so the mean
+            gyro reading is the gyro bias and the mean accelerometer reading is gravity's specific force plus the
+            accelerometer bias: one update with the readings' own noise over that time (``density^2 / align_s``)
+            learns the gyro bias and the accelerometer's bias along gravity. Its bias across gravity reads as a tilt
+            does, so the update only ties the two together (the attitude prior decides how much each gets).
         gravity: m/s^2 along world -z.
     """
 
@@ -149,11 +155,12 @@ class ESKFConfig:
     max_delay_ticks: int = 3
     gravity: float = GRAVITY
     map_sigma_m: float = 0.0
+    align_s: float = 0.0
 
     def __post_init__(self):
         for name in ("accel_noise_density", "gyro_noise_density", "accel_bias_walk", "gyro_bias_walk",
                      "accel_bias_std", "gyro_bias_std", "velocity_walk", "attitude_walk", "border_margin_px",
-                     "map_sigma_m"):
+                     "map_sigma_m", "align_s"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                       and value >= 0):
@@ -673,6 +680,51 @@ def eskf_init(x0: jax.Array, config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.0
     if bias0.shape != (6,):
         raise ValueError(f"bias0 must have shape (6,) = [b_a, b_g], got {bias0.shape}")
     return _eskf_init_jit(x0, bias0, config, spread)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _eskf_align_jit(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
+    belief = state.latest
+    dtype = belief.x.dtype
+    P = belief.cov
+    rotation = quadrotor.rotation_matrix(quadrotor.normalize_quat(belief.x[QUAT]))
+    rest_force = rotation.T @ jnp.asarray([0.0, 0.0, config.gravity], dtype)  # the specific force at rest, body frame
+    # readings = [R^T (0, 0, g) + b_a, b_g] + noise; with q_true = q exp(dtheta), R_true^T g = f + f x dtheta
+    H = jnp.zeros((6, ERROR_DIM), dtype).at[0:3, 6:9].set(skew(rest_force)).at[0:3, 9:12].set(jnp.eye(3, dtype=dtype))
+    H = H.at[3:6, 12:15].set(jnp.eye(3, dtype=dtype))
+    residual = jnp.concatenate([jnp.asarray(accel_mean, dtype) - rest_force - belief.bias[:3],
+                                jnp.asarray(gyro_mean, dtype) - belief.bias[3:]])
+    densities = jnp.asarray([config.accel_noise_density] * 3 + [config.gyro_noise_density] * 3, dtype)
+    noise = densities**2 / config.align_s  # the variance of the readings' mean over align_s
+    gain = _solve_spd(H @ P @ H.T + jnp.diag(noise), H @ P).T  # (15, 6)
+    dx = gain @ residual
+    I_KH = jnp.eye(ERROR_DIM, dtype=dtype) - gain @ H
+    cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
+    x, bias = inject(belief.x, belief.bias, dx)
+    reset = jnp.eye(ERROR_DIM, dtype=dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))
+    aligned = ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
+    return state.replace(anchor=aligned, latest=aligned)
+
+
+def eskf_align(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
+    """The filter before its first step, after ``config.align_s`` seconds at rest (``ESKFConfig.align_s``).
+
+    Args:
+        state: the filter from :func:`eskf_init` (no step taken yet).
+        accel_mean: (3,) m/s^2, the accelerometer's mean reading at rest (body frame, its bias included).
+        gyro_mean: (3,) rad/s, the gyro's mean reading at rest.
+        config: the filter's configuration; its ``align_s`` > 0 is the readings' time.
+
+    Returns:
+        the filter with one Kalman update of its attitude and biases by those readings.
+    """
+    if not config.align_s > 0:
+        raise ValueError(f"eskf_align needs config.align_s > 0 (the seconds of readings), got {config.align_s!r}")
+    _check_state(state, config)
+    for name, value in (("accel_mean", accel_mean), ("gyro_mean", gyro_mean)):
+        if jnp.shape(value) != (3,):
+            raise ValueError(f"{name} must have shape (3,), got {jnp.shape(value)}")
+    return _eskf_align_jit(state, accel_mean, gyro_mean, config)
 
 
 def eskf_step(state: ESKFState, imu, detection, delay_ticks, track, camera: camera_lib.Camera,

@@ -43,6 +43,7 @@ CONTROL_DT = timing.CONTROL_DT  # s, one control tick (pixelmpc_jax.timing)
 SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
 DETECTORS = ("geometry", "image")
 ESTIMATORS = ("truth", "pf", "eskf")
+_PAD_STREAM = 2901  # folded into the reset key: the IMU's noise on the pad (ESKFConfig.align_s)
 
 
 @struct.dataclass
@@ -272,11 +273,18 @@ def _pf_config(config: EnvConfig) -> pf_lib.PFConfig:
     return guards_lib.filter_config(config.pf, config.guards)
 
 
-def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array):
+def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams):
     """The estimator's first state about ``x0``: the particle filter's cloud, with what its guards carry, the
-    Kalman filter's prior, or a () placeholder on the true state."""
+    Kalman filter's prior (aligned on the IMU's readings at rest before the lap when ``config.eskf.align_s`` > 0:
+    the vehicle's own IMU, its faults included), or a () placeholder on the true state."""
     if config.estimator == "eskf":
-        return eskf_lib.eskf_init(x0, config.eskf, config.pf_initial_spread)
+        state = eskf_lib.eskf_init(x0, config.eskf, config.pf_initial_spread)
+        if config.eskf.align_s > 0:
+            pad_key = jax.random.fold_in(key, _PAD_STREAM)
+            pad = faults_lib.corrupt_imu(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
+                                         config.faults, pad_key)
+            state = eskf_lib.eskf_align(state, pad.accel, pad.gyro, config.eskf)
+        return state
     if config.estimator == "pf":
         return guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
                                       config.guards)
@@ -343,7 +351,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=_init_filter(config, key, x0),
+            filter=_init_filter(config, key, x0, faults_lib.plant_params(world.plant_params, faults)),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
             faults=faults_lib.init_fault_state(faults, key, world.track.gates, hover),

@@ -269,6 +269,23 @@ def hover_tick_imu(tick_dt: float, num_samples: int = SUBSTEPS_PER_TICK, gravity
                    num_samples=jnp.asarray(num_samples, dtype))
 
 
+def resting_imu(x: jax.Array, seconds: float, key: jax.Array, params: PlantParams) -> TickIMU:
+    """The IMU over ``seconds`` at rest (on the pad before take-off) at the pose of ``x`` (10,): the mean of its
+    ``seconds`` x 960 Hz samples, gravity's specific force in the body frame plus each sample's noise, and the
+    readings preintegrated (no motion: the rotation the identity)."""
+    dtype = x.dtype
+    num_samples = max(round(seconds / timing.PLANT_DT), 1)
+    up = rotation_matrix(normalize_quat(x[QUAT])).T @ jnp.asarray([0.0, 0.0, params.gravity], dtype)
+    key_accel, key_gyro = jax.random.split(key)
+    per_sample = 1.0 / math.sqrt(num_samples)
+    accel = up + jnp.sqrt(params.accel_noise_variance) * per_sample * jax.random.normal(key_accel, (3,), dtype)
+    gyro = jnp.sqrt(params.gyro_noise_variance) * per_sample * jax.random.normal(key_gyro, (3,), dtype)
+    duration = num_samples * timing.PLANT_DT
+    return TickIMU(accel=accel, gyro=gyro, delta_q=jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype),
+                   delta_v=accel * duration, delta_p=0.5 * accel * duration**2, dt=jnp.asarray(duration, dtype),
+                   num_samples=jnp.asarray(num_samples, dtype))
+
+
 # --------------------------------------------------------------------------------------------------
 # Pieces of the loop.
 # --------------------------------------------------------------------------------------------------

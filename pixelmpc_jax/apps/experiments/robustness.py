@@ -13,17 +13,20 @@ set against it lap for lap, on the same seeds), 6 for the severe level (``quick`
 moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, the cells
 of the moderate level, where the bars are set, and the fault-free ones (what a lever costs) are flown again with each
 named set of levers (:data:`LEVER_SETS`) that applies to the loop and the controller on: on the particle filter its
-guards and the ``model`` set, on the Kalman filter its ``map`` setting, the ``model`` set and both, on the true
+guards and the ``model`` set, on the Kalman filter its ``map`` and ``align`` settings, the ``model`` set and
+``model-map``, on the true
 state the ``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever.
 Nominal MPPI flies the ``model`` set too (its own bar: within a lap of its true-state cell) and, as the filters'
-settings change no controller, the Kalman filter's ``map`` setting (the guards' sets stay PixelMPC's, as the
+settings change no controller, the Kalman filter's settings (the guards' sets stay PixelMPC's, as the
 particle filter's grid was flown). ``model``, the disturbance observer in the
 controller's model (``ControllerConfig.disturbance_time_constant_s``) and, under an actuation latency, the latency
 in its model (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
 and gate sets at once (:data:`COMBINED_LEVERS`); ``map``, the Kalman filter told how far a gate may stand from
-the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the model and map sets at once. The
+the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the model and map sets at once;
+``align``, the Kalman filter aligned on its IMU's readings at rest before the lap (:data:`ALIGN_S`,
+``ESKFConfig.align_s``), as a vehicle sits on the pad before take-off. The
 sets fly apart, so each is measured on its own. The ``best`` preset already keeps a clearance to the frames
 widened by the filter's error
 (:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
@@ -87,6 +90,11 @@ MAP_SIGMA_M = 0.2
 ESKF_SETTINGS = {"map": ESKFConfig(map_sigma_m=MAP_SIGMA_M)}
 LEVER_SETS["map"] = (f"the ESKF told that each gate stands within {MAP_SIGMA_M:g} m per axis (1 sigma) of the map "
                      "(ESKFConfig.map_sigma_m)")
+# the Kalman filter aligned on its IMU's readings at rest before the lap, as a vehicle on the pad before take-off
+ALIGN_S = 2.0
+ESKF_SETTINGS["align"] = ESKFConfig(align_s=ALIGN_S)
+LEVER_SETS["align"] = (f"the ESKF aligned on {ALIGN_S:g} s of its IMU's readings at rest before the lap, which give "
+                       "the gyro bias and the accelerometer's along gravity (ESKFConfig.align_s)")
 COMBINED_LEVERS["model-map"] = ("model", "map")
 LEVER_SETS["model-map"] = "the model and map sets at once (the Kalman filter's counterpart of robust)"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
