@@ -42,6 +42,16 @@ def test_levers_fly_both_controllers_again_and_only_those_both_filters_take():
         C.faults_at("rain", 1.0)
 
 
+def test_one_curve_alone_keeps_its_points_and_the_fault_free_one():
+    wind = C.curve_cells(estimators=("eskf",), levers=("model",), curves=("wind",))
+    assert {p.curve for p in wind} == {None, "wind"}
+    assert len(wind) == len(R.CONTROLLERS) * 2 * len(C.WIND_M_S)  # with and without the observer
+    both = {p.cell.name for p in C.curve_cells(estimators=("eskf",), levers=("model",))}
+    assert {p.cell.name for p in wind} < both
+    with pytest.raises(ValueError, match="unknown curve 'rain'"):
+        C.curve_cells(curves=("rain",))
+
+
 @pytest.fixture
 def flown(monkeypatch):
     """race.run_laps replaced: a lap fails when the wind is at least 4 m/s or the delay at least 2 ticks, and the

@@ -127,7 +127,7 @@ def _cmd_robustness(args) -> int:
 
 
 def _add_fault_curves(jobs) -> None:
-    from pixelmpc_jax.apps.experiments.fault_curves import DELAY_TICKS, ESTIMATORS, LAPS, WIND_M_S
+    from pixelmpc_jax.apps.experiments.fault_curves import CURVES, DELAY_TICKS, ESTIMATORS, LAPS, WIND_M_S
     from pixelmpc_jax.apps.experiments.robustness import CONTROLLER_LEVERS
 
     p = jobs.add_parser("fault-curves", help="success against steady wind and detection delay: both controllers on "
@@ -144,6 +144,8 @@ def _add_fault_curves(jobs) -> None:
     p.add_argument("--levers", nargs="*", choices=CONTROLLER_LEVERS, default=(),
                    help="also fly both controllers at every point with these levers on (model: the disturbance "
                         "observer)")
+    p.add_argument("--curves", nargs="+", choices=tuple(CURVES), default=tuple(CURVES),
+                   help="fly and report only these curves (default: both; the fault-free point is on each)")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (the robustness grid's) whose finished cells of the same race are copied")
     p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
@@ -154,7 +156,8 @@ def _cmd_fault_curves(args) -> int:
     from pixelmpc_jax.apps.experiments.fault_curves import fault_curves_experiment
 
     fault_curves_experiment(args.out, quick=args.quick, estimators=tuple(args.estimators),
-                            levers=tuple(args.levers or ()), reuse=args.reuse, run=not args.report_only)
+                            levers=tuple(args.levers or ()), reuse=args.reuse, run=not args.report_only,
+                            curves=tuple(args.curves))
     _print_report(args.out)
     return 0
 

@@ -58,13 +58,18 @@ def faults_at(curve: str, value: float) -> Faults:
     raise ValueError(f"unknown curve {curve!r}; choose one of {', '.join(CURVES)}")
 
 
-def curve_cells(estimators: tuple = ESTIMATORS, levers: tuple = (), quick: bool = False) -> list[CurvePoint]:
-    """Every point of both curves for each controller, estimator (of :data:`ESTIMATORS`) and set of ``levers`` (each
-    a set of :data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that applies to both filters; both
-    controllers), the fault-free point once; ``quick``: the ends and the middle of each curve only."""
+def curve_cells(estimators: tuple = ESTIMATORS, levers: tuple = (), quick: bool = False,
+                curves: tuple = tuple(CURVES)) -> list[CurvePoint]:
+    """Every point of the ``curves`` (names of :data:`CURVES`; default both) for each controller, estimator (of
+    :data:`ESTIMATORS`) and set of ``levers`` (each a set of
+    :data:`~pixelmpc_jax.apps.experiments.robustness.LEVER_SETS` that applies to both filters; both controllers),
+    the fault-free point once; ``quick``: the ends and the middle of each curve only."""
     for estimator in estimators:
         if estimator not in ESTIMATORS:
             raise ValueError(f"unknown estimator {estimator!r}; the curves fly {', '.join(ESTIMATORS)}")
+    for curve in curves:
+        if curve not in CURVES:
+            raise ValueError(f"unknown curve {curve!r}; choose from {', '.join(CURVES)}")
     for lever in levers:
         if lever not in robust_lib.LEVER_SETS or not all(robust_lib.applies(lever, e) for e in ESTIMATORS):
             raise ValueError(f"levers {lever!r} do not fly on both filters; choose from "
@@ -77,7 +82,7 @@ def curve_cells(estimators: tuple = ESTIMATORS, levers: tuple = (), quick: bool 
                 spec = robust_lib.race(controller, estimator, Faults(), lever)
                 points.append(CurvePoint(Cell(f"{controller}_{estimator}_none{suffix}", spec), None, 0.0, controller,
                                          estimator, lever))
-                for curve, values in CURVES.items():
+                for curve, values in ((c, v) for c, v in CURVES.items() if c in curves):
                     kept = (values[len(values) // 2], values[-1]) if quick else values[1:]
                     for value in kept:
                         spec = robust_lib.race(controller, estimator, faults_at(curve, value), lever)
@@ -202,12 +207,14 @@ def _figure(rows: list[dict], out: Path) -> str:
 
 
 def fault_curves_experiment(out: Path, quick: bool = False, progress: bool = True, estimators: tuple = ESTIMATORS,
-                            levers: tuple = (), reuse=(), run: bool = True) -> list[dict]:
-    """Fly the curves into ``out`` (resumable per cell; :data:`LAPS` laps per point, :data:`QUICK_LAPS` and three
-    points per curve when ``quick``) and write the report; returns the rows. ``reuse``: grid folders (the robustness
+                            levers: tuple = (), reuse=(), run: bool = True,
+                            curves: tuple = tuple(CURVES)) -> list[dict]:
+    """Fly the ``curves`` (default both) into ``out`` (resumable per cell; :data:`LAPS` laps per point,
+    :data:`QUICK_LAPS` and three points per curve when ``quick``) and write the report of their points; returns the
+    rows. ``reuse``: grid folders (the robustness
     grid's) whose finished cells answer a point here (the fault-free races, and the moderate wind, 3 m/s, and the
     one-tick delay on the same seeds) and are copied, not flown."""
-    points = curve_cells(estimators, levers, quick)
+    points = curve_cells(estimators, levers, quick, curves)
     experiment = Experiment(tuple(p.cell for p in points), summarise=lambda results: summarise(results, points),
                             report=lambda rows, missing: markdown_report(rows, device_line(), missing),
                             plot=_figure, record=lambda rows: {"device": device_line(), "rows": rows,
