@@ -320,6 +320,14 @@ def state_error(x_ref: jax.Array, x: jax.Array) -> jax.Array:
     return jnp.concatenate([x[POS] - x_ref[POS], x[VEL] - x_ref[VEL], rotation_vector(dq)])
 
 
+def _corrected(belief: ESKFBelief, dx: jax.Array, cov: jax.Array) -> ESKFBelief:
+    """The belief after an update: the error ``dx`` (15,) injected, and the updated covariance ``cov`` moved into the
+    new attitude's frame (the ESKF reset of the attitude block) and symmetrised."""
+    x, bias = inject(belief.x, belief.bias, dx)
+    reset = jnp.eye(ERROR_DIM, dtype=cov.dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's new frame
+    return ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
+
+
 def _symmetric(P: jax.Array) -> jax.Array:
     return 0.5 * (P + P.T)
 
@@ -504,9 +512,7 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
         cov = I_KH @ P @ I_KH.T + gain @ (jnp.diag(noise) + map_noise) @ gain.T
     else:
         cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
-    x, bias = inject(belief.x, belief.bias, dx)
-    reset = jnp.eye(ERROR_DIM, dtype=dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's new frame
-    updated = ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
+    updated = _corrected(belief, dx, cov)
     belief = _tree_where(jnp.any(accepted), updated, belief)  # nothing accepted: the belief untouched, bit for bit
 
     report = _CornerReport(innovation=residual, innovation_cov=S_corner,
@@ -700,9 +706,7 @@ def _eskf_align_jit(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig)
     dx = gain @ residual
     I_KH = jnp.eye(ERROR_DIM, dtype=dtype) - gain @ H
     cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
-    x, bias = inject(belief.x, belief.bias, dx)
-    reset = jnp.eye(ERROR_DIM, dtype=dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))
-    aligned = ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
+    aligned = _corrected(belief, dx, cov)
     return state.replace(anchor=aligned, latest=aligned)
 
 
