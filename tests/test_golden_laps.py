@@ -1,12 +1,20 @@
 """The same laps, bit for bit: the first 2 s of a lap of each controller at a fixed seed on one device, on the
-true state and on the particle filter, against states recorded before the house moved (``tests/data/golden_laps.npz``;
-``python tests/test_golden_laps.py`` records them again).
+true state and on the particle filter, against recorded states.
+
+``tests/data/golden_laps.npz`` was recorded before the house moved (AMD EPYC family 25 model 1, AVX2);
+``tests/data/golden_laps_*.npz`` hold the same laps recorded later on other processors, which pin every later change
+there. ``python tests/test_golden_laps.py`` records this processor's laps into a file named for it.
 
 A lap is chaotic in its float rounding, so any change to what a step computes (the order of a sum, a fused
-kernel) shows here. XLA's CPU kernels differ between processors (a lap recorded on one AMD EPYC and flown on an
-EPYC of another family differed by 1.2e-4 m after 2 s), so the states are compared bit for bit on the processor
-(its family, model and vector extensions) and JAX version that recorded them, and within 1e-3 elsewhere."""
+kernel) shows here. XLA's CPU kernels differ between processors, so the states are compared bit for bit against a
+recording of this processor (its family, model and vector extensions) and JAX version. Without one they are
+compared with the first recording: the true-state laps within 1e-3 over the 2 s (an EPYC of another family flew
+the border lap 1.2e-4 m apart), the particle filter's over their first 0.2 s only, the states within 1e-3 and the
+estimates within 2e-2. The filter's resampling picks other particles once rounding moves a weight, so its laps
+part quickly: on an AVX-512 EPYC (family 25 model 17) the states stayed within 4e-4 and the estimates within
+6.3e-3 over the first 8 ticks, and parted by 0.08 m and 0.24 m/s after 2 s."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +25,8 @@ from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
 from pixelmpc_jax.platform_info import cpu_signature
 
-GOLDEN_PATH = Path(__file__).resolve().parent / "data" / "golden_laps.npz"
-GOLDEN = np.load(GOLDEN_PATH)
+DATA = Path(__file__).resolve().parent / "data"
+FIRST_RECORDING = DATA / "golden_laps.npz"
 BORDER = ControllerConfig(c_pixel=3e7, pixel_cost="border")
 RACES = {  # the recorded laps: target speed, seed, controller configuration, estimator
     "mppi": RaceSpec("mppi", speed=14.0, seed=0),
@@ -28,6 +36,22 @@ RACES = {  # the recorded laps: target speed, seed, controller configuration, es
     "pixelmpc_border_pf": RaceSpec("pixelmpc", BORDER, speed=8.5, seed=4, estimator="pf"),
 }
 SECONDS = 2.0
+FOREIGN_FILTER_TICKS = 8  # the particle filter's ticks compared with another processor's recording
+
+
+def _recording(path: Path) -> dict:
+    with np.load(path) as npz:
+        return dict(npz)
+
+
+def _this_processors_recording() -> dict | None:
+    import jax
+
+    for path in sorted(DATA.glob("golden_laps*.npz")):
+        recording = _recording(path)
+        if str(recording["cpu"]) == cpu_signature() and str(recording["jax"]) == jax.__version__:
+            return recording
+    return None
 
 
 def _fly(name: str, ticks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -37,36 +61,42 @@ def _fly(name: str, ticks: int) -> tuple[np.ndarray, np.ndarray]:
     return results["trajectories"][0], results["estimates"][0]
 
 
-def _recorded_here() -> bool:
-    import jax
-
-    return str(GOLDEN["cpu"]) == cpu_signature() and str(GOLDEN["jax"]) == jax.__version__
-
-
 @pytest.mark.parametrize("name", ["mppi", "pixelmpc_border", "mppi_pf", "pixelmpc_border_pf",
                                   pytest.param("pixelmpc_l1", marks=pytest.mark.slow)])  # same step, another cost
 def test_a_lap_flies_the_recorded_states(name):
     """Recorded on one device, as the test process runs (a lap's rounding depends on the device split)."""
-    recorded_states, recorded_estimates = GOLDEN[f"{name}/states"], GOLDEN[f"{name}/estimates"]
+    here = _this_processors_recording()
+    golden = here if here is not None else _recording(FIRST_RECORDING)
+    recorded_states, recorded_estimates = golden[f"{name}/states"], golden[f"{name}/estimates"]
     states, estimates = _fly(name, len(recorded_states) - 1)
     assert states.shape == recorded_states.shape and estimates.shape == recorded_estimates.shape
-    if _recorded_here():
+    if here is not None:
         np.testing.assert_array_equal(states, recorded_states)
         np.testing.assert_array_equal(estimates, recorded_estimates)
     else:
-        np.testing.assert_allclose(states, recorded_states, atol=1e-3)
-        np.testing.assert_allclose(estimates, recorded_estimates, atol=1e-3)
+        on_filter = RACES[name].estimator == "pf"
+        ticks = FOREIGN_FILTER_TICKS + 1 if on_filter else len(recorded_states)
+        np.testing.assert_allclose(states[:ticks], recorded_states[:ticks], atol=1e-3)
+        np.testing.assert_allclose(estimates[:ticks], recorded_estimates[:ticks], atol=2e-2 if on_filter else 1e-3)
 
 
-def record() -> None:
-    """Fly every race of :data:`RACES` for :data:`SECONDS` and write them, with this processor's signature."""
+def recording_path(signature: str) -> Path:
+    """Where this processor's laps are recorded: ``golden_laps_<signature>.npz``."""
+    return DATA / f"golden_laps_{re.sub(r'[^a-z0-9]+', '_', signature.lower()).strip('_')}.npz"
+
+
+def record() -> Path:
+    """Fly every race of :data:`RACES` for :data:`SECONDS` and write them, with this processor's signature, into
+    :func:`recording_path` (the first recording is never overwritten)."""
     import jax
 
     arrays = {"cpu": np.asarray(cpu_signature()), "jax": np.asarray(jax.__version__)}
     for name in RACES:
         arrays[f"{name}/states"], arrays[f"{name}/estimates"] = _fly(name, round(SECONDS * 40))
-    np.savez(GOLDEN_PATH, **arrays)
+    path = recording_path(cpu_signature())
+    np.savez(path, **arrays)
+    return path
 
 
 if __name__ == "__main__":
-    record()
+    print(record())

@@ -11,6 +11,7 @@ import pytest
 STOPPED_INSIDE_GC = textwrap.dedent("""
     import gc, os, signal, sys, time
     from pixelmpc_jax import host
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a terminal: a background job ignores Ctrl-C
     host.stop_on_sigterm()
     signum = getattr(signal, sys.argv[1])
 
