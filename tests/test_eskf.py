@@ -320,9 +320,10 @@ def test_no_recompilation_across_steps(course, flights):
 def test_a_constant_imu_bias_is_learnt_within_20_percent(course, flights):
     """The moderate IMU bias of ``sim/faults.py``'s size on every axis (0.2 m/s^2, 0.01 rad/s), added as the faults
     add it: after 20 s each axis of both biases is within 20 % of the truth and within 3 sigma of the filter's own
-    covariance. (After 10 s the lateral accelerometer bias is not yet: on these laps its 1 sigma is still 15-20 %
-    of 0.2 m/s^2, the corners of a far gate barely telling a roll error from a lateral bias; 9 of 20 laps had every
-    axis within 20 % at 10 s, all 20 at 15 s.)"""
+    covariance. (After 10 s the lateral accelerometer bias is not yet: the corners of a far gate barely tell a roll
+    error from a lateral bias, and its 1 sigma is still 22 % of 0.2 m/s^2 on the median replay, even with every
+    model walk set to zero; 12 of 20 replays had every axis within 20 % at 10 s, 19 at 15 s, all 20 at 20 s. The
+    slow test below measures that bound.)"""
     track, camera = course
     flight = _flight(flights, 0)
     faults = faults_lib.Faults(imu_accel_bias=ACCEL_BIAS, imu_gyro_bias=GYRO_BIAS)
@@ -334,6 +335,45 @@ def test_a_constant_imu_bias_is_learnt_within_20_percent(course, flights):
     assert np.all(np.abs(final - truth) <= 0.2 * np.abs(truth)), (final, truth)
     assert np.all(np.abs(final - truth) <= 3.0 * sigma), (final - truth, sigma)
     assert np.all(np.abs(np.asarray(estimates.bias[0]) - truth) > 0.5 * np.abs(truth))  # it started far off
+
+
+@pytest.mark.slow  # ~15 s: the 20 replays twice; the evidence for asserting the bias at 20 s above, not 10 s
+def test_at_10_s_the_lateral_accelerometer_bias_is_not_yet_in_the_data(course, flights):
+    """Why the test above waits 20 s: both biases on the 20 replays, and the filter's own std of each bias at 10 s
+    with every model walk (velocity, attitude, both biases) set to zero. Those walks only add noise to the
+    vehicle's own, so this covariance is a lower bound (to first order) on any estimator's given the IMU and the
+    target's corners. On the median replay the lateral (body y) accelerometer bias's 1 sigma at 10 s is still over
+    15 % of 0.2 m/s^2 (measured 22 %): with 20 % as the bar, every axis within it is a toss of a coin, and the
+    filter's errors match its stds (the default filter passes on 12 of 20). At 20 s the bound is under 10 % on
+    every axis, and the default filter's errors are within 3 of its own sigmas."""
+    track, camera = course
+    faults = faults_lib.Faults(imu_accel_bias=ACCEL_BIAS, imu_gyro_bias=GYRO_BIAS)
+    truth = np.abs(np.asarray(ACCEL_BIAS + GYRO_BIAS))
+    ideal = dataclasses.replace(CONFIG, velocity_walk=0.0, attitude_walk=0.0, accel_bias_walk=0.0,
+                                gyro_bias_walk=0.0)
+
+    def replay(config):
+        def one(flight):
+            imu = jax.vmap(lambda tick_imu: faults_lib.corrupt_imu(tick_imu, faults, jax.random.PRNGKey(0)))(flight.imu)
+
+            def tick(state, inputs):
+                state, estimate, _ = E.eskf_step(state, *inputs, track, camera, config)
+                return state, (estimate.bias, jnp.sqrt(jnp.diag(estimate.covariance)[9:]))
+
+            delays = jnp.zeros(flight.states.shape[0], jnp.int32)
+            return jax.lax.scan(tick, E.eskf_init(flight.states[0], config, SPREAD),
+                                (imu, flight.detections, delays))[1]
+
+        bias, sigma = jax.device_get(jax.jit(jax.vmap(one))(flights))
+        return np.abs(bias - np.asarray(ACCEL_BIAS + GYRO_BIAS)) / truth, sigma / truth  # relative to the bias
+
+    ten, twenty = 10 * timing.CONTROL_HZ, TICKS
+    _, bound = replay(ideal)
+    assert np.median(bound[:, ten, 1]) > 0.15, np.median(bound[:, ten], 0)
+    assert np.all(np.median(bound[:, twenty], 0) < 0.10), np.median(bound[:, twenty], 0)
+    error, sigma = replay(CONFIG)
+    assert np.all(error[:, twenty] <= 3.0 * sigma[:, twenty]), (error[:, twenty] / sigma[:, twenty]).max(0)
+    assert np.sum(np.all(error[:, ten] <= 0.2, axis=1)) < NUM_REPLAYS  # some replay misses the 20 % bar at 10 s
 
 
 def test_a_false_detection_far_from_the_prediction_changes_nothing(course, flights):
