@@ -240,3 +240,19 @@ def test_a_cell_flown_with_other_settings_counts_as_not_run(tmp_path, flown):
 def test_the_report_of_finished_cells_only(tmp_path):
     rows = R.robustness_experiment(tmp_path, quick=True, run=False)
     assert rows == [] and "Not yet run" in (tmp_path / "REPORT.md").read_text()
+
+
+def test_the_adapted_noise_flies_on_the_kalman_filter_at_both_levels_and_the_other_sets_at_the_moderate_only():
+    cells = _by_name(R.robustness_cells(levers=("adapt", "map")))
+    for controller in ("mppi", "pixelmpc"):
+        for fault in ("none", "pixel_noise_moderate", "pixel_noise_severe", "false_severe"):
+            spec = cells[f"{controller}_eskf_{fault}_adapt"].cell.spec
+            assert spec.eskf.noise_adapt_rate == R.NOISE_ADAPT_RATE and spec.estimator == "eskf"
+            assert spec.config == cells[f"{controller}_eskf_{fault}"].cell.spec.config
+        assert f"{controller}_eskf_combined_moderate_adapt" in cells
+        assert f"{controller}_eskf_pixel_noise_severe_map" not in cells  # the map set answers the moderate level
+        assert not any(name.endswith("_adapt") and "_eskf_" not in name for name in cells)
+    severe = [rc for rc in cells.values() if rc.levers == "adapt" and rc.level == "severe"]
+    assert len(severe) == 2 * len(FAULT_LEVELS) and all(rc.laps == 6 for rc in severe)
+    assert RaceSpec.from_record(cells["pixelmpc_eskf_pixel_noise_severe_adapt"].cell.spec.record()) == \
+        cells["pixelmpc_eskf_pixel_noise_severe_adapt"].cell.spec

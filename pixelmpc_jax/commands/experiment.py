@@ -104,8 +104,10 @@ def _add_robustness(jobs) -> None:
                         "observer, the latency in the model; on every loop, both controllers), filter (the particle "
                         "filter's guards), gate and bias (the guards' two halves alone), robust (model and gate at "
                         "once); the guards on the particle filter and PixelMPC only; map (the Kalman filter told how "
-                        "far a gate may stand from the map), model-map (model and map at once) and align (the "
-                        "Kalman filter aligned on its IMU at rest before the lap) on the Kalman filter; no name: all")
+                        "far a gate may stand from the map), model-map (model and map at once), align (the "
+                        "Kalman filter aligned on its IMU at rest before the lap) and adapt (the Kalman filter's "
+                        "corner noise following its innovations; also at the severe level) on the Kalman filter; "
+                        "no name: all")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="other grids' output folders whose finished cells of the same race (the fault-free "
                         "ones, and any other flown the same) are copied, not flown")

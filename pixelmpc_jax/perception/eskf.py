@@ -31,7 +31,10 @@ camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU'
   gate, in a pattern (a shrunk or shifted outline) that no error of the pose explains; the joint gate catches it
   where the per-corner one cannot. The accepted corners are applied together (Joseph form, symmetrised, then the
   ESKF reset of the attitude block). A tick whose corners are all rejected leaves the belief exactly as a tick
-  without a detection (the update is skipped, not applied with zero gain).
+  without a detection (the update is skipped, not applied with zero gain). With
+  ``ESKFConfig.noise_adapt_rate`` > 0 the corners' noise follows what the innovations show: a scale of ``R`` in
+  the belief, moved after each tick by the corners' clipped Mahalanobis distances (a detector noisier than the
+  filter was told otherwise starves it: the gate rejects most corners and the estimate drifts off).
 - Late detections. A detection captured ``delay_ticks`` ticks before it reaches the filter is applied at the tick
   it was captured. The state keeps a fixed-lag window (``ESKFConfig.max_delay_ticks`` ticks): the belief before
   the window (the anchor) and the window's IMU inputs and detections (:class:`ESKFState`). Each step appends the
@@ -135,6 +138,14 @@ class ESKFConfig:
             accelerometer bias: one update with the readings' own noise over that time (``density^2 / align_s``)
             learns the gyro bias and the accelerometer's bias along gravity. Its bias across gravity reads as a tilt
             does, so the update only ties the two together (the attitude prior decides how much each gets).
+        noise_adapt_rate: how fast the corners' noise follows what the innovations show (0: never, the default;
+            the noise stays ``measurement_sigma_px``). With ``a`` > 0 the belief carries a scale ``s`` of the
+            corners' variance (``R = s sigma^2 I``). After each tick with usable corners, ``s`` becomes
+            ``s (1 - a + a m)``, where ``m`` is the corners' mean squared Mahalanobis distance per degree of
+            freedom under their prior innovation covariance, each distance clipped at ``gate_chi2``. A consistent
+            filter has ``m`` = 1 on average, so ``s`` holds; corners k times noisier than ``sigma`` take ``s`` to
+            about k^2 within a few ``1 / a`` detections. The clip bounds what one false corner can add.
+        noise_scale_max: the largest ``s`` (its smallest is 1: the configured noise is a floor).
         gravity: m/s^2 along world -z.
     """
 
@@ -156,6 +167,8 @@ class ESKFConfig:
     gravity: float = GRAVITY
     map_sigma_m: float = 0.0
     align_s: float = 0.0
+    noise_adapt_rate: float = 0.0
+    noise_scale_max: float = 25.0
 
     def __post_init__(self):
         for name in ("accel_noise_density", "gyro_noise_density", "accel_bias_walk", "gyro_bias_walk",
@@ -174,6 +187,12 @@ class ESKFConfig:
             raise ValueError(f"joint_gate must be True or False, got {self.joint_gate!r}")
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(f"robust_loss must be one of {ROBUST_LOSSES}, got {self.robust_loss!r}")
+        rate = self.noise_adapt_rate
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 1:
+            raise ValueError(f"noise_adapt_rate must be a number in [0, 1], got {rate!r}")
+        top = self.noise_scale_max
+        if isinstance(top, bool) or not isinstance(top, (int, float)) or not (math.isfinite(top) and top >= 1):
+            raise ValueError(f"noise_scale_max must be a finite number >= 1, got {top!r}")
         delay = self.max_delay_ticks
         if isinstance(delay, bool) or not isinstance(delay, int) or not 0 <= delay <= 16:
             raise ValueError(f"max_delay_ticks must be an integer number of ticks in [0, 16], got {delay!r}")
@@ -187,11 +206,14 @@ class ESKFBelief:
         x: (10,) nominal robot state ``[p, q(wxyz), v]``.
         bias: (6,) nominal IMU biases ``[b_a (m/s^2), b_g (rad/s)]``, body frame, added to the true readings.
         cov: (15, 15) covariance of the error state ``[dp, dv, dtheta, dba, dbg]``.
+        noise_scale: () the corners' noise variance as a multiple of ``measurement_sigma_px^2`` (1 unless
+            ``ESKFConfig.noise_adapt_rate`` > 0).
     """
 
     x: jax.Array
     bias: jax.Array
     cov: jax.Array
+    noise_scale: jax.Array
 
 
 class ImuInput(NamedTuple):
@@ -325,7 +347,8 @@ def _corrected(belief: ESKFBelief, dx: jax.Array, cov: jax.Array) -> ESKFBelief:
     new attitude's frame (the ESKF reset of the attitude block) and symmetrised."""
     x, bias = inject(belief.x, belief.bias, dx)
     reset = jnp.eye(ERROR_DIM, dtype=cov.dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's new frame
-    return ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T))
+    return ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T),
+                      noise_scale=belief.noise_scale)
 
 
 def _symmetric(P: jax.Array) -> jax.Array:
@@ -389,7 +412,7 @@ def _predict(belief: ESKFBelief, imu: ImuInput, config: ESKFConfig) -> ESKFBelie
                        + [config.accel_bias_walk] * 3 + [config.gyro_bias_walk] * 3, dtype)
     cov = F @ belief.cov @ F.T + (G * mean_noise_var) @ G.T + jnp.diag(walk**2 * dt)
     x_next = propagate_nominal(belief.x, belief.bias, imu, config.gravity)
-    return ESKFBelief(x=x_next, bias=belief.bias, cov=_symmetric(cov))
+    return ESKFBelief(x=x_next, bias=belief.bias, cov=_symmetric(cov), noise_scale=belief.noise_scale)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -477,6 +500,8 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     residual = jnp.where(usable[:, None], residual, 0.0)
 
     r_var = jnp.asarray(config.measurement_sigma_px**2, dtype)
+    if config.noise_adapt_rate > 0:  # static: without adapting the noise is the configured one, bit for bit
+        r_var = r_var * belief.noise_scale
     S_corner = H @ P @ jnp.swapaxes(H, -1, -2) + r_var * jnp.eye(2, dtype=dtype)  # (4, 2, 2), >= R: invertible
     map_var = config.map_sigma_m**2
     if map_var > 0:  # the gate's offset from the map, shared by its corners (static: an exact map adds nothing)
@@ -514,11 +539,24 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
         cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
     updated = _corrected(belief, dx, cov)
     belief = _tree_where(jnp.any(accepted), updated, belief)  # nothing accepted: the belief untouched, bit for bit
+    if config.noise_adapt_rate > 0:
+        belief = belief.replace(noise_scale=_adapted_noise_scale(belief.noise_scale, mahalanobis2, usable, config))
 
     report = _CornerReport(innovation=residual, innovation_cov=S_corner,
                            corner_mahalanobis2=jnp.where(usable, mahalanobis2, 0.0), accepted=accepted,
                            weight=weight, nis=nis, nis_dof=2 * jnp.sum(accepted.astype(jnp.int32)))
     return belief, report
+
+
+def _adapted_noise_scale(scale: jax.Array, mahalanobis2: jax.Array, usable: jax.Array, config: ESKFConfig):
+    """The corners' noise scale after a tick (``ESKFConfig.noise_adapt_rate``): moved towards what the usable
+    corners' prior Mahalanobis distances (4,), each clipped at the gate, say of it. No usable corner: unchanged."""
+    count = jnp.sum(usable.astype(scale.dtype))
+    clipped = jnp.where(usable, jnp.minimum(mahalanobis2, config.gate_chi2), 0.0)
+    per_dof = jnp.sum(clipped) / (2.0 * jnp.maximum(count, 1.0))
+    rate = config.noise_adapt_rate
+    adapted = jnp.clip(scale * (1.0 - rate + rate * per_dof), 1.0, config.noise_scale_max)
+    return jnp.where(count > 0, adapted, scale)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -665,7 +703,7 @@ def _eskf_init_jit(x0, bias0, config: ESKFConfig, spread):
     position_std, attitude_std, velocity_std = spread
     stds = [position_std] * 3 + [velocity_std] * 3 + [attitude_std] * 3 + [config.accel_bias_std] * 3 \
         + [config.gyro_bias_std] * 3
-    belief = ESKFBelief(x=x0, bias=bias0, cov=jnp.diag(jnp.asarray(stds, dtype) ** 2))
+    belief = ESKFBelief(x=x0, bias=bias0, cov=jnp.diag(jnp.asarray(stds, dtype) ** 2), noise_scale=jnp.ones((), dtype))
     D = config.max_delay_ticks
     return ESKFState(anchor=belief, imu=_no_imu(dtype, (D,)), imu_valid=jnp.zeros((D,), bool),
                      detections=_no_corners(dtype, (D,)), latest=belief)

@@ -13,7 +13,7 @@ set against it lap for lap, on the same seeds), 6 for the severe level (``quick`
 moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, the cells
 of the moderate level, where the bars are set, and the fault-free ones (what a lever costs) are flown again with each
 named set of levers (:data:`LEVER_SETS`) that applies to the loop and the controller on: on the particle filter its
-guards and the ``model`` set, on the Kalman filter its ``map`` and ``align`` settings, the ``model`` set and
+guards and the ``model`` set, on the Kalman filter its ``map``, ``align`` and ``adapt`` settings, the ``model`` set and
 ``model-map``, on the true
 state the ``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever.
 Nominal MPPI flies the ``model`` set too (its own bar: within a lap of its true-state cell) and, as the filters'
@@ -26,7 +26,9 @@ states; ``gate`` and ``bias``, the filter set's two halves alone (which of them 
 and gate sets at once (:data:`COMBINED_LEVERS`); ``map``, the Kalman filter told how far a gate may stand from
 the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the model and map sets at once;
 ``align``, the Kalman filter aligned on its IMU's readings at rest before the lap (:data:`ALIGN_S`,
-``ESKFConfig.align_s``), as a vehicle sits on the pad before take-off. The
+``ESKFConfig.align_s``), as a vehicle sits on the pad before take-off; ``adapt``, the Kalman filter's corner noise
+following what its innovations show (:data:`NOISE_ADAPT_RATE`, ``ESKFConfig.noise_adapt_rate``), the one set also
+flown at the severe level (:data:`SEVERE_LEVERS`), whose 6 px corners it answers. The
 sets fly apart, so each is measured on its own. The ``best`` preset already keeps a clearance to the frames
 widened by the filter's error
 (:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
@@ -95,6 +97,13 @@ ALIGN_S = 2.0
 ESKF_SETTINGS["align"] = ESKFConfig(align_s=ALIGN_S)
 LEVER_SETS["align"] = (f"the ESKF aligned on {ALIGN_S:g} s of its IMU's readings at rest before the lap, which give "
                        "the gyro bias and the accelerometer's along gravity (ESKFConfig.align_s)")
+# the Kalman filter's corner noise following its innovations: a detector noisier than the filter was told (the
+# severe 6 px against its 2 px) starves a filter whose gate rejects most corners, then it drifts off
+NOISE_ADAPT_RATE = 0.05
+ESKF_SETTINGS["adapt"] = ESKFConfig(noise_adapt_rate=NOISE_ADAPT_RATE)
+LEVER_SETS["adapt"] = (f"the ESKF's corner noise following what its innovations show (rate {NOISE_ADAPT_RATE:g} a "
+                       "detection; ESKFConfig.noise_adapt_rate), also flown at the severe level")
+SEVERE_LEVERS = ("adapt",)  # the sets also flown at the severe level: the severe faults are what they answer
 COMBINED_LEVERS["model-map"] = ("model", "map")
 LEVER_SETS["model-map"] = "the model and map sets at once (the Kalman filter's counterpart of robust)"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
@@ -183,14 +192,19 @@ def robustness_cells(quick: bool = False, levers: tuple = (), estimators: tuple 
                     if not reaches(fault, controller, estimator):
                         continue
                     laps = _laps(level, quick)
-                    answers = level in (None, "moderate")
-                    for lever in (None, *(lv for lv in levers if answers and applies(lv, estimator)
+                    for lever in (None, *(lv for lv in levers if _answers(lv, level) and applies(lv, estimator)
                                           and (controller == "pixelmpc" or _flies_nominal(lv)))):
                         name = "_".join([controller, estimator, fault, *([level] if level else []),
                                          *([lever] if lever else [])])
                         cells.append(RobustCell(Cell(name, race(controller, estimator, faults, lever)), fault,
                                                 level, controller, estimator, lever, laps))
     return cells
+
+
+def _answers(levers: str, level: str | None) -> bool:
+    """Whether the set ``levers`` flies at ``level``: every set on the fault-free race and the moderate level, where
+    the bars are set; the :data:`SEVERE_LEVERS` at the severe level too."""
+    return level in (None, "moderate") or (level == "severe" and levers in SEVERE_LEVERS)
 
 
 def _flies_nominal(levers: str) -> bool:
