@@ -211,6 +211,11 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
                    help="with --estimator eskf: the filter averages S s of its IMU's readings at rest before the lap "
                         "(on the pad) and learns the gyro bias and the accelerometer's along gravity from them "
                         "(2 is a usual pre-flight wait; default: 0, none)")
+    p.add_argument("--eskf-noise-adapt-rate", type=float_in(0.0, 1.0), default=None, dest=ESKF + "noise_adapt_rate",
+                   metavar="RATE",
+                   help="with --estimator eskf: the corners' noise follows what the filter's innovations show, "
+                        "moving by RATE of the way at each detection, never below its 2 px (0.05 takes a 6 px "
+                        "detector in a few seconds; default: 0, the noise stays 2 px)")
 
 
 def imu_bias_std(text: str) -> tuple:

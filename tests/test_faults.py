@@ -420,13 +420,17 @@ def test_the_fault_flags_make_the_race(tmp_path):
 
 def test_the_kalman_filter_flags_set_it_and_need_it(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
-                                          "--eskf-map-sigma", "0.2", "--eskf-align", "2"])
+                                          "--eskf-map-sigma", "0.2", "--eskf-align", "2",
+                                          "--eskf-noise-adapt-rate", "0.05"])
     spec, _ = cli._race_spec(args)
     assert spec.eskf.map_sigma_m == 0.2 and spec.eskf.align_s == 2.0 and spec.guards == guards_lib.GuardConfig()
+    assert spec.eskf.noise_adapt_rate == 0.05
     plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
-    assert plain.eskf.map_sigma_m == 0.0 and plain.eskf.align_s == 0.0
+    assert plain.eskf.map_sigma_m == 0.0 and plain.eskf.align_s == 0.0 and plain.eskf.noise_adapt_rate == 0.0
     for argv, message in ((["--eskf-map-sigma", "0.2"], "--eskf-map-sigma sets the Kalman filter"),
                           (["--eskf-align", "2"], "--eskf-align sets the Kalman filter"),
+                          (["--eskf-noise-adapt-rate", "0.05"], "--eskf-noise-adapt-rate sets the Kalman filter"),
+                          (["--estimator", "eskf", "--eskf-noise-adapt-rate", "2"], "a finite number in [0, 1]"),
                           (["--estimator", "eskf", "--eskf-align", "-1"], "must be a finite number in [0, 60] s"),
                           (["--estimator", "eskf", "--eskf-map-sigma", "-1"], "must be a finite number in [0, 100] m")):
         try:
