@@ -196,7 +196,8 @@ def plot_curves(rows: list[dict], path: Path) -> None:
     handles, labels = axes[0].get_legend_handles_labels()
     if not handles:  # the wind curve not flown: the delay panel names the loops
         handles, labels = axes[1].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncol=min(len(labels), 4) or 1)  # off the data
+    columns = 4 if len(labels) <= 4 else 2  # more loops: two columns, each label whole inside the figure
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncol=min(len(labels), columns) or 1)
     fig.suptitle("Success against steady wind and detection delay (8.5 m/s, AlphaPilot)", fontsize=10)
     fig.savefig(path, dpi=120)
     plt.close(fig)
