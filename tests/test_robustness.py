@@ -256,3 +256,8 @@ def test_the_adapted_noise_flies_on_the_kalman_filter_at_both_levels_and_the_oth
     assert len(severe) == 2 * len(FAULT_LEVELS) and all(rc.laps == 6 for rc in severe)
     assert RaceSpec.from_record(cells["pixelmpc_eskf_pixel_noise_severe_adapt"].cell.spec.record()) == \
         cells["pixelmpc_eskf_pixel_noise_severe_adapt"].cell.spec
+    both = _by_name(R.robustness_cells(levers=("model-adapt",)))
+    spec = both["mppi_eskf_combined_moderate_model-adapt"].cell.spec
+    assert spec.eskf.noise_adapt_rate == R.NOISE_ADAPT_RATE
+    assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
+    assert not any(name.endswith("model-adapt") and ("_eskf_" not in name or "severe" in name) for name in both)

@@ -28,7 +28,8 @@ the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the mo
 ``align``, the Kalman filter aligned on its IMU's readings at rest before the lap (:data:`ALIGN_S`,
 ``ESKFConfig.align_s``), as a vehicle sits on the pad before take-off; ``adapt``, the Kalman filter's corner noise
 following what its innovations show (:data:`NOISE_ADAPT_RATE`, ``ESKFConfig.noise_adapt_rate``), the one set also
-flown at the severe level (:data:`SEVERE_LEVERS`), whose 6 px corners it answers. The
+flown at the severe level (:data:`SEVERE_LEVERS`), whose 6 px corners it answers; ``model-adapt``, the model and
+adapt sets at once. The
 sets fly apart, so each is measured on its own. The ``best`` preset already keeps a clearance to the frames
 widened by the filter's error
 (:data:`~pixelmpc_jax.apps.racing.presets.BEST_VEHICLE_RADIUS_M`).
@@ -106,6 +107,8 @@ LEVER_SETS["adapt"] = (f"the ESKF's corner noise following what its innovations 
 SEVERE_LEVERS = ("adapt",)  # the sets also flown at the severe level: the severe faults are what they answer
 COMBINED_LEVERS["model-map"] = ("model", "map")
 LEVER_SETS["model-map"] = "the model and map sets at once (the Kalman filter's counterpart of robust)"
+COMBINED_LEVERS["model-adapt"] = ("model", "adapt")
+LEVER_SETS["model-adapt"] = "the model and adapt sets at once"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
