@@ -4,6 +4,7 @@ no-jit, no recompilation), and behaviour on open-loop replays of flown laps with
 belongs, and the filter consistent (NEES and NIS inside their 95 % bands)."""
 
 import dataclasses
+import functools
 import math
 
 import eskf_replay
@@ -47,18 +48,33 @@ def _flight(flights, i):
     return jax.tree_util.tree_map(lambda a: a[i], flights)
 
 
-def _run(imu, detections, delays, x0, track, camera):
+def _run(imu, detections, delays, x0, track, camera, config=CONFIG):
     """The filter over a replay: ``eskf_step`` per tick in a scan. -> (estimates, infos), leading axis T+1."""
 
     def tick(state, inputs):
         imu_k, detection_k, delay_k = inputs
-        state, estimate, info = E.eskf_step(state, imu_k, detection_k, delay_k, track, camera, CONFIG)
+        state, estimate, info = E.eskf_step(state, imu_k, detection_k, delay_k, track, camera, config)
         return state, (estimate, info)
 
-    return jax.lax.scan(tick, E.eskf_init(x0, CONFIG, SPREAD), (imu, detections, delays))[1]
+    return jax.lax.scan(tick, E.eskf_init(x0, config, SPREAD), (imu, detections, delays))[1]
 
 
 _replay = jax.jit(_run)  # every replay has the same shapes: one compilation
+
+
+@functools.cache
+def _batched_run(config):
+    """:func:`_run` with ``config`` over replays batched on axis 0, compiled once per config and shape."""
+    return jax.jit(jax.vmap(functools.partial(_run, config=config), in_axes=(0, 0, 0, 0, None, None)))
+
+
+def _replays(flights, course, config, imu=None):
+    """The filter with ``config`` over batched ``flights``, every detection on time (``imu``: the flights' own when
+    None). -> (estimates, infos), leading axes (replays, T+1)."""
+    track, camera = course
+    delays = np.zeros(flights.states.shape[:2], np.int32)
+    return _batched_run(config)(flights.imu if imu is None else imu, flights.detections, delays,
+                                flights.states[:, 0], track, camera)
 
 
 def _on_time(flight):
@@ -347,25 +363,18 @@ def test_at_10_s_the_lateral_accelerometer_bias_is_not_yet_in_the_data(course, f
     15 % of 0.2 m/s^2 (measured 22 %): with 20 % as the bar, every axis within it is a toss of a coin, and the
     filter's errors match its stds (the default filter passes on 12 of 20). At 20 s the bound is under 10 % on
     every axis, and the default filter's errors are within 3 of its own sigmas."""
-    track, camera = course
     faults = faults_lib.Faults(imu_accel_bias=ACCEL_BIAS, imu_gyro_bias=GYRO_BIAS)
     truth = np.abs(np.asarray(ACCEL_BIAS + GYRO_BIAS))
     ideal = dataclasses.replace(CONFIG, velocity_walk=0.0, attitude_walk=0.0, accel_bias_walk=0.0,
                                 gyro_bias_walk=0.0)
 
+    corrupt = jax.vmap(jax.vmap(lambda tick_imu: faults_lib.corrupt_imu(tick_imu, faults, jax.random.PRNGKey(0))))
+    imu = corrupt(flights.imu)
+
     def replay(config):
-        def one(flight):
-            imu = jax.vmap(lambda tick_imu: faults_lib.corrupt_imu(tick_imu, faults, jax.random.PRNGKey(0)))(flight.imu)
-
-            def tick(state, inputs):
-                state, estimate, _ = E.eskf_step(state, *inputs, track, camera, config)
-                return state, (estimate.bias, jnp.sqrt(jnp.diag(estimate.covariance)[9:]))
-
-            delays = jnp.zeros(flight.states.shape[0], jnp.int32)
-            return jax.lax.scan(tick, E.eskf_init(flight.states[0], config, SPREAD),
-                                (imu, flight.detections, delays))[1]
-
-        bias, sigma = jax.device_get(jax.jit(jax.vmap(one))(flights))
+        estimates, _ = _replays(flights, course, config, imu)
+        sigma = np.sqrt(np.diagonal(np.asarray(estimates.covariance), axis1=-2, axis2=-1)[..., 9:])
+        bias = np.asarray(estimates.bias)
         return np.abs(bias - np.asarray(ACCEL_BIAS + GYRO_BIAS)) / truth, sigma / truth  # relative to the bias
 
     ten, twenty = 10 * timing.CONTROL_HZ, TICKS
@@ -383,39 +392,25 @@ def test_the_corner_noise_adapts_to_a_noisier_detector_and_holds_at_the_told_one
     drifts metres off; with ``noise_adapt_rate`` the scale of the corners' variance settles near 3^2 = 9 and the
     estimate stays within a metre. On the same replays' 2 px corners the scale stays near 1, and without adapting it
     is 1 exactly."""
-    track, camera = course
+    camera = course[1]
     two_px = jax.tree_util.tree_map(lambda a: np.asarray(a[:4, :600]), flights)
     extra = math.sqrt(6.0**2 - 2.0**2) / np.asarray([camera.width, camera.height], np.float32)  # normalised uv
     noise = np.random.default_rng(31).normal(size=two_px.detections.corners.shape).astype(np.float32) * extra
     noisy = two_px._replace(detections=two_px.detections.replace(corners=two_px.detections.corners + noise))
     adapting = dataclasses.replace(CONFIG, noise_adapt_rate=0.05)
 
-    def replayer(config):
-        def one(flight):
-            def tick(state, inputs):
-                imu, detection = inputs
-                state, estimate, _ = E.eskf_step(state, imu, detection, 0, track, camera, config)
-                return state, (estimate.mean[:3], state.latest.noise_scale)
+    def replay(config, flights):
+        estimates, info = _replays(flights, course, config)
+        error = np.linalg.norm(np.asarray(estimates.mean)[..., :3] - np.asarray(flights.states)[..., :3], axis=-1)
+        return np.sqrt(np.mean(error**2, axis=1)), np.asarray(info.noise_scale)  # RMS per replay, scale per tick
 
-            return jax.lax.scan(tick, E.eskf_init(flight.states[0], config, SPREAD), (flight.imu, flight.detections))[1]
-
-        run = jax.jit(jax.vmap(one))  # one compilation per config: every replay here has the same shapes
-
-        def replay(flights):
-            position, scale = jax.device_get(run(flights))
-            error = np.linalg.norm(position - np.asarray(flights.states)[..., :3], axis=-1)
-            return np.sqrt(np.mean(error**2, axis=1)), scale  # RMS per replay, scale per replay and tick
-
-        return replay
-
-    adapt = replayer(adapting)
-    rms, scale = adapt(noisy)
+    rms, scale = replay(adapting, noisy)
     assert np.all(rms < 1.0), rms
     assert 6.0 < np.median(scale[:, -200:]) < 13.0, np.median(scale[:, -200:])
-    rms_told, scale_told = replayer(CONFIG)(noisy)
+    rms_told, scale_told = replay(CONFIG, noisy)
     assert np.all(scale_told == 1.0)
     assert np.median(rms_told) > 3.0 * np.median(rms), (rms_told, rms)
-    rms_2px, scale_2px = adapt(two_px)
+    rms_2px, scale_2px = replay(adapting, two_px)
     assert np.all(scale_2px >= 1.0) and np.all(scale_2px[:, 200:] < 1.6), scale_2px[:, 200:].max()
     assert np.median(scale_2px[:, 200:]) < 1.2
     assert np.all(rms_2px < 0.5), rms_2px

@@ -289,6 +289,8 @@ class ESKFInfo(NamedTuple):
         nis_dof: () int32, its degrees of freedom, 2 per accepted corner.
         delay_ticks: () int32, the delay the detection arrived with.
         dropped: () bool, the detection was later than ``max_delay_ticks`` (or earlier than now) and was dropped.
+        noise_scale: () the newest belief's scale of the corners' noise variance (1 unless
+            ``ESKFConfig.noise_adapt_rate`` > 0).
     """
 
     position_cov_trace: jax.Array
@@ -301,6 +303,7 @@ class ESKFInfo(NamedTuple):
     nis_dof: jax.Array
     delay_ticks: jax.Array
     dropped: jax.Array
+    noise_scale: jax.Array
 
 
 # --------------------------------------------------------------------------------------------------
@@ -618,7 +621,7 @@ def _step(state: ESKFState, imu: ImuInput, imu_valid, detection: CornerInput, de
     state = ESKFState(anchor=anchor, imu=drop_first(imus), imu_valid=valid[1:], detections=drop_first(detections),
                       latest=latest)
     info = ESKFInfo(position_cov_trace=jnp.trace(latest.cov[0:3, 0:3]), **report._asdict(), delay_ticks=delay,
-                    dropped=~in_window)
+                    dropped=~in_window, noise_scale=latest.noise_scale)
     return state, _estimate(latest), info
 
 
