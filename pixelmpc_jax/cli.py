@@ -117,7 +117,9 @@ def _race_spec(args):
     setting the library refuses), and the DOF weights of a weights file (None for packaged weights, which the
     spec names), which enter the spec as their fingerprint."""
     from pixelmpc_jax.apps.racing.presets import preset
-    from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
+    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
+    from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
     fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
@@ -131,16 +133,10 @@ def _race_spec(args):
             raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
         spec = spec.replace(dof_weights=None)
     dof_params = None
-    if spec.dof_weights is not None and spec.dof_weights not in _packaged_variants():
+    if spec.dof_weights is not None and spec.dof_weights not in PACKAGED_VARIANTS:
         dof_params = _race_dof(spec.dof_weights, spec.config.pixel_model)
         spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
     return spec, dof_params
-
-
-def _packaged_variants() -> dict:
-    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
-
-    return PACKAGED_VARIANTS
 
 
 def _check_race(args) -> None:

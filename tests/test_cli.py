@@ -6,9 +6,10 @@ import json
 import pytest
 
 from pixelmpc_jax import cli
-from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.costs import RacingCostConfig
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 
 
 def _reject(constant):

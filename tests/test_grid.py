@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax.apps.racing import grid, race
-from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash, packaged_dof_hash
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
+from pixelmpc_jax.dynamics.dof import packaged_dof_hash
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.metrics import MEASURE
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"

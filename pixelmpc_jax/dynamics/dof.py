@@ -307,3 +307,9 @@ def load_packaged_dof(variant: str = "paper") -> DOFParams:
         raise FileNotFoundError(f"{path}: the package ships no DOF weights; reinstall it, or train "
                                 f"your own with `pixelmpc train` and pass them explicitly")
     return load_checkpoint(path)[0]
+
+
+def packaged_dof_hash(variant: str = "paper") -> str:
+    """The fingerprint (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of the DOF weights
+    ``variant`` shipped inside the package (computed again only when the weights file changes)."""
+    return network_weights.packaged_weights_hash(PACKAGED_VARIANTS[variant], load_packaged_dof, variant)

@@ -5,12 +5,15 @@ A weights file is one msgpack file (``flax.serialization``): the format name and
 record of how the weights were made (both as JSON), and the parameters as state dicts of numpy arrays (raw bytes:
 bit-exact round trips; no pickle, so loading an untrusted file cannot run code), written atomically. Each model
 names its format, checks the architecture it reads against its own, and keeps its parameters' layout; the reading,
-writing and shape checks are here, once.
+writing and shape checks are here, once. So is the weights' fingerprint (:func:`dof_weights_hash`), by which a race
+names the weights it flies, and its cache for the weights shipped in the package (:func:`packaged_weights_hash`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import functools
+import hashlib
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import jax
@@ -104,3 +107,27 @@ def restore_params(path: Path, template, state, model: str):
     if bad:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(bad))
     return jax.tree_util.tree_map(jnp.asarray, params)
+
+
+def dof_weights_hash(params) -> str:
+    """A short fingerprint of a pixel model's weights (the DOF's or vdof's): the first 16 hex digits of the sha256 of
+    every leaf's dtype, shape and bytes (in ``jax.tree_util.tree_leaves`` order)."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree_util.tree_leaves(params):
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()[:16]
+
+
+def packaged_weights_hash(path: Path, load: Callable, *args) -> str:
+    """:func:`dof_weights_hash` of weights shipped in the package at ``path``, as ``load(*args)`` reads them;
+    computed again only when the file changes (its mtime or size)."""
+    stat = path.stat() if path.exists() else None
+    return _packaged_hash(load, args, str(path), stat and (stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=8)
+def _packaged_hash(load: Callable, args: tuple, path: str, version) -> str:
+    """The packaged weights' fingerprint, cached by the loader, the file's ``path`` and ``version`` (mtime, size)."""
+    return dof_weights_hash(load(*args))

@@ -273,3 +273,9 @@ def load_packaged_vdof() -> VDOFParams:
         raise FileNotFoundError(f"{PACKAGED_VDOF}: the package ships no vdof weights; train them with `pixelmpc "
                                 f"train --model vdof --ship`")
     return load_vdof(PACKAGED_VDOF)[0]
+
+
+def packaged_vdof_hash() -> str:
+    """The fingerprint (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of the vdof weights shipped
+    inside the package (computed again only when the weights file changes)."""
+    return network_weights.packaged_weights_hash(PACKAGED_VDOF, load_packaged_vdof)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from pixelmpc_jax.apps.racing import grid
-from pixelmpc_jax.apps.racing.spec import dof_weights_hash
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.strict_json import write_json_atomic
 
 

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.apps.racing import race
-from pixelmpc_jax.apps.racing.spec import RaceSpec, dof_weights_hash
+from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.sim.metrics import MEASURE
 from pixelmpc_jax.strict_json import write_json_atomic
@@ -172,7 +173,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     Each cell flies its race with ``laps``, ``seed`` and the DOF weights ``dof_params`` (None: the packaged
     weights). A cell in the file is kept only if it recorded the same race (see :func:`is_current`); each cell's
     results record its settings (``config``, :func:`cell_record`), ``seed`` and ``dof_weights_sha256``
-    (:func:`~pixelmpc_jax.apps.racing.spec.dof_weights_hash`, null for a cell that uses no DOF).
+    (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`, null for a cell that uses no DOF).
 
     ``batch_size`` laps fly in one vmapped batch (default :func:`default_batch_size`); a lap's result does
     not depend on it (lap i always uses seed ``seed + i``).

@@ -10,13 +10,13 @@ the record, the key and the policy are derived from it.
 
 Settings that do not change a lap stay out of it: the batch size, the progress bar, the output folder, the
 video, and how many devices a step's samples are split over. The DOF weights enter as their fingerprint
-(:func:`dof_weights_hash`); the weights themselves are passed beside the spec.
+(:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`); the weights themselves are passed beside the
+spec.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 from pathlib import Path
@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
+from pixelmpc_jax.dynamics import dof, vdof
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
@@ -64,8 +66,8 @@ class RaceSpec:
         max_time_s: timeout per lap, s.
         dof_weights: the DOF weights flown: the name of weights shipped in the package
             (:data:`~pixelmpc_jax.dynamics.dof.PACKAGED_VARIANTS`: "flown", "turned"), or the fingerprint
-            (:func:`dof_weights_hash`) of other weights; None for the packaged paper weights. Always None for a
-            race that does not evaluate the DOF.
+            (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of other weights; None for the packaged
+            paper weights. Always None for a race that does not evaluate the DOF.
         guards: the particle filter's guards (:class:`~pixelmpc_jax.perception.filter_guards.GuardConfig`); reset
             to none for a race on the true state.
         eskf: the error-state Kalman filter's settings (:class:`~pixelmpc_jax.perception.eskf.ESKFConfig`); reset
@@ -131,11 +133,11 @@ class RaceSpec:
         if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
             object.__setattr__(self, "eskf", ESKFConfig())
         if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
-                                                       or self.dof_weights in _packaged_variants()):
+                                                       or self.dof_weights in dof.PACKAGED_VARIANTS):
             raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
                              f"with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection pixel model or "
                              f"weights trained for that camera")
-        packaged_dof_name = self.dof_weights in _packaged_variants()
+        packaged_dof_name = self.dof_weights in dof.PACKAGED_VARIANTS
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
 
@@ -173,14 +175,14 @@ class RaceSpec:
         return dict(_changed(self.record()["config"], default, ""))
 
     def dof_fingerprint(self) -> str | None:
-        """The fingerprint of the DOF weights flown (:func:`packaged_dof_hash` for a packaged variant's name or
-        None); None without the DOF."""
+        """The fingerprint of the DOF weights flown (:func:`~pixelmpc_jax.dynamics.dof.packaged_dof_hash` for a
+        packaged variant's name or None); None without the DOF."""
         if not self.uses_dof:
             return None
         if self.config.pixel_model == "vdof":
-            return self.dof_weights or packaged_vdof_hash()
-        if self.dof_weights is None or self.dof_weights in _packaged_variants():
-            return packaged_dof_hash(self.dof_weights or "paper")
+            return self.dof_weights or vdof.packaged_vdof_hash()
+        if self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS:
+            return dof.packaged_dof_hash(self.dof_weights or "paper")
         return self.dof_weights
 
     def packaged_dof(self):
@@ -189,14 +191,10 @@ class RaceSpec:
         if not self.uses_dof:
             return None
         if self.dof_weights is not None and (self.config.pixel_model == "vdof"
-                                             or self.dof_weights not in _packaged_variants()):
+                                             or self.dof_weights not in dof.PACKAGED_VARIANTS):
             raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
         if self.config.pixel_model == "vdof":
-            from pixelmpc_jax.dynamics import vdof
-
             return vdof.load_packaged_vdof()
-        from pixelmpc_jax.dynamics import dof
-
         return dof.load_packaged_dof(self.dof_weights or "paper")
 
     def key(self) -> str:
@@ -230,7 +228,7 @@ class RaceSpec:
             return
         if dof_params is None:
             if self.dof_weights is not None and (self.config.pixel_model == "vdof"
-                                                 or self.dof_weights not in _packaged_variants()):
+                                                 or self.dof_weights not in dof.PACKAGED_VARIANTS):
                 raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
             return
         flown = dof_weights_hash(dof_params)
@@ -281,51 +279,3 @@ def _changed(record: dict, default: dict, prefix: str):
             yield from _changed(value, default.get(name, {}), f"{prefix}{name}.")
         elif _canonical(value) != _canonical(default.get(name)):
             yield f"{prefix}{name}", value
-
-
-def dof_weights_hash(params) -> str:
-    """A short fingerprint of DOF weights: the first 16 hex digits of the sha256 of every leaf's dtype, shape
-    and bytes (in ``jax.tree_util.tree_leaves`` order)."""
-    import jax
-
-    digest = hashlib.sha256()
-    for leaf in jax.tree_util.tree_leaves(params):
-        array = np.ascontiguousarray(np.asarray(leaf))
-        digest.update(f"{array.dtype.str}{array.shape}".encode())
-        digest.update(array.tobytes())
-    return digest.hexdigest()[:16]
-
-
-def packaged_vdof_hash() -> str:
-    """:func:`dof_weights_hash` of the vdof weights shipped inside the package."""
-    from pixelmpc_jax.dynamics import vdof
-
-    path = vdof.PACKAGED_VDOF
-    stat = path.stat() if path.exists() else None
-    return _packaged_hash("vdof", str(path), stat and (stat.st_mtime_ns, stat.st_size))
-
-
-def _packaged_variants() -> dict:
-    from pixelmpc_jax.dynamics import dof
-
-    return dof.PACKAGED_VARIANTS
-
-
-def packaged_dof_hash(variant: str = "paper") -> str:
-    """:func:`dof_weights_hash` of DOF weights shipped inside the package (computed again only when the
-    weights file changes)."""
-    path = _packaged_variants()[variant]
-    stat = path.stat() if path.exists() else None
-    return _packaged_hash(variant, str(path), stat and (stat.st_mtime_ns, stat.st_size))
-
-
-@functools.lru_cache(maxsize=8)
-def _packaged_hash(variant: str, path: str, version) -> str:
-    """The packaged weights' fingerprint, cached by the file's ``path`` and ``version`` (mtime, size)."""
-    if variant == "vdof":
-        from pixelmpc_jax.dynamics import vdof
-
-        return dof_weights_hash(vdof.load_packaged_vdof())
-    from pixelmpc_jax.dynamics import dof
-
-    return dof_weights_hash(dof.load_packaged_dof(variant))
