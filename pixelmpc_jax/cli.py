@@ -142,7 +142,7 @@ def _race_spec(args):
 def _check_race(args) -> None:
     """Build the race and its controllers before anything runs: a ValueError names a setting the library refuses,
     and a missing or damaged weights file is refused."""
-    from pixelmpc_jax.apps.racing.race import make_course
+    from pixelmpc_jax.world.course import make_course
 
     spec = _race_spec(args)[0]
     make_course(spec.course)  # a course file's bad field is named here
@@ -165,14 +165,14 @@ def _race_dof(weights: str, pixel_model: str):
 def _cmd_race(args) -> int:
     from pixelmpc_jax import host
     from pixelmpc_jax.apps.racing import compare
+    from pixelmpc_jax.world.course import course_title
 
     if not args.no_compile_cache:
         host.use_compilation_cache()
     spec, dof_params = _race_spec(args)
     controllers = (args.controller,) if args.controller else ("pixelmpc", "mppi")
-    course = {"alphapilot": "the AlphaPilot course", "straight": "the straight lane"}.get(spec.course, spec.course)
     source = f"config {args.config}" if args.config else f"preset {args.preset}"
-    print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course} at "
+    print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course_title(spec.course)} at "
           f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
           f"output {args.out}")
     record = compare.run_compare(spec, controllers, out=args.out, preset=str(args.config or args.preset),

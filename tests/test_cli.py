@@ -230,12 +230,12 @@ def test_the_command_keeps_freed_memory_for_race_bench_reproduce_unless_told_not
 
 
 def test_a_generated_course_file_is_a_race_course_keyed_by_its_contents(tmp_path, capsys):
-    from pixelmpc_jax.apps.racing import race
+    from pixelmpc_jax.world.course import make_course
 
     first, second = tmp_path / "a" / "course.json", tmp_path / "b.json"
     assert cli.main(["course", "--seed", "3", "--out", str(first)]) == 0
     assert cli.main(["course", "--seed", "4", "--gates", "5", "--out", str(second)]) == 0
-    assert race.make_course(str(second)).num_gates == 5
+    assert make_course(str(second)).num_gates == 5
     spec = RaceSpec("mppi", course=str(first))
     assert spec.key() != spec.replace(course=str(second)).key() != RaceSpec("mppi").key()
     copy = tmp_path / "copy.json"

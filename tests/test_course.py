@@ -207,6 +207,19 @@ def test_straight_course():
         C.straight_course(num_gates=0)
 
 
+def test_courses_by_name_or_file(tmp_path, course_data):
+    assert C.make_course("alphapilot").num_gates == 11
+    straight = C.make_course("straight")
+    assert straight.num_gates == 5
+    np.testing.assert_allclose(np.diff(np.asarray(straight.gates.centre)[:, 0]), 20.0)
+    path = tmp_path / "course.json"
+    path.write_text(json.dumps(course_data))
+    np.testing.assert_array_equal(C.make_course(str(path)).gates.centre, C.make_course("alphapilot").gates.centre)
+    with pytest.raises(ValueError, match="unknown course 'monza'; choose one of alphapilot, straight or a course file"):
+        C.make_course("monza")
+    assert C.course_title("straight") == "the straight lane" and C.course_title(str(path)) == str(path)
+
+
 # --------------------------------------------------------------------------------------------------
 # The seeded course generator.
 # --------------------------------------------------------------------------------------------------

@@ -68,19 +68,6 @@ def test_summary_counts_successes_failures_and_covariance_maxima():
     assert "Wall time of the cells flown here: 6.0 min" in report
 
 
-def test_courses_by_name():
-    import pytest
-
-    from pixelmpc_jax.apps.racing.race import make_course
-
-    assert make_course("alphapilot").num_gates == 11
-    straight = make_course("straight")
-    assert straight.num_gates == 5
-    np.testing.assert_allclose(np.diff(np.asarray(straight.gates.centre)[:, 0]), 20.0)
-    with pytest.raises(ValueError, match="unknown course"):
-        make_course("monza")
-
-
 def test_cpu_cells_fly_in_small_batches():
     import jax
 

@@ -200,7 +200,7 @@ def _two_speeds(args) -> str | None:
 def _check_course(args) -> None:
     """A course file's bad field, named before anything runs."""
     if args.course is not None:
-        from pixelmpc_jax.apps.racing.race import make_course
+        from pixelmpc_jax.world.course import make_course
 
         make_course(args.course)
 

@@ -1,6 +1,7 @@
 """Building a race course (:class:`~pixelmpc_jax.world.track.Track`): from a course file (the packaged
 AlphaPilot course by default), the straight course of the paper's straight-lane test, and a course with its
-gates perturbed within their bounds; and generating a seeded course file (:func:`generate_course`).
+gates perturbed within their bounds; the courses known by name (:data:`COURSES`) and the course a name or a file
+gives (:func:`make_course`); and generating a seeded course file (:func:`generate_course`).
 
 A built course gets its hall (``HALL_MARGIN`` around every gate frame, the start and the desired path; the
 ceiling at ``max(HALL_CEILING, highest point + 3 m)``) and its desired path with the number of path points P
@@ -12,7 +13,9 @@ from __future__ import annotations
 import copy
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,7 +37,6 @@ from pixelmpc_jax.world.track import (
 )
 
 COURSE_FILE = Path(__file__).resolve().parent.parent / "data" / "alphapilot_course.json"
-COURSES = ("alphapilot", "straight")  # the courses known by name (the packaged file, straight_course); else a file
 
 _TOP_LEVEL_FIELDS = {"about", "race", "gates", "camera", "vehicle"}
 _RACE_FIELDS = {"gate_order", "init_pose", "timeout_s", "gate_frame_width_m", "perturbation_bounds_note"}
@@ -216,6 +218,33 @@ def straight_course(
     names = tuple(f"Gate{k + 1}" for k in range(num_gates))
     bounds = np.broadcast_to(np.asarray(perturbation_bound, np.float64), (num_gates, 3))
     return _assemble(names, gates, start, bounds)
+
+
+class NamedCourse(NamedTuple):
+    """A course known by name: what a report calls it, and what builds it."""
+
+    title: str
+    build: Callable[[], Track]
+
+
+# The courses known by name; any other course is a course file (load_course).
+COURSES = {"alphapilot": NamedCourse("the AlphaPilot course", load_course),
+           "straight": NamedCourse("the straight lane", straight_course)}
+
+
+def make_course(course: str = "alphapilot") -> Track:
+    """The course ``course`` names: one of :data:`COURSES` ("alphapilot", the paper's race; "straight", five gates
+    20 m apart in a row, the paper's straight-lane test), or the path of a course file (:func:`load_course`)."""
+    if course in COURSES:
+        return COURSES[course].build()
+    if Path(course).is_file():
+        return load_course(course)
+    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(COURSES)} or a course file")
+
+
+def course_title(course: str) -> str:
+    """What a report calls ``course``: a named course's title, a course file by its path."""
+    return COURSES[course].title if course in COURSES else course
 
 
 def perturb_course(track: Track, key: jax.Array, bounds=None) -> Track:

@@ -23,12 +23,12 @@ import numpy as np
 from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import make_row, time_stats
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
-from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.devices import usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
+from pixelmpc_jax.world.course import make_course
 
 GROUP = "loop"
 TICK_TARGET_MS = 1e3 * timing.CONTROL_DT  # 25 ms: one tick of wall time per tick flown is real time
@@ -66,7 +66,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
     runners = episode_lib.make_runner(policy, config)
     if spec.uses_dof and dof_params is None:
         dof_params = bench_dof_params()
-    world = env_lib.make_world(track=race.make_course(spec.course), target_speed=spec.speed,
+    world = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed,
                                    dof=dof_params if spec.uses_dof else None)
     key = jax.random.PRNGKey(spec.seed)
     start = time.perf_counter()

@@ -196,7 +196,8 @@ def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: st
 
 def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
     """One top-down figure per cell: its trajectories coloured by the position covariance trace."""
-    from pixelmpc_jax.apps.racing.race import make_course, plot_trajectories
+    from pixelmpc_jax.apps.racing.race import plot_trajectories
+    from pixelmpc_jax.world.course import make_course
 
     written = []
     for cell in cells:

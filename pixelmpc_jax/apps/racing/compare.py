@@ -20,6 +20,7 @@ from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.timing import CONTROL_DT
+from pixelmpc_jax.world.course import make_course
 
 LABELS = {"pixelmpc": "PixelMPC", "mppi": "nominal MPPI"}
 COLOURS = {"pixelmpc": "tab:green", "mppi": "tab:red"}
@@ -135,7 +136,7 @@ def plot_trajectories(spec: RaceSpec, flown: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    track = race.make_course(spec.course)
+    track = make_course(spec.course)
     fig, ax = plt.subplots(figsize=(7, 9))
     for name, results in flown.items():
         for i, states in enumerate(results["trajectories"]):

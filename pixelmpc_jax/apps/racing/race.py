@@ -26,18 +26,6 @@ from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
 
-def make_course(course: str = "alphapilot") -> track_lib.Track:
-    """The named course: "alphapilot" (the paper's race), "straight" (five gates 20 m apart in a row, the
-    paper's straight-lane test), or the path of a course file (:func:`~pixelmpc_jax.world.course.load_course`)."""
-    if course == "alphapilot":
-        return course_lib.load_course()
-    if course == "straight":
-        return course_lib.straight_course()
-    if Path(course).is_file():
-        return course_lib.load_course(course)
-    raise ValueError(f"unknown course {course!r}; choose one of {', '.join(course_lib.COURSES)} or a course file")
-
-
 def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool) -> env_lib.World:
     """One World per lap, stacked; with ``perturb`` each lap's course is perturbed with its own seed."""
     worlds = []
@@ -71,7 +59,8 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
     if dof_params is None:
         dof_params = spec.packaged_dof()
     camera = camera_lib.default_camera(tilt=math.radians(spec.camera_tilt_deg))
-    base = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed, dof=dof_params, camera=camera)
+    base = env_lib.make_world(track=course_lib.make_course(spec.course), target_speed=spec.speed, dof=dof_params,
+                              camera=camera)
     return _Flight(episode_lib.make_runner(policy, episode_config), base, policy.name, sample_devices)
 
 

@@ -60,7 +60,7 @@ class RaceSpec:
         seed: seed of the first lap.
         perturb: each lap's gates perturbed within the AlphaPilot bounds (with the lap's seed).
         course: "alphapilot", "straight" or the path of a course file in the AlphaPilot file's format
-            (:func:`~pixelmpc_jax.apps.racing.race.make_course`); a file enters the key by its contents.
+            (:func:`~pixelmpc_jax.world.course.make_course`); a file enters the key by its contents.
         detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`).
         estimator: "truth", "pf" (the particle filter) or "eskf" (the error-state Kalman filter).
         max_time_s: timeout per lap, s.
