@@ -417,7 +417,7 @@ def _fake_race(monkeypatch, success: bool, interrupted: bool):
 
     monkeypatch.setattr(race, "fly_batches", fly_batches)
     monkeypatch.setattr(compare, "side_by_side", lambda record: "table")
-    monkeypatch.setattr(compare, "plot_trajectories", lambda *args: None)
+    monkeypatch.setattr(compare, "plot_controller_trajectories", lambda *args: None)
     monkeypatch.setattr(compare, "plot_visibility", lambda *args: None)
 
 

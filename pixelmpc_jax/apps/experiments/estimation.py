@@ -196,7 +196,7 @@ def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: st
 
 def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
     """One top-down figure per cell: its trajectories coloured by the position covariance trace."""
-    from pixelmpc_jax.apps.racing.race import plot_trajectories
+    from pixelmpc_jax.apps.racing.race import plot_coloured_trajectories
     from pixelmpc_jax.world.course import make_course
 
     written = []
@@ -210,11 +210,10 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
         colours = [np.concatenate([c[:1], c]) if c.size else np.zeros(len(t)) for t, c in zip(trajectories,
                                                                                               covariances)]
         path = out / f"fig9_{cell.name}.png"
-        plot_trajectories(make_course(cell.spec.course), trajectories, path,
-                          title=f"{cell.spec.controller} with the {ESTIMATOR_NAMES[cell.spec.estimator]}, "
-                                f"{cell.spec.speed:g} m/s, "
-                                f"{len(trajectories)} runs", colour_by=colours,
-                          colour_label="position covariance trace [m²]")
+        plot_coloured_trajectories(make_course(cell.spec.course), trajectories, path,
+                                   title=f"{cell.spec.controller} with the {ESTIMATOR_NAMES[cell.spec.estimator]}, "
+                                         f"{cell.spec.speed:g} m/s, {len(trajectories)} runs", colour_by=colours,
+                                   colour_label="position covariance trace [m²]")
         written.append(path)
     return written
 

@@ -84,7 +84,7 @@ def run_compare(spec: RaceSpec, controllers=("pixelmpc", "mppi"), out: Path | No
             bar.close()
     flown = {name: book.flown() for name, book in books.items() if book.results["laps"]}
     if out is not None and flown:
-        plot_trajectories(spec, flown, Path(out) / "trajectories.png")
+        plot_controller_trajectories(spec, flown, Path(out) / "trajectories.png")
         plot_visibility(flown, Path(out) / "visibility.png", spec.speed)
     return {**record, "flown": flown}
 
@@ -129,7 +129,7 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def plot_trajectories(spec: RaceSpec, flown: dict, path: Path) -> None:
+def plot_controller_trajectories(spec: RaceSpec, flown: dict, path: Path) -> None:
     """Top-down view: every lap of each controller in its colour, the gates as their frames."""
     import matplotlib
 

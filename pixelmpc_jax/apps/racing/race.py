@@ -194,9 +194,9 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the controller's samples
     split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to float rounding);
     ``sample_devices`` in the result says how many. With ``out``, ``metrics.json`` and ``ticks_<controller>.npz``
-    are rewritten after every batch, ``trajectories.png`` drawn at the end and, with ``video``, the first lap's
-    ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C (or SIGTERM, under the ``pixelmpc`` command)
-    stopped the run: the laps finished before it are kept (and in ``out``).
+    are rewritten after every batch, ``trajectories.png`` drawn at the end (:func:`plot_coloured_trajectories`)
+    and, with ``video``, the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C (or SIGTERM,
+    under the ``pixelmpc`` command) stopped the run: the laps finished before it are kept (and in ``out``).
     """
     race = prepare(spec, batch_size, dof_params)
     book = LapBook(race)
@@ -225,8 +225,9 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
             bar.close()
     results = book.flown()
     if out is not None and results["trajectories"]:
-        plot_trajectories(race.flight.base.track, results["trajectories"], Path(out) / "trajectories.png",
-                          title=f"{spec.controller}, target {spec.speed:g} m/s, {len(results['trajectories'])} lap(s)")
+        laps = len(results["trajectories"])
+        plot_coloured_trajectories(race.flight.base.track, results["trajectories"], Path(out) / "trajectories.png",
+                                   title=f"{spec.controller}, target {spec.speed:g} m/s, {laps} lap(s)")
     return results
 
 
@@ -251,8 +252,8 @@ def draw_course(ax, track: track_lib.Track) -> None:
     ax.plot(*start, "g^", ms=9, label="start")
 
 
-def plot_trajectories(track: track_lib.Track, trajectories: list[np.ndarray], path: Path, title: str = "",
-                      colour_by: list[np.ndarray] | None = None, colour_label: str = "speed [m/s]") -> None:
+def plot_coloured_trajectories(track: track_lib.Track, trajectories: list[np.ndarray], path: Path, title: str = "",
+                               colour_by: list[np.ndarray] | None = None, colour_label: str = "speed [m/s]") -> None:
     """Top-down view: trajectories coloured by speed (or ``colour_by``), gates drawn as their frames."""
     import matplotlib
 
