@@ -4,9 +4,10 @@ a severe level and all moderate ones at once, on the particle filter and the err
 moderate level on the true state).
 
     python experiments/robustness.py --out DIR [--quick] [--estimators pf eskf truth] [--faults NAME ...]
-        [--levers [NAME ...]] [--reuse FOLDER ...] [--report-only]
+        [--levels moderate severe] [--controllers mppi pixelmpc] [--levers [NAME ...]] [--reuse FOLDER ...]
+        [--report-only]
 
---levers: model, filter, gate, bias, robust (no name: all).
+--levers: model, filter, gate, bias, robust, map, align, adapt, model-map, model-adapt (no name: all).
 
 Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
 robustness.png and results.json. Interrupted runs resume: finished cells are kept.

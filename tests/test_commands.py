@@ -52,6 +52,14 @@ def test_every_script_is_a_thin_call_of_a_job(path, capsys):
     assert done.value.code == 0 and f"pixelmpc {command} {job}" in capsys.readouterr().out
 
 
+def test_the_robustness_script_names_every_set_of_levers():
+    from pixelmpc_jax.apps.experiments.robustness import LEVER_SETS
+
+    doc = ast.get_docstring(ast.parse((ROOT / "experiments" / "robustness.py").read_text()))
+    line = next(line for line in doc.splitlines() if line.startswith("--levers:"))
+    assert re.findall(r"[a-z-]+", line.partition(":")[2].partition("(")[0]) == list(LEVER_SETS)
+
+
 @pytest.mark.parametrize("argv", [
     ["experiment"], ["bench"], ["experiment", "table2", "--laps", "0"], ["experiment", "table4", "--seed", "-1"],
     ["experiment", "robustness", "--levers", "wings"], ["experiment", "robustness", "--reuse", "{tmp}/nothing"],
