@@ -1,6 +1,6 @@
 """The ``pixelmpc`` command's argument types: each checks one argument as it is parsed and returns its value, or
-raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs). Also the race's
-fault flags (:func:`add_fault_flags`) and the race they make (:func:`with_faults`)."""
+raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs); and the check of a
+lap's seeds (:func:`seed_range`), which spans two arguments."""
 
 from __future__ import annotations
 
@@ -12,8 +12,7 @@ from pathlib import Path
 SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
 TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
 T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer pixel-cost horizon t_f acts as 2 s)
-GUARD = "guard:"  # the dest of a race flag that sets one of the particle filter's guards: GUARD + its field
-ESKF = "eskf:"  # the dest of a race flag that sets one of the Kalman filter's settings: ESKF + its field
+MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
 
 
 def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
@@ -174,50 +173,6 @@ def fault(text: str) -> dict:
     return {name: parsed}
 
 
-def add_fault_flags(p: argparse.ArgumentParser) -> None:
-    """The race's faults (``--fault``, repeatable), the particle filter's guards against them (each guard flag
-    sets one field of ``RaceSpec.guards``: dest :data:`GUARD` + its field) and the Kalman filter's settings (dest
-    :data:`ESKF` + a field of ``RaceSpec.eskf``)."""
-    from pixelmpc_jax.sim.faults import FAULT_LEVELS
-
-    p.add_argument("--fault", type=fault, action="append", default=None, metavar="NAME=VALUE",
-                   help="a fault of the world the controller does not model (repeatable): a setting of "
-                        "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; "
-                        "latency_ticks=1; miss_rate=0.2; map_error_m=0.3; ...) or a named fault at a level "
-                        f"({', '.join((*FAULT_LEVELS, 'combined'))}=moderate|severe) (default: none)")
-    p.add_argument("--detection-gate", type=float_in(0.0, 1e4, lo_open=True, unit="px"), default=None,
-                   dest=GUARD + "detection_gate_px", metavar="PX",
-                   help="with --estimator pf: reject a detection farther than PX pixels from where the filter's "
-                        "particles put the gate (default: off)")
-    p.add_argument("--pf-recover", type=float_in(0.0, 1e5, lo_open=True, unit="px"), default=None,
-                   dest=GUARD + "recover_error_px", metavar="PX",
-                   help="with --estimator pf: re-spread the particles when no particle explains a detection within "
-                        "PX pixels summed over its corners, N detections in a row (--pf-recover-after; default: "
-                        "off)")
-    p.add_argument("--pf-recover-after", type=int_in(1, 1000), default=None, dest=GUARD + "recover_after_ticks",
-                   metavar="N", help="with --pf-recover: re-spread after N unexplained detections in a row (default: "
-                                     "1; 3 lets one false detection pass without a re-spread)")
-    p.add_argument("--pf-imu-bias", type=imu_bias_std, default=None, dest=GUARD + "imu_bias_std",
-                   metavar="ACCEL,GYRO",
-                   help="with --estimator pf: the filter estimates its IMU's biases, each particle carrying its "
-                        "own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)")
-    p.add_argument("--eskf-map-sigma", type=float_in(0.0, 100.0, unit="m"), default=None, dest=ESKF + "map_sigma_m",
-                   metavar="M",
-                   help="with --estimator eskf: each gate stands within M m per axis (1 sigma) of where the map "
-                        "says, so a gate's corners share that offset in the filter's update (0.2 for a "
-                        "tape-measured course; default: 0, an exact map)")
-    p.add_argument("--eskf-align", type=float_in(0.0, 60.0, unit="s"), default=None, dest=ESKF + "align_s",
-                   metavar="S",
-                   help="with --estimator eskf: the filter averages S s of its IMU's readings at rest before the lap "
-                        "(on the pad) and learns the gyro bias and the accelerometer's along gravity from them "
-                        "(2 is a usual pre-flight wait; default: 0, none)")
-    p.add_argument("--eskf-noise-adapt-rate", type=float_in(0.0, 1.0), default=None, dest=ESKF + "noise_adapt_rate",
-                   metavar="RATE",
-                   help="with --estimator eskf: the corners' noise follows what the filter's innovations show, "
-                        "moving by RATE of the way at each detection, never below its 2 px (0.05 takes a 6 px "
-                        "detector in a few seconds; default: 0, the noise stays 2 px)")
-
-
 def imu_bias_std(text: str) -> tuple:
     """``ACCEL,GYRO``: two positive stds of the filter's IMU bias states, m/s^2 and rad/s, checked by
     :class:`~pixelmpc_jax.perception.filter_guards.GuardConfig` itself."""
@@ -230,28 +185,6 @@ def imu_bias_std(text: str) -> tuple:
                                          "e.g. 0.3,0.02") from None
 
 
-def with_faults(args, spec):
-    """``spec`` (a RaceSpec) with the faults of the ``--fault`` entries (in order: a later entry of a setting wins),
-    the particle filter's guards the guard flags set and the Kalman filter's settings its flags set (a ValueError
-    when the race flies another estimator)."""
-    import dataclasses
-
-    if args.fault:
-        settings = {name: value for entry in args.fault for name, value in entry.items()}
-        spec = spec.replace(faults=dataclasses.replace(spec.faults, **settings))
-    guards = {dest[len(GUARD):]: value for dest, value in vars(args).items() if dest.startswith(GUARD)
-              and value is not None}
-    if guards:
-        spec = spec.replace(guards=dataclasses.replace(spec.guards, **guards))
-    eskf = {dest[len(ESKF):]: value for dest, value in vars(args).items() if dest.startswith(ESKF)
-            and value is not None}
-    if eskf and spec.estimator != "eskf":
-        setting = next(iter(eskf)).removesuffix("_m").removesuffix("_s")  # the flag names the field less its unit
-        raise ValueError(f"--eskf-{setting.replace('_', '-')} sets the Kalman "
-                         f"filter: fly it with --estimator eskf")
-    return spec.replace(eskf=dataclasses.replace(spec.eskf, **eskf)) if eskf else spec
-
-
 def course(text: str) -> str:
     """A course: one known by name (:data:`~pixelmpc_jax.world.course.COURSES`) or an existing course file (its
     contents are checked before anything runs, once the process is set up: reading it makes JAX arrays)."""
@@ -262,3 +195,13 @@ def course(text: str) -> str:
     if not Path(text).is_file():
         raise argparse.ArgumentTypeError(f"no course {text!r}: choose {' or '.join(COURSES)}, or give a course file")
     return text
+
+
+def seed_range(args) -> str | None:
+    """Lap i flies seed + i: the last seed must still be a seed (a command's ``validate``: the problem, or None)."""
+    laps = 10 if getattr(args, "paper", False) else args.laps or 1  # collect --paper flies the paper's 10 laps
+    last = (args.seed or 0) + laps - 1
+    if last > SEED_MAX:
+        return (f"argument --seed: --seed + --laps - 1 must be at most {SEED_MAX} (lap i uses seed + i), "
+                f"got {last}")
+    return None

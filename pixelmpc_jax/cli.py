@@ -11,27 +11,21 @@ its waypoint, a runtime error); 2 bad input; 130 interrupted (what had finished 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import os
 import sys
 import threading
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
-from pixelmpc_jax.arguments import SEED_MAX
+from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX
+from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from pixelmpc_jax.commands.bench import add_bench
 from pixelmpc_jax.commands.experiment import add_experiment
+from pixelmpc_jax.commands.race import add_race
 from pixelmpc_jax.commands.tune import add_tune
-from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 
-EXIT_FAILED = 1
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
-MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
 # the commands that split the CPU into devices by default
 SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce", "tune", "experiment")
-SETTING = "setting:"  # the dest of a race flag that sets a controller setting: SETTING + its field (see _setting)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -70,126 +64,6 @@ def _cmd_course(args) -> int:
     course.write_course(data, args.out)
     track = course.load_course(args.out)
     print(f"wrote {args.out}: {track.num_gates} gates, {float(track.path_s[-1]):.0f} m of path (seed {args.seed})")
-    return 0
-
-
-def _setting(p: argparse.ArgumentParser, flag: str, field: str, help: str, **kwargs) -> None:
-    """A race flag that sets one controller setting: ``field`` names it in the
-    :class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig` the race flies ("t_f"; "mppi.temperature" for its
-    MPPIConfig; "racing.heading_weight" for its RacingCostConfig). Left out, the setting keeps its default."""
-    shown = {name: _preset_setting(name, field) for name in ("best", "paper")}
-    shown = ", ".join(f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
-                      for name, value in shown.items())
-    if "choices" not in kwargs:
-        kwargs["metavar"] = flag.lstrip("-").upper().replace("-", "_")
-    p.add_argument(flag, dest=SETTING + field, default=None, help=f"{help} (default: the preset's; {shown})",
-                   **kwargs)
-
-
-def _preset_setting(preset: str, field: str):
-    """A controller setting of a preset (building a preset creates no JAX array: no backend starts)."""
-    from pixelmpc_jax.apps.racing.presets import preset as preset_spec
-
-    value = preset_spec(preset).config
-    for name in field.split("."):
-        value = getattr(value, name)
-    return value
-
-
-def _with_setting(config, path: list[str], value):
-    """``config`` (a frozen dataclass) with the field at ``path`` (nested names) set to ``value``."""
-    if len(path) == 1:
-        return dataclasses.replace(config, **{path[0]: value})
-    return dataclasses.replace(config, **{path[0]: _with_setting(getattr(config, path[0]), path[1:], value)})
-
-
-def _controller_config(args, config):
-    """The controller configuration the race flags ask for: ``config`` (the preset's), with each setting flag
-    given."""
-    for dest, value in sorted(vars(args).items()):
-        if dest.startswith(SETTING) and value is not None:
-            config = _with_setting(config, dest[len(SETTING):].split("."), value)
-    return config
-
-
-def _race_spec(args):
-    """The race the arguments ask for: the preset, each flag given overriding one field (a ValueError names a
-    setting the library refuses), and the DOF weights of a weights file (None for packaged weights, which the
-    spec names), which enter the spec as their fingerprint."""
-    from pixelmpc_jax.apps.racing.presets import preset
-    from pixelmpc_jax.apps.racing.spec import RaceSpec
-    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
-    from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
-
-    base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
-    fields = {"speed": args.speed, "laps": args.laps, "seed": args.seed, "perturb": args.perturb,
-              "course": args.course, "detector": args.detector, "estimator": args.estimator,
-              "max_time_s": args.max_time, "dof_weights": args.dof_weights, "camera_tilt_deg": args.camera_tilt}
-    spec = base.replace(config=_controller_config(args, base.config),
-                        **{name: value for name, value in fields.items() if value is not None})
-    spec = arg.with_faults(args, spec)
-    if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
-        if spec.config.pixel_model != "vdof":
-            raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
-        spec = spec.replace(dof_weights=None)
-    dof_params = None
-    if spec.dof_weights is not None and spec.dof_weights not in PACKAGED_VARIANTS:
-        dof_params = _race_dof(spec.dof_weights, spec.config.pixel_model)
-        spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
-    return spec, dof_params
-
-
-def _check_race(args) -> None:
-    """Build the race and its controllers before anything runs: a ValueError names a setting the library refuses,
-    and a missing or damaged weights file is refused."""
-    from pixelmpc_jax.world.course import make_course
-
-    spec = _race_spec(args)[0]
-    make_course(spec.course)  # a course file's bad field is named here
-    for controller in (args.controller,) if args.controller else ("pixelmpc", "mppi"):
-        spec.replace(controller=controller).policy()
-
-
-def _race_dof(weights: str, pixel_model: str):
-    """The pixel model's weights in the weights file ``--dof-weights`` names (a DOF or, for "vdof", a vdof
-    checkpoint)."""
-    if pixel_model == "vdof":
-        from pixelmpc_jax.dynamics import vdof
-
-        return vdof.load_vdof(Path(weights))[0]
-    from pixelmpc_jax.dynamics import dof
-
-    return dof.load_checkpoint(Path(weights))[0]
-
-
-def _cmd_race(args) -> int:
-    from pixelmpc_jax import host
-    from pixelmpc_jax.apps.racing import compare
-    from pixelmpc_jax.world.course import course_title
-
-    if not args.no_compile_cache:
-        host.use_compilation_cache()
-    spec, dof_params = _race_spec(args)
-    controllers = (args.controller,) if args.controller else ("pixelmpc", "mppi")
-    source = f"config {args.config}" if args.config else f"preset {args.preset}"
-    print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course_title(spec.course)} at "
-          f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
-          f"output {args.out}")
-    record = compare.run_compare(spec, controllers, out=args.out, preset=str(args.config or args.preset),
-                                 batch_size=args.batch, video=args.video, dof_params=dof_params)
-    if any(results["laps"] for results in record["controllers"].values()):
-        print(compare.side_by_side(record))
-        written = [p for p in ("metrics.json", *(f"ticks_{c}.npz" for c in controllers), "trajectories.png",
-                               "visibility.png") if (args.out / p).exists()]
-        print(f"wrote {', '.join(str(args.out / p) for p in written)}")
-    if record["interrupted"]:
-        print(f"interrupted; the finished laps are in {args.out / 'metrics.json'} and its ticks_*.npz",
-              file=sys.stderr)
-        return EXIT_INTERRUPTED
-    laps = [lap for results in record["controllers"].values() for lap in results["laps"]]
-    if not any(lap.get("success") for lap in laps):
-        print(f"no lap succeeded ({len(laps)} flown)", file=sys.stderr)
-        return EXIT_FAILED
     return 0
 
 
@@ -256,16 +130,6 @@ def _cmd_reproduce(args) -> int:
     return 0
 
 
-def _seed_range(args) -> str | None:
-    """Lap i flies seed + i: the last seed must still be a seed."""
-    laps = 10 if getattr(args, "paper", False) else args.laps or 1  # collect --paper flies the paper's 10 laps
-    last = (args.seed or 0) + laps - 1
-    if last > SEED_MAX:
-        return (f"argument --seed: --seed + --laps - 1 must be at most {SEED_MAX} (lap i uses seed + i), "
-                f"got {last}")
-    return None
-
-
 def _check_train(args) -> str | None:
     """A flag of another model than ``--model`` names is refused (its dest is that model's, ``dof:`` or ``vdof:``
     + the config field, the flag's name); turned rows need the flown input."""
@@ -290,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("version", help="print the package, JAX version and devices")
     p.set_defaults(func=_cmd_version)
     for add in (_add_demo, _add_render, _add_collect, _add_train, _add_evaluate, add_bench, _add_reproduce,
-                _add_race, _add_course, add_tune, add_experiment):
+                add_race, _add_course, add_tune, add_experiment):
         add(sub)
     return parser
 
@@ -351,7 +215,7 @@ def _add_collect(sub) -> None:
                    help="pulse amplitude, uniform in +- this per axis, rad/s, in (0, 6], the rate limit (default 1.5)")
     p.add_argument("--excitation-dither", type=arg.float_in(0.0, 6.0, lo_open=True, unit="rad/s"), default=0.3,
                    help="std of the per-tick rate dither, rad/s, in (0, 6] (default 0.3)")
-    p.set_defaults(func=_cmd_collect, validate=_seed_range)
+    p.set_defaults(func=_cmd_collect, validate=arg.seed_range)
 
 
 def _model_flag(p, model: str, field: str, help: str, **kwargs) -> None:
@@ -453,105 +317,6 @@ def _add_course(sub) -> None:
     p.add_argument("--gates", type=arg.int_in(2, 30), default=8, help="number of gates, in [2, 30] (default 8)")
     p.add_argument("--out", type=arg.output_file, required=True, help="the course file to write (JSON)")
     p.set_defaults(func=_cmd_course)
-
-
-def _add_race(sub) -> None:
-    """``pixelmpc race``: laps in the closed loop. The race's own flags set a RaceSpec field; each controller
-    flag sets one controller setting (:func:`_setting`)."""
-    from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS
-    from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
-    from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
-    from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
-    from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
-    from pixelmpc_jax.sim.controllers import CONTROLLERS
-    from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
-    from pixelmpc_jax.world.course import COURSES
-
-    p = sub.add_parser("race", help="PixelMPC beside nominal MPPI on the AlphaPilot course, in the closed loop")
-    start = p.add_mutually_exclusive_group()
-    start.add_argument("--preset", choices=PRESETS, default=DEFAULT_PRESET,
-                       help="the race to start from: best (default), the best configuration measured on the speed "
-                            "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target. Every "
-                            "other flag overrides one field of it")
-    start.add_argument("--config", type=Path, default=None, metavar="FILE",
-                       help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
-                            "tune` writes its best.json; every other flag overrides one field of it")
-    p.add_argument("--controller", choices=CONTROLLERS, default=None,
-                   help="fly one controller alone: pixelmpc or mppi, the paper's nominal baseline (default: both, "
-                        "at the same target and seeds)")
-    p.add_argument("--dof-weights", default=None, metavar="|".join(PACKAGED_VARIANTS) + "|vdof|FILE",
-                   help="the learned pixel model's weights: a packaged DOF variant (paper: command input; flown: "
-                        "the flown-rate weights; turned: trained with turned rows) or a weights file from `pixelmpc "
-                        "train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
-                        "(default: the preset's)")
-    p.add_argument("--detector", choices=DETECTORS, default=None,
-                   help="target detection: geometry, the projection of the true gate, or image, OpenCV on "
-                        "rendered frames (default: the preset's, geometry)")
-    p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
-                   help="alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a course file "
-                        "in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
-                        "(default: the preset's, alphapilot)")
-    p.add_argument("--estimator", choices=ESTIMATORS, default=None,
-                   help="state the controller acts on: truth, pf (the paper's particle filter) or eskf (an "
-                        "error-state Kalman filter with IMU bias states) (default: the preset's, truth)")
-    p.add_argument("--video", action="store_true",
-                   help="write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) pixel")
-    p.add_argument("--no-compile-cache", action="store_true",
-                   help="compile afresh (by default compiled steps are kept in the user's cache folder, "
-                        "~/.cache/pixelmpc-jax, so a second run starts faster)")
-    _setting(p, "--pixel-model", "pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, "
-             "the learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
-             "known gate", choices=PIXEL_MODELS)
-    _setting(p, "--t-f", "t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC horizon)",
-             type=arg.float_in(0.0, arg.T_F_MAX_S, unit="s"))
-    _setting(p, "--c-pixel", "c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]", type=arg.float_in(0.0, 1e30))
-    _setting(p, "--pixel-cost", "pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image centre, "
-             "or border, a barrier on the image border that charges only a gate leaving the view", choices=PIXEL_COSTS)
-    _setting(p, "--target-prior", "target_prior", "what PixelMPC's pixel cost charges while the target is not "
-             "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
-             "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
-             "and from the map before",
-             choices=TARGET_PRIORS)
-    _setting(p, "--look-ahead", "look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's pixel "
-             "cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, the "
-             "paper's", type=arg.float_in(0.0, 1e3))
-    _setting(p, "--look-ahead-model", "look_ahead_model", "what predicts the next gate's pixel along the horizon with "
-             "the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
-             "through each predicted pose (map-aided)", choices=LOOK_AHEAD_MODELS)
-    _setting(p, "--border-margin", "border_margin", "where the border cost starts, as a fraction of the image inside "
-             "the border, in (0, 0.5]", type=arg.float_in(0.0, 0.5, lo_open=True))
-    _setting(p, "--noise-exponent", "mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
-             "horizon, beta in [0, 4] (0: white, the paper's)", type=arg.float_in(0.0, 4.0))
-    _setting(p, "--heading-weight", "racing.heading_weight", "share of the racing cost's attitude term that pins "
-             "the heading to the path, in [0, 1] (1: the paper's)", type=arg.float_in(0.0, 1.0))
-    _setting(p, "--clearance", "racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor and "
-             "walls (the world keeps the vehicle's 0.1 m), in [0.05, 1]", type=arg.float_in(0.05, 1.0, unit="m"))
-    _setting(p, "--temperature", "mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
-             type=arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX))
-    _setting(p, "--samples", "mppi.num_samples", "MPPI samples per step, in [1, 2^20]", type=arg.int_in(1, 2**20))
-    p.add_argument("--speed", type=arg.target_speed, default=None,
-                   help=f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best 8.5, the "
-                        "paper's pace; paper 14, the paper's label)")
-    p.add_argument("--laps", type=arg.positive_int, default=None, help="laps per controller (default 1)")
-    p.add_argument("--seed", type=arg.seed, default=None, help=f"seed of the first lap, in [0, {SEED_MAX}]; lap i "
-                                                            "uses seed + i (default 0)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/race"), help="output directory")
-    p.add_argument("--batch", type=arg.positive_int, default=1,
-                   help="laps per batched (vmapped) call; raise it on a GPU (default 1)")
-    p.add_argument("--perturb", action="store_true", default=None,
-                   help="perturb the gates per lap within the AlphaPilot bounds")
-    p.add_argument("--camera-tilt", type=arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), default=None,
-                   metavar="DEG", help="the onboard camera tilted up on its mount by DEG degrees, in "
-                   f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
-                   "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection")
-    p.add_argument("--max-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=None,
-                   help=f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default {LAP_TIME_LIMIT_S:g})")
-    _setting(p, "--model-latency", "model_latency_ticks", "ticks of actuation latency the controller's model "
-             "predicts across, in [0, 3] (0: none)", type=arg.int_in(0, 3))
-    _setting(p, "--disturbance-observer", "disturbance_time_constant_s", "s: the controller's model learns an "
-             "external push (wind, model error) with this time constant, in [0.025, 60]", type=arg.float_in(0.025, 60))
-    arg.add_fault_flags(p)
-    p.set_defaults(func=_cmd_race, validate=_seed_range, precheck=_check_race)
 
 
 def _command_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:

@@ -142,6 +142,37 @@ def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_
     assert presets.preset("best").config.pixel_cost == "border" and presets.preset("best").speed == 8.5
 
 
+def test_each_race_flag_names_one_field_of_the_race():
+    from pixelmpc_jax.commands.race import RACE_FLAGS
+
+    fields = [flag.field for flag in RACE_FLAGS if flag.field is not None]
+    assert len(fields) == len(set(fields))  # one flag per field
+    for field in fields:
+        node = RaceSpec()
+        for name in field.split("."):
+            assert name in {f.name for f in dataclasses.fields(node)}, f"{field}: no field {name}"
+            node = getattr(node, name)
+    parser = cli._command_parser(cli.build_parser(), cli.build_parser().parse_args(["race"]))
+    assert {flag.dest for flag in RACE_FLAGS} <= {action.dest for action in parser._actions}
+
+
+def test_the_race_flags_set_their_fields_together(tmp_path):
+    """A saved race on the projection pixel model, flown with vdof and the projection look-ahead: set one at a time,
+    the projection would have reset the look-ahead model to its own before vdof replaced it."""
+    from pixelmpc_jax.apps.racing import presets
+    from pixelmpc_jax.commands.race import race_spec
+
+    best = presets.preset("best")
+    saved = tmp_path / "projection.json"
+    saved.write_text(json.dumps(best.with_fields({"config.pixel_model": "projection"}).record()))
+    args = cli.build_parser().parse_args(["race", "--config", str(saved), "--pixel-model", "vdof",
+                                          "--look-ahead-model", "projection", "--temperature", "50"])
+    spec, _ = race_spec(args)
+    mppi = dataclasses.replace(best.config.mppi, temperature=50.0)
+    assert spec.config == dataclasses.replace(best.config, mppi=mppi, box_size_limit=None)  # the projection dropped it
+    assert spec.config.look_ahead_model == "projection" and spec.key() != best.key()
+
+
 def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(monkeypatch):
     """3 laps in batches of 2: both batches reach the vmapped runner with 2 lanes; the copy is dropped."""
     from pixelmpc_jax.apps.racing import race

@@ -11,6 +11,7 @@ import pytest
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.racing import presets
+from pixelmpc_jax.commands import EXIT_USAGE
 
 ROOT = Path(__file__).resolve().parent.parent
 JOBS = {"experiment": ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe"),
@@ -80,7 +81,7 @@ def test_bad_arguments_exit_2_with_one_line_before_anything_is_written(tmp_path,
     with pytest.raises(SystemExit) as done:
         cli.main(argv)
     err = capsys.readouterr().err
-    assert done.value.code == cli.EXIT_USAGE and "error:" in err and len(err.strip().splitlines()) == 1, err
+    assert done.value.code == EXIT_USAGE and "error:" in err and len(err.strip().splitlines()) == 1, err
     assert list(tmp_path.iterdir()) == []
 
 

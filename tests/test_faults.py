@@ -13,6 +13,8 @@ import pytest
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.commands import EXIT_USAGE
+from pixelmpc_jax.commands.race import race_spec
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.perception import detector as detector_lib
@@ -400,7 +402,7 @@ def test_the_fault_flag_refuses_a_bad_entry_in_one_line(entry, message, capsys, 
     with pytest.raises(SystemExit) as stop:
         cli.main(["race", "--out", str(tmp_path / "never"), "--fault", "gust=1", "--fault", entry])
     err = capsys.readouterr().err
-    assert stop.value.code == cli.EXIT_USAGE and message in err and len(err.strip().splitlines()) == 1
+    assert stop.value.code == EXIT_USAGE and message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "never").exists()
 
 
@@ -409,12 +411,12 @@ def test_the_fault_flags_make_the_race(tmp_path):
         ["race", "--out", str(tmp_path), "--estimator", "pf", "--fault", "gust=moderate", "--fault", "wind=1,2,0",
          "--fault", "gust=0.5", "--detection-gate", "25", "--pf-recover", "90", "--pf-recover-after", "3",
          "--model-latency", "1"])
-    spec, _ = cli._race_spec(args)
+    spec, _ = race_spec(args)
     assert spec.faults == F.Faults(wind=(1.0, 2.0, 0.0), gust=0.5)  # the later entry of a setting wins
     assert spec.guards == guards_lib.GuardConfig(detection_gate_px=25.0, recover_error_px=90.0,
                                                  recover_after_ticks=3)
     assert spec.config.model_latency_ticks == 1
-    plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path)]))
+    plain, _ = race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path)]))
     assert plain.faults == F.Faults() and plain.guards == guards_lib.GuardConfig()
 
 
@@ -422,10 +424,10 @@ def test_the_kalman_filter_flags_set_it_and_need_it(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
                                           "--eskf-map-sigma", "0.2", "--eskf-align", "2",
                                           "--eskf-noise-adapt-rate", "0.05"])
-    spec, _ = cli._race_spec(args)
+    spec, _ = race_spec(args)
     assert spec.eskf.map_sigma_m == 0.2 and spec.eskf.align_s == 2.0 and spec.guards == guards_lib.GuardConfig()
     assert spec.eskf.noise_adapt_rate == 0.05
-    plain, _ = cli._race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
+    plain, _ = race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
     assert plain.eskf.map_sigma_m == 0.0 and plain.eskf.align_s == 0.0 and plain.eskf.noise_adapt_rate == 0.0
     for argv, message in ((["--eskf-map-sigma", "0.2"], "--eskf-map-sigma sets the Kalman filter"),
                           (["--eskf-align", "2"], "--eskf-align sets the Kalman filter"),
@@ -438,14 +440,14 @@ def test_the_kalman_filter_flags_set_it_and_need_it(tmp_path, capsys):
         except SystemExit as stop:  # argparse's own refusal
             code = stop.code
         err = capsys.readouterr().err
-        assert code == cli.EXIT_USAGE and message in err and len(err.strip().splitlines()) == 1
+        assert code == EXIT_USAGE and message in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "never").exists()
 
 
 def test_the_bias_flag_gives_the_filter_bias_states(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "pf",
                                           "--pf-imu-bias", "0.3,0.02"])
-    spec, _ = cli._race_spec(args)
+    spec, _ = race_spec(args)
     assert spec.guards == guards_lib.GuardConfig(imu_bias_std=(0.3, 0.02)) and not spec.guards.active
     pf = guards_lib.filter_config(pf_lib.PFConfig(), spec.guards)
     assert pf.imu_bias_std == (0.3, 0.02) and pf.imu_bias_walk == pytest.approx((0.03, 0.002)) and pf.estimates_bias

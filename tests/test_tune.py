@@ -15,6 +15,7 @@ from pixelmpc_jax.apps.racing.presets import preset
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.apps.tuning import search
 from pixelmpc_jax.apps.tuning.space import SPACES, SpaceError, load_space, with_settings
+from pixelmpc_jax.commands import EXIT_USAGE
 from pixelmpc_jax.sim.metrics import MEASURE
 from pixelmpc_jax.world import course as course_lib
 
@@ -126,7 +127,7 @@ def test_the_space_file_gets_one_clear_line_per_bad_entry(tmp_path, capsys):
     out = tmp_path / "out"
     with pytest.raises(SystemExit) as exit_code:  # the command: one line each on stderr, nothing run or written
         cli.main(["tune", "--space", str(path), "--out", str(out)])
-    assert exit_code.value.code == cli.EXIT_USAGE and not out.exists()
+    assert exit_code.value.code == EXIT_USAGE and not out.exists()
     assert len(capsys.readouterr().err.strip().splitlines()) == 6
     good = {k: bad[k] for k in ("mppi.noise_exponent", "mppi.num_samples")}
     path.write_text(json.dumps(good))
@@ -263,5 +264,5 @@ def test_race_config_flies_a_saved_record_and_flags_still_override(monkeypatch, 
     with pytest.raises(SystemExit):  # a saved race or a preset, not both
         cli.main(["race", "--config", str(path), "--preset", "paper", "--out", str(tmp_path / "race")])
     path.write_text(json.dumps({"config": {"mppi": {"temprature": 1.0}}}))
-    assert cli.main(["race", "--config", str(path), "--out", str(tmp_path / "race")]) == cli.EXIT_USAGE
+    assert cli.main(["race", "--config", str(path), "--out", str(tmp_path / "race")]) == EXIT_USAGE
     assert "config.mppi.temprature" in capsys.readouterr().err

@@ -163,6 +163,20 @@ class RaceSpec:
                 del node[name]
         return record
 
+    def with_fields(self, fields: dict) -> RaceSpec:
+        """The spec with each field of ``fields`` set: ``{dotted path: value}``, the path as :meth:`record` nests it
+        ("speed", "config.mppi.temperature", "guards.detection_gate_px"). All are set at once and read back through
+        :meth:`from_record`, so each configuration's checks see all of its new fields together (a ValueError names a
+        setting one refuses)."""
+        record = dataclasses.asdict(self)
+        for path, value in fields.items():
+            *parents, name = path.split(".")
+            node = record
+            for parent in parents:
+                node = node[parent]
+            node[name] = value
+        return RaceSpec.from_record(record)
+
     @classmethod
     def from_record(cls, record: dict) -> RaceSpec:
         """The spec a :meth:`record` describes (read back from JSON). A setting the record lacks takes its

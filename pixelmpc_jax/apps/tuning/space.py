@@ -94,14 +94,7 @@ class Param:
 def with_settings(base: RaceSpec, settings: dict) -> RaceSpec:
     """``base`` with each ``{dotted name: value}`` of ``settings`` set in its configuration (a ValueError names a value
     the configuration refuses)."""
-    record = base.record()
-    for dotted, value in settings.items():
-        *parents, name = dotted.split(".")
-        node = record["config"]
-        for parent in parents:
-            node = node[parent]
-        node[name] = value
-    return RaceSpec.from_record(record)
+    return base.with_fields({f"config.{name}": value for name, value in settings.items()})
 
 
 def load_space(space: str, base: RaceSpec) -> dict[str, Param]:
