@@ -1,6 +1,7 @@
 """The ``pixelmpc`` command's argument types: each checks one argument as it is parsed and returns its value, or
-raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs); and the check of a
-lap's seeds (:func:`seed_range`), which spans two arguments."""
+raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs); the check of a
+lap's seeds (:func:`seed_range`), which spans two arguments; and the one convention by which a flag sets a field of
+the configuration a command builds (:class:`FieldFlag`, :func:`fields_given`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import argparse
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
 TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
@@ -205,3 +207,31 @@ def seed_range(args) -> str | None:
         return (f"argument --seed: --seed + --laps - 1 must be at most {SEED_MAX} (lap i uses seed + i), "
                 f"got {last}")
     return None
+
+
+class FieldFlag(NamedTuple):
+    """A flag and the field of the configuration it sets: ``field`` a dotted path into the configuration the command
+    builds ("speed", "config.mppi.temperature"), or None for a flag that sets none (how the command runs: its output,
+    a batch). ``options`` are its other ``add_argument`` keywords. A flag with a field is None when left out: the
+    field keeps the value of the configuration the command starts from."""
+
+    flag: str
+    field: str | None
+    help: str
+    options: dict
+
+    @property
+    def dest(self) -> str:
+        """Where argparse keeps the flag's value (its name: ``--t-f`` -> ``t_f``)."""
+        return self.flag.lstrip("-").replace("-", "_")
+
+    def add_to(self, parser, help: str | None = None) -> None:
+        """Add the flag to ``parser`` (a parser or an argument group), with ``help`` in place of its own."""
+        default = {} if self.field is None else {"default": None}
+        parser.add_argument(self.flag, help=self.help if help is None else help, **default, **self.options)
+
+
+def fields_given(args, flags) -> dict:
+    """``{field: value}`` of each of ``flags`` with a field that ``args`` gives (not None), in the flags' order."""
+    return {flag.field: getattr(args, flag.dest) for flag in flags
+            if flag.field is not None and getattr(args, flag.dest) is not None}

@@ -1,7 +1,8 @@
-"""The jobs of ``pixelmpc experiment``, ``pixelmpc bench`` and ``pixelmpc tune`` (``pixelmpc_jax/commands/``): one
-parser lists every job, each argument is checked as parsed, each job calls its library function, and every script in
-``experiments/`` and ``benchmarks/`` is a thin call of one of them."""
+"""The commands (``pixelmpc_jax/commands/``, one module each) and the jobs of ``pixelmpc experiment``, ``pixelmpc
+bench`` and ``pixelmpc tune``: one parser lists every job, each argument is checked as parsed, each job calls its
+library function, and every script in ``experiments/`` and ``benchmarks/`` is a thin call of one of them."""
 
+import argparse
 import ast
 import dataclasses
 import re
@@ -29,6 +30,17 @@ def test_the_help_lists_every_job(capsys):
     for jobs in JOBS.values():
         for job in jobs:
             assert job in unwrapped
+
+
+def test_each_command_lives_in_its_own_module_and_the_cli_defines_none():
+    parser = cli.build_parser()
+    names = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert len(names) == 12
+    assert [add.__module__ for add in cli.COMMANDS] == [f"pixelmpc_jax.commands.{name}" for name in names]
+    tree = ast.parse(Path(cli.__file__).read_text())
+    defined = [node.attr for node in ast.walk(tree) if isinstance(node, ast.Attribute)
+               and node.attr in ("add_parser", "set_defaults")]
+    assert defined == [], "cli.py adds a command of its own"
 
 
 def _script_argv(path: Path) -> list[str]:

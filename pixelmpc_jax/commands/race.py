@@ -1,8 +1,9 @@
 """``pixelmpc race``: one race flown by PixelMPC beside nominal MPPI in the closed loop (the main job).
 
 A race starts from a preset (``--preset``) or a saved race (``--config``), and each flag of :data:`RACE_FLAGS` sets
-the one field of the :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` it names, a dotted path into the spec
-(``speed``, ``config.mppi.temperature``, ``guards.detection_gate_px``). :func:`race_spec` reads that table and builds
+the one field of the :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` it names
+(:class:`~pixelmpc_jax.arguments.FieldFlag`: a dotted path into the spec, ``speed``, ``config.mppi.temperature``,
+``guards.detection_gate_px``). :func:`race_spec` reads that table and builds
 the spec, before anything runs; the handler hands it to :func:`~pixelmpc_jax.apps.racing.compare.run_compare`.
 """
 
@@ -11,12 +12,11 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import NamedTuple
 
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS, preset
 from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, RaceSpec
-from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX
+from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
 from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
 from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
@@ -27,130 +27,112 @@ from pixelmpc_jax.sim.faults import FAULT_LEVELS
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
 
-
-class RaceFlag(NamedTuple):
-    """A flag of ``pixelmpc race`` and the field of the RaceSpec it sets: ``field`` a dotted path into the spec, or
-    None for a flag of how the race runs (which controllers fly, the output, the batch, the video). ``options`` are
-    its other ``add_argument`` keywords. A flag with a field is None when left out: the field keeps the value of the
-    race it starts from."""
-
-    flag: str
-    field: str | None
-    help: str
-    options: dict
-
-    @property
-    def dest(self) -> str:
-        """Where argparse keeps the flag's value (its name: ``--t-f`` -> ``t_f``)."""
-        return self.flag.lstrip("-").replace("-", "_")
-
-
 # Every flag of the race after --preset/--config, in the order --help lists them. A flag of a controller setting
 # (a field under "config") lists both presets' value in its help.
-RACE_FLAGS = (
-    RaceFlag("--controller", None, "fly one controller alone: pixelmpc or mppi, the paper's nominal baseline "
-             "(default: both, at the same target and seeds)", {"choices": CONTROLLERS, "default": None}),
-    RaceFlag("--dof-weights", "dof_weights", "the learned pixel model's weights: a packaged DOF variant (paper: "
-             "command input; flown: the flown-rate weights; turned: trained with turned rows) or a weights file from "
-             "`pixelmpc train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
-             "(default: the preset's)", {"metavar": "|".join(PACKAGED_VARIANTS) + "|vdof|FILE"}),
-    RaceFlag("--detector", "detector", "target detection: geometry, the projection of the true gate, or image, "
-             "OpenCV on rendered frames (default: the preset's, geometry)", {"choices": DETECTORS}),
-    RaceFlag("--course", "course", "alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a "
-             "course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
-             "(default: the preset's, alphapilot)", {"type": arg.course, "metavar": "|".join(COURSES) + "|FILE"}),
-    RaceFlag("--estimator", "estimator", "state the controller acts on: truth, pf (the paper's particle filter) or "
-             "eskf (an error-state Kalman filter with IMU bias states) (default: the preset's, truth)",
-             {"choices": ESTIMATORS}),
-    RaceFlag("--video", None, "write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) "
-             "pixel", {"action": "store_true"}),
-    RaceFlag("--no-compile-cache", None, "compile afresh (by default compiled steps are kept in the user's cache "
-             "folder, ~/.cache/pixelmpc-jax, so a second run starts faster)", {"action": "store_true"}),
-    RaceFlag("--pixel-model", "config.pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, the "
-             "learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
-             "known gate", {"choices": PIXEL_MODELS}),
-    RaceFlag("--t-f", "config.t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC "
-             "horizon)", {"type": arg.float_in(0.0, arg.T_F_MAX_S, unit="s")}),
-    RaceFlag("--c-pixel", "config.c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]",
-             {"type": arg.float_in(0.0, 1e30)}),
-    RaceFlag("--pixel-cost", "config.pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image "
-             "centre, or border, a barrier on the image border that charges only a gate leaving the view",
-             {"choices": PIXEL_COSTS}),
-    RaceFlag("--target-prior", "config.target_prior", "what PixelMPC's pixel cost charges while the target is not "
-             "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
-             "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
-             "and from the map before", {"choices": TARGET_PRIORS}),
-    RaceFlag("--look-ahead", "config.look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's "
-             "pixel cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, "
-             "the paper's", {"type": arg.float_in(0.0, 1e3)}),
-    RaceFlag("--look-ahead-model", "config.look_ahead_model", "what predicts the next gate's pixel along the horizon "
-             "with the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
-             "through each predicted pose (map-aided)", {"choices": LOOK_AHEAD_MODELS}),
-    RaceFlag("--border-margin", "config.border_margin", "where the border cost starts, as a fraction of the image "
-             "inside the border, in (0, 0.5]", {"type": arg.float_in(0.0, 0.5, lo_open=True)}),
-    RaceFlag("--noise-exponent", "config.mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
-             "horizon, beta in [0, 4] (0: white, the paper's)", {"type": arg.float_in(0.0, 4.0)}),
-    RaceFlag("--heading-weight", "config.racing.heading_weight", "share of the racing cost's attitude term that pins "
-             "the heading to the path, in [0, 1] (1: the paper's)", {"type": arg.float_in(0.0, 1.0)}),
-    RaceFlag("--clearance", "config.racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor "
-             "and walls (the world keeps the vehicle's 0.1 m), in [0.05, 1]",
-             {"type": arg.float_in(0.05, 1.0, unit="m")}),
-    RaceFlag("--temperature", "config.mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
-             {"type": arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX)}),
-    RaceFlag("--samples", "config.mppi.num_samples", "MPPI samples per step, in [1, 2^20]",
-             {"type": arg.int_in(1, 2**20)}),
-    RaceFlag("--speed", "speed", f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best "
-             "8.5, the paper's pace; paper 14, the paper's label)", {"type": arg.target_speed}),
-    RaceFlag("--laps", "laps", "laps per controller (default 1)", {"type": arg.positive_int}),
-    RaceFlag("--seed", "seed", f"seed of the first lap, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)",
-             {"type": arg.seed}),
-    RaceFlag("--out", None, "output directory", {"type": arg.writable_dir, "default": Path("runs/race")}),
-    RaceFlag("--batch", None, "laps per batched (vmapped) call; raise it on a GPU (default 1)",
-             {"type": arg.positive_int, "default": 1}),
-    RaceFlag("--perturb", "perturb", "perturb the gates per lap within the AlphaPilot bounds",
-             {"action": "store_true"}),
-    RaceFlag("--camera-tilt", "camera_tilt_deg", "the onboard camera tilted up on its mount by DEG degrees, in "
-             f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
-             "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection",
-             {"type": arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), "metavar": "DEG"}),
-    RaceFlag("--max-time", "max_time_s", f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default "
-             f"{LAP_TIME_LIMIT_S:g})", {"type": arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s")}),
-    RaceFlag("--model-latency", "config.model_latency_ticks", "ticks of actuation latency the controller's model "
-             "predicts across, in [0, 3] (0: none)", {"type": arg.int_in(0, 3)}),
-    RaceFlag("--disturbance-observer", "config.disturbance_time_constant_s", "s: the controller's model learns an "
-             "external push (wind, model error) with this time constant, in [0.025, 60]",
-             {"type": arg.float_in(0.025, 60)}),
+RACE_FLAGS: tuple[FieldFlag, ...] = (
+    FieldFlag("--controller", None, "fly one controller alone: pixelmpc or mppi, the paper's nominal baseline "
+              "(default: both, at the same target and seeds)", {"choices": CONTROLLERS, "default": None}),
+    FieldFlag("--dof-weights", "dof_weights", "the learned pixel model's weights: a packaged DOF variant (paper: "
+              "command input; flown: the flown-rate weights; turned: trained with turned rows) or a weights file from "
+              "`pixelmpc train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
+              "(default: the preset's)", {"metavar": "|".join(PACKAGED_VARIANTS) + "|vdof|FILE"}),
+    FieldFlag("--detector", "detector", "target detection: geometry, the projection of the true gate, or image, "
+              "OpenCV on rendered frames (default: the preset's, geometry)", {"choices": DETECTORS}),
+    FieldFlag("--course", "course", "alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a "
+              "course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
+              "(default: the preset's, alphapilot)", {"type": arg.course, "metavar": "|".join(COURSES) + "|FILE"}),
+    FieldFlag("--estimator", "estimator", "state the controller acts on: truth, pf (the paper's particle filter) or "
+              "eskf (an error-state Kalman filter with IMU bias states) (default: the preset's, truth)",
+              {"choices": ESTIMATORS}),
+    FieldFlag("--video", None, "write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) "
+              "pixel", {"action": "store_true"}),
+    FieldFlag("--no-compile-cache", None, "compile afresh (by default compiled steps are kept in the user's cache "
+              "folder, ~/.cache/pixelmpc-jax, so a second run starts faster)", {"action": "store_true"}),
+    FieldFlag("--pixel-model", "config.pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, the "
+              "learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
+              "known gate", {"choices": PIXEL_MODELS}),
+    FieldFlag("--t-f", "config.t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC "
+              "horizon)", {"type": arg.float_in(0.0, arg.T_F_MAX_S, unit="s")}),
+    FieldFlag("--c-pixel", "config.c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]",
+              {"type": arg.float_in(0.0, 1e30)}),
+    FieldFlag("--pixel-cost", "config.pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image "
+              "centre, or border, a barrier on the image border that charges only a gate leaving the view",
+              {"choices": PIXEL_COSTS}),
+    FieldFlag("--target-prior", "config.target_prior", "what PixelMPC's pixel cost charges while the target is not "
+              "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
+              "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
+              "and from the map before", {"choices": TARGET_PRIORS}),
+    FieldFlag("--look-ahead", "config.look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's "
+              "pixel cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, "
+              "the paper's", {"type": arg.float_in(0.0, 1e3)}),
+    FieldFlag("--look-ahead-model", "config.look_ahead_model", "what predicts the next gate's pixel along the horizon "
+              "with the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
+              "through each predicted pose (map-aided)", {"choices": LOOK_AHEAD_MODELS}),
+    FieldFlag("--border-margin", "config.border_margin", "where the border cost starts, as a fraction of the image "
+              "inside the border, in (0, 0.5]", {"type": arg.float_in(0.0, 0.5, lo_open=True)}),
+    FieldFlag("--noise-exponent", "config.mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
+              "horizon, beta in [0, 4] (0: white, the paper's)", {"type": arg.float_in(0.0, 4.0)}),
+    FieldFlag("--heading-weight", "config.racing.heading_weight", "share of the racing cost's attitude term that pins "
+              "the heading to the path, in [0, 1] (1: the paper's)", {"type": arg.float_in(0.0, 1.0)}),
+    FieldFlag("--clearance", "config.racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor "
+              "and walls (the world keeps the vehicle's 0.1 m), in [0.05, 1]",
+              {"type": arg.float_in(0.05, 1.0, unit="m")}),
+    FieldFlag("--temperature", "config.mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
+              {"type": arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX)}),
+    FieldFlag("--samples", "config.mppi.num_samples", "MPPI samples per step, in [1, 2^20]",
+              {"type": arg.int_in(1, 2**20)}),
+    FieldFlag("--speed", "speed", f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best "
+              "8.5, the paper's pace; paper 14, the paper's label)", {"type": arg.target_speed}),
+    FieldFlag("--laps", "laps", "laps per controller (default 1)", {"type": arg.positive_int}),
+    FieldFlag("--seed", "seed", f"seed of the first lap, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)",
+              {"type": arg.seed}),
+    FieldFlag("--out", None, "output directory", {"type": arg.writable_dir, "default": Path("runs/race")}),
+    FieldFlag("--batch", None, "laps per batched (vmapped) call; raise it on a GPU (default 1)",
+              {"type": arg.positive_int, "default": 1}),
+    FieldFlag("--perturb", "perturb", "perturb the gates per lap within the AlphaPilot bounds",
+              {"action": "store_true"}),
+    FieldFlag("--camera-tilt", "camera_tilt_deg", "the onboard camera tilted up on its mount by DEG degrees, in "
+              f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
+              "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection",
+              {"type": arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), "metavar": "DEG"}),
+    FieldFlag("--max-time", "max_time_s", f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default "
+              f"{LAP_TIME_LIMIT_S:g})", {"type": arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s")}),
+    FieldFlag("--model-latency", "config.model_latency_ticks", "ticks of actuation latency the controller's model "
+              "predicts across, in [0, 3] (0: none)", {"type": arg.int_in(0, 3)}),
+    FieldFlag("--disturbance-observer", "config.disturbance_time_constant_s", "s: the controller's model learns an "
+              "external push (wind, model error) with this time constant, in [0.025, 60]",
+              {"type": arg.float_in(0.025, 60)}),
     # each --fault entry sets one or more fields of the race's faults (a later entry of a field wins)
-    RaceFlag("--fault", "faults", "a fault of the world the controller does not model (repeatable): a setting of "
-             "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; latency_ticks=1; "
-             "miss_rate=0.2; map_error_m=0.3; ...) or a named fault at a level "
-             f"({', '.join((*FAULT_LEVELS, 'combined'))}=moderate|severe) (default: none)",
-             {"type": arg.fault, "action": "append", "metavar": "NAME=VALUE"}),
-    RaceFlag("--detection-gate", "guards.detection_gate_px", "with --estimator pf: reject a detection farther than PX "
-             "pixels from where the filter's particles put the gate (default: off)",
-             {"type": arg.float_in(0.0, 1e4, lo_open=True, unit="px"), "metavar": "PX"}),
-    RaceFlag("--pf-recover", "guards.recover_error_px", "with --estimator pf: re-spread the particles when no "
-             "particle explains a detection within PX pixels summed over its corners, N detections in a row "
-             "(--pf-recover-after; default: off)", {"type": arg.float_in(0.0, 1e5, lo_open=True, unit="px"),
+    FieldFlag("--fault", "faults", "a fault of the world the controller does not model (repeatable): a setting of "
+              "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; latency_ticks=1; "
+              "miss_rate=0.2; map_error_m=0.3; ...) or a named fault at a level "
+              f"({', '.join((*FAULT_LEVELS, 'combined'))}=moderate|severe) (default: none)",
+              {"type": arg.fault, "action": "append", "metavar": "NAME=VALUE"}),
+    FieldFlag("--detection-gate", "guards.detection_gate_px", "with --estimator pf: reject a detection farther than PX "
+              "pixels from where the filter's particles put the gate (default: off)",
+              {"type": arg.float_in(0.0, 1e4, lo_open=True, unit="px"), "metavar": "PX"}),
+    FieldFlag("--pf-recover", "guards.recover_error_px", "with --estimator pf: re-spread the particles when no "
+              "particle explains a detection within PX pixels summed over its corners, N detections in a row "
+              "(--pf-recover-after; default: off)", {"type": arg.float_in(0.0, 1e5, lo_open=True, unit="px"),
                                                     "metavar": "PX"}),
-    RaceFlag("--pf-recover-after", "guards.recover_after_ticks", "with --pf-recover: re-spread after N unexplained "
-             "detections in a row (default: 1; 3 lets one false detection pass without a re-spread)",
-             {"type": arg.int_in(1, 1000), "metavar": "N"}),
-    RaceFlag("--pf-imu-bias", "guards.imu_bias_std", "with --estimator pf: the filter estimates its IMU's biases, "
-             "each particle carrying its own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)",
-             {"type": arg.imu_bias_std, "metavar": "ACCEL,GYRO"}),
-    RaceFlag("--eskf-map-sigma", "eskf.map_sigma_m", "with --estimator eskf: each gate stands within M m per axis "
-             "(1 sigma) of where the map says, so a gate's corners share that offset in the filter's update (0.2 for "
-             "a tape-measured course; default: 0, an exact map)",
-             {"type": arg.float_in(0.0, 100.0, unit="m"), "metavar": "M"}),
-    RaceFlag("--eskf-align", "eskf.align_s", "with --estimator eskf: the filter averages S s of its IMU's readings at "
-             "rest before the lap (on the pad) and learns the gyro bias and the accelerometer's along gravity from "
-             "them (2 is a usual pre-flight wait; default: 0, none)",
-             {"type": arg.float_in(0.0, 60.0, unit="s"), "metavar": "S"}),
-    RaceFlag("--eskf-noise-adapt-rate", "eskf.noise_adapt_rate", "with --estimator eskf: the corners' noise follows "
-             "what the filter's innovations show, moving by RATE of the way at each detection, never below its 2 px "
-             "(0.05 takes a 6 px detector in a few seconds; default: 0, the noise stays 2 px)",
-             {"type": arg.float_in(0.0, 1.0), "metavar": "RATE"}),
+    FieldFlag("--pf-recover-after", "guards.recover_after_ticks", "with --pf-recover: re-spread after N unexplained "
+              "detections in a row (default: 1; 3 lets one false detection pass without a re-spread)",
+              {"type": arg.int_in(1, 1000), "metavar": "N"}),
+    FieldFlag("--pf-imu-bias", "guards.imu_bias_std", "with --estimator pf: the filter estimates its IMU's biases, "
+              "each particle carrying its own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)",
+              {"type": arg.imu_bias_std, "metavar": "ACCEL,GYRO"}),
+    FieldFlag("--eskf-map-sigma", "eskf.map_sigma_m", "with --estimator eskf: each gate stands within M m per axis "
+              "(1 sigma) of where the map says, so a gate's corners share that offset in the filter's update (0.2 for "
+              "a tape-measured course; default: 0, an exact map)",
+              {"type": arg.float_in(0.0, 100.0, unit="m"), "metavar": "M"}),
+    FieldFlag("--eskf-align", "eskf.align_s", "with --estimator eskf: the filter averages S s of its IMU's readings at "
+              "rest before the lap (on the pad) and learns the gyro bias and the accelerometer's along gravity from "
+              "them (2 is a usual pre-flight wait; default: 0, none)",
+              {"type": arg.float_in(0.0, 60.0, unit="s"), "metavar": "S"}),
+    FieldFlag("--eskf-noise-adapt-rate", "eskf.noise_adapt_rate", "with --estimator eskf: the corners' noise follows "
+              "what the filter's innovations show, moving by RATE of the way at each detection, never below its 2 px "
+              "(0.05 takes a 6 px detector in a few seconds; default: 0, the noise stays 2 px)",
+              {"type": arg.float_in(0.0, 1.0), "metavar": "RATE"}),
 )
 
 
@@ -166,17 +148,14 @@ def add_race(sub) -> None:
                        help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
                             "tune` writes its best.json; every other flag overrides one field of it")
     for flag in RACE_FLAGS:
-        if flag.field is None:
-            p.add_argument(flag.flag, help=flag.help, **flag.options)
-        else:
-            p.add_argument(flag.flag, default=None, help=_help(flag), **flag.options)
+        flag.add_to(p, _help(flag))
     p.set_defaults(func=_cmd_race, validate=arg.seed_range, precheck=_check_race)
 
 
-def _help(flag: RaceFlag) -> str:
+def _help(flag: FieldFlag) -> str:
     """A flag's help; a controller setting's shows both presets' value of it (building a preset creates no JAX
     array: no backend starts)."""
-    if not flag.field.startswith("config."):
+    if flag.field is None or not flag.field.startswith("config."):
         return flag.help
     shown = {name: _field_value(preset(name), flag.field) for name in ("best", "paper")}
     shown = ", ".join(f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
@@ -194,16 +173,9 @@ def _field_value(spec: RaceSpec, field: str):
 
 def _fields_given(args) -> dict:
     """``{dotted field of the RaceSpec: value}`` of every flag of :data:`RACE_FLAGS` given; a ``--fault`` entry sets
-    the fields of the race's faults it names."""
-    fields = {}
-    for flag in RACE_FLAGS:
-        value = getattr(args, flag.dest)
-        if flag.field is None or value is None:
-            continue
-        if flag.field == "faults":
-            fields.update({f"faults.{name}": setting for entry in value for name, setting in entry.items()})
-        else:
-            fields[flag.field] = value
+    the fields of the race's faults it names (a later entry of a field wins)."""
+    fields = arg.fields_given(args, RACE_FLAGS)
+    fields.update({f"faults.{name}": value for entry in fields.pop("faults", ()) for name, value in entry.items()})
     return fields
 
 
