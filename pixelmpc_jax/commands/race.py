@@ -3,8 +3,8 @@
 A race starts from a preset (``--preset``) or a saved race (``--config``), and each flag of :data:`RACE_FLAGS` sets
 the one field of the :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` it names
 (:class:`~pixelmpc_jax.arguments.FieldFlag`: a dotted path into the spec, ``speed``, ``config.mppi.temperature``,
-``guards.detection_gate_px``). :func:`race_spec` reads that table and builds
-the spec, before anything runs; the handler hands it to :func:`~pixelmpc_jax.apps.racing.compare.run_compare`.
+``guards.detection_gate_px``). :func:`race_spec` reads that table and builds the spec, before anything runs; the
+handler hands it to :func:`~pixelmpc_jax.apps.racing.compare.run_compare`.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
 from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
 from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
 from pixelmpc_jax.sim.faults import FAULT_LEVELS
@@ -186,13 +187,10 @@ def race_spec(args):
     The race is the preset (or the saved race of ``--config``) with the field of each flag given set, all at once
     (:meth:`~pixelmpc_jax.apps.racing.spec.RaceSpec.with_fields`; a ValueError names a setting the library refuses); a
     weights file enters the spec as its fingerprint."""
-    from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
-
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
     fields = _fields_given(args)
     spec = base.with_fields(fields)
-    kalman = [flag.flag for flag in RACE_FLAGS if flag.field and flag.field.startswith("eskf.")
-              and flag.field in fields]
+    kalman = [flag.flag for flag in RACE_FLAGS if flag.field in fields and flag.field.startswith("eskf.")]
     if kalman and spec.estimator != "eskf":
         raise ValueError(f"{kalman[0]} sets the Kalman filter: fly it with --estimator eskf")
     if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
