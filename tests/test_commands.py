@@ -16,7 +16,7 @@ from pixelmpc_jax.commands import EXIT_USAGE
 
 ROOT = Path(__file__).resolve().parent.parent
 JOBS = {"experiment": ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe"),
-        "bench": ("suite", "mppi-step", "closed-loop", "pf-step", "eskf-step", "render")}
+        "bench": ("suite", "device", "mppi-step", "closed-loop", "pf-step", "eskf-step", "render")}
 
 
 def test_the_help_lists_every_job(capsys):

@@ -1,6 +1,6 @@
 """``pixelmpc bench JOB``: the runtime harness (``suite``: Table I, the controller step and its scaling, the closed
-loop, the peers, the matmul limit) and its single measurements on their own. The ``benchmarks/`` scripts call
-these jobs."""
+loop, the peers, the matmul limit), the device suite (``device``: what a GPU is asked to show, in one run) and the
+harness's single measurements on their own. The ``benchmarks/`` scripts call these jobs."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from pixelmpc_jax import arguments as arg
 def add_bench(sub) -> None:
     """``pixelmpc bench``: its jobs as sub-commands."""
     p = sub.add_parser("bench", help="runtime harness: suite (Table I, controller scaling, peers, matmul roofline), "
-                                     "mppi-step, closed-loop, pf-step, eskf-step, render")
+                                     "device (the GPU suite), mppi-step, closed-loop, pf-step, eskf-step, render")
     jobs = p.add_subparsers(dest="bench", metavar="JOB", required=True)
-    for add in (_add_suite, _add_mppi_step, _add_closed_loop, _add_pf_step, _add_eskf_step, _add_render):
+    for add in (_add_suite, _add_device, _add_mppi_step, _add_closed_loop, _add_pf_step, _add_eskf_step, _add_render):
         add(jobs)
 
 
@@ -33,6 +33,48 @@ def _cmd_suite(args) -> int:
     from pixelmpc_jax.apps.bench.suite import run_bench
 
     run_bench(args.out, quick=args.quick, smoke=args.smoke)
+    return 0
+
+
+def _add_device(jobs) -> None:
+    from pixelmpc_jax.apps.bench.device import LAP_SECONDS_LIMIT, DeviceSuiteConfig
+    from pixelmpc_jax.timing import CONTROL_DT
+
+    default = DeviceSuiteConfig()
+    p = jobs.add_parser("device", help="the device suite, under 8 min on one GPU: the DOF, vdof and nominal MPPI "
+                                       "steps at 512 x 80, the DOF step from 512 to 16,384 samples, a batch of 64 "
+                                       "laps of the best race (device.json, device_scaling.png)")
+    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/bench_device"), help="output directory")
+    p.add_argument("--max-samples", type=arg.positive_int, default=default.max_samples,
+                   help=f"the scaling's largest N, 512 times a power of two (default {default.max_samples})")
+    p.add_argument("--repeats", type=arg.positive_int, default=default.repeats,
+                   help=f"timed calls of each step (default {default.repeats})")
+    p.add_argument("--laps", type=arg.positive_int, default=default.laps,
+                   help=f"laps of the race, flown in one batch (default {default.laps})")
+    p.add_argument("--lap-seconds", type=arg.float_in(CONTROL_DT, LAP_SECONDS_LIMIT, unit="s"),
+                   default=default.lap_seconds, help=f"each lap's time limit, s (default {default.lap_seconds:g})")
+    p.set_defaults(func=_cmd_device, validate=_check_device)
+
+
+def _device_config(args):
+    from pixelmpc_jax.apps.bench.device import DeviceSuiteConfig
+
+    return DeviceSuiteConfig(max_samples=args.max_samples, repeats=args.repeats, laps=args.laps,
+                             lap_seconds=args.lap_seconds)
+
+
+def _check_device(args) -> str | None:
+    try:
+        _device_config(args)
+    except ValueError as err:
+        return str(err)
+    return None
+
+
+def _cmd_device(args) -> int:
+    from pixelmpc_jax.apps.bench.device import run_device_suite
+
+    run_device_suite(args.out, _device_config(args))
     return 0
 
 

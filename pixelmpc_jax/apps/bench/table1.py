@@ -110,13 +110,18 @@ def dof_peak_bytes(rows: int) -> int:
     return rows * (2 * max(dof_lib.HIDDEN_SIZES) + dof_lib.INPUT_DIM + 2 * 2) * 4
 
 
-def dof_rows(dof_params=None, smoke: bool = False, repeats: int = 30) -> list[dict]:
+PAPER_DOF_SIZE = (1, 512, 80)  # the DOF row the controller runs: one pixel, 512 samples, 80 sequential steps
+
+
+def dof_rows(dof_params=None, smoke: bool = False, repeats: int = 30, cases=None) -> list[dict]:
+    """The DOF rows of Table I, or only ``cases`` (each (pixels, samples, steps))."""
     dof_params = bench_dof_params() if dof_params is None else dof_params
     pixels_full = IMAGE_WH[0] * IMAGE_WH[1]
-    cases = [(1, 1, 1), (1, 1, 80), (1, 512, 1), (1, 512, 80),
-             (pixels_full, 1, 1), (pixels_full, 1, 80), (pixels_full, 512, 1)]
-    if smoke:
-        cases = [(1, 1, 1), (1, 16, 8)]
+    if cases is None:
+        cases = [(1, 1, 1), (1, 1, 80), (1, 512, 1), PAPER_DOF_SIZE,
+                 (pixels_full, 1, 1), (pixels_full, 1, 80), (pixels_full, 512, 1)]
+        if smoke:
+            cases = [(1, 1, 1), (1, 16, 8)]
     rows = []
     for pixels, samples, steps in cases:
         label = "1x1" if pixels == 1 else f"{IMAGE_WH[0]}x{IMAGE_WH[1]}"

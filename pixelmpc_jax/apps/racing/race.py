@@ -64,13 +64,15 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
     return _Flight(episode_lib.make_runner(policy, episode_config), base, policy.name, sample_devices)
 
 
-def _fly_batch(flight: _Flight, seeds: list[int], batch_size: int, perturb: bool) -> list[tuple]:
-    """Fly the laps of ``seeds`` in one call; ``[(log, the lap's track)]``, host arrays.
+def fly_batch(race: Race, seeds: list[int]) -> list[tuple]:
+    """Fly the laps of ``seeds`` (at most the race's batch size) in one call; ``[(log, the lap's track)]``, host
+    arrays.
 
     The seeds are padded to a whole batch (the last repeated, the copies dropped), so every batch has one
     shape and the vmapped episode compiles once."""
-    padded = seeds + seeds[-1:] * (batch_size - len(seeds))
-    worlds = lap_worlds(flight.base, padded, perturb)
+    flight = race.flight
+    padded = seeds + seeds[-1:] * (race.batch_size - len(seeds))
+    worlds = lap_worlds(flight.base, padded, race.spec.perturb)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
     if flight.sample_devices > 1:  # one lap, its samples over the devices
         logs = metrics_lib.unbatch(flight.runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
@@ -135,7 +137,7 @@ def fly_batches(race: Race) -> Iterator[list[FlownLap]]:
     for first in range(0, spec.laps, race.batch_size):
         chunk = seeds[first:first + race.batch_size]
         flown = []
-        for lap_seed, (log, lap_track) in zip(chunk, _fly_batch(race.flight, chunk, race.batch_size, spec.perturb)):
+        for lap_seed, (log, lap_track) in zip(chunk, fly_batch(race, chunk)):
             flown.append(FlownLap(lap_record(spec, log, lap_track, race.camera, lap_seed),
                                   ticks_lib.lap_ticks(log, lap_track.gates, race.camera, lap_seed), log, lap_track))
         yield flown
