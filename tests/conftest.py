@@ -5,6 +5,8 @@ import tempfile
 import pytest
 
 _CACHE_HOME = {}
+# Compilations shorter than this are not written to the shared cache: loading one costs about as much as making it.
+_MIN_CACHED_COMPILE_S = 0.2
 
 
 def pytest_addoption(parser):
@@ -13,20 +15,31 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
-    """The commands under test keep their compiled steps in ``$XDG_CACHE_HOME`` (see
-    :func:`pixelmpc_jax.host.compilation_cache_dir`): point it at a folder of this test process, so a run neither
-    writes into the user's cache nor starts warm from an earlier run's (each worker of ``-n`` has its own)."""
-    _CACHE_HOME["old"] = os.environ.get("XDG_CACHE_HOME")
-    _CACHE_HOME["new"] = tempfile.mkdtemp(prefix="pixelmpc-tests-cache-")
-    os.environ["XDG_CACHE_HOME"] = _CACHE_HOME["new"]
+    """One compilation cache for the whole run, made before the first compile.
+
+    The commands under test keep their compiled steps in ``$XDG_CACHE_HOME`` (see
+    :func:`pixelmpc_jax.host.compilation_cache_dir`). The first process of the run (the xdist controller, or the
+    only process without ``-n``) points it at a fresh folder, so a run neither writes into the user's cache nor
+    starts warm from an earlier run's. The xdist workers and the commands' subprocesses inherit it. Every test
+    process keeps its own compilations there too (JAX's persistent cache), so a step that two test files or a
+    test and a subprocess compile is compiled once per run."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        _CACHE_HOME["old"] = os.environ.get("XDG_CACHE_HOME")
+        _CACHE_HOME["new"] = tempfile.mkdtemp(prefix="pixelmpc-tests-cache-")
+        os.environ["XDG_CACHE_HOME"] = _CACHE_HOME["new"]
+    from pixelmpc_jax.host import use_compilation_cache
+
+    use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
 
 
 def pytest_unconfigure(config):
+    if "new" not in _CACHE_HOME:  # a worker: the folder is the controller's
+        return
     if _CACHE_HOME.get("old") is None:
         os.environ.pop("XDG_CACHE_HOME", None)
     else:
         os.environ["XDG_CACHE_HOME"] = _CACHE_HOME["old"]
-    shutil.rmtree(_CACHE_HOME.get("new", ""), ignore_errors=True)
+    shutil.rmtree(_CACHE_HOME["new"], ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -29,8 +30,11 @@ def test_dof_flops_hand_case():
     assert roofline.dof_flops_per_eval() == {"matmul": 68_608, "elementwise": 770}
     # a 2-3-1 network: 2 x (6 + 3) = 18 matmul flops; biases 3 + 1, ReLUs 3
     assert roofline.dof_flops_per_eval((2, 3, 1)) == {"matmul": 18, "elementwise": 7}
-    # the counted weights are the network's parameters less its biases
-    assert 68_608 // 2 + 386 == 34_690
+    # the counted products are the shipped network's weights less its biases, two flops each
+    leaves = jax.tree_util.tree_leaves(dof.load_packaged_dof().weights)
+    weights = sum(int(np.prod(leaf.shape)) for leaf in leaves if leaf.ndim == 2)
+    biases = sum(int(np.prod(leaf.shape)) for leaf in leaves if leaf.ndim == 1)
+    assert roofline.dof_flops_per_eval()["matmul"] == 2 * weights and weights + biases == 34_690
 
 
 def test_step_flops_hand_case():
@@ -185,18 +189,51 @@ def test_torch_rollout_cost_equals_jax(port_setup):
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
-    """One smoke run of the harness shared by the tests below: (folder, result, bench.json, printed output)."""
-    out = tmp_path_factory.mktemp("bench")
+RECORDED_ROWS = Path(__file__).resolve().parent / "data" / "bench_smoke_rows.json"
+
+
+def _run_smoke(out) -> tuple:
+    """A smoke run of the harness into ``out``: (folder, result, bench.json, printed output)."""
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         result = suite.run_bench(out, smoke=True)
     return out, result, json.loads((out / "bench.json").read_text()), printed.getvalue()
 
 
-def test_smoke_run_writes_the_schema(smoke_run):
-    tmp_path, result, written, printed = smoke_run
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """One smoke run of the harness, every part measured at tiny sizes (about a minute of compilation), shared by
+    the slow tests below."""
+    return _run_smoke(tmp_path_factory.mktemp("bench"))
+
+
+@pytest.fixture
+def recorded_smoke_run(tmp_path, monkeypatch):
+    """The harness's assembly on the rows of a recorded smoke run: every part that measures is replaced by the
+    rows it gave (tests/data/bench_smoke_rows.json), so bench.json, bench.md, the summary and the plot are built
+    and written without compiling anything. The smoke run itself is the slow test below."""
+    rows = json.loads(RECORDED_ROWS.read_text())
+
+    def part(*groups):
+        return lambda *args, **kwargs: [dict(r) for r in rows if r["group"] in groups]
+
+    from pixelmpc_jax.apps.bench import closed_loop, controller, eskf_step, particle_filter_step, table1
+
+    monkeypatch.setattr(controller, "paper_size_rows", part("controller", "roofline"))
+    monkeypatch.setattr(particle_filter_step, "pf_rows", lambda particles, repeats: [
+        r for r in part("estimator")() if r["name"].startswith("particle filter")])
+    monkeypatch.setattr(eskf_step, "eskf_rows", lambda repeats: [
+        r for r in part("estimator")() if "Kalman" in r["name"]])
+    monkeypatch.setattr(closed_loop, "loop_rows", part("loop"))
+    monkeypatch.setattr(peers, "pytorch_mppi_rows", part("peer"))
+    monkeypatch.setattr(peers, "mppi_generic_rows", part("mppi_generic"))
+    monkeypatch.setattr(table1, "table1_rows", part("table1"))
+    monkeypatch.setattr(controller, "scaling_rows", part("scaling"))
+    return _run_smoke(tmp_path)
+
+
+def _assert_the_schema(run, peers_measured: bool) -> None:
+    tmp_path, result, written, printed = run
     assert (tmp_path / "bench.md").read_text().startswith("# pixelmpc-jax runtime benchmarks")
     assert (tmp_path / "scaling.png").stat().st_size > 0
     assert written["mode"] == "smoke" and len(written["rows"]) == len(result["rows"])
@@ -219,9 +256,9 @@ def test_smoke_run_writes_the_schema(smoke_run):
             assert 0 < row["median_ms"] <= row["max_ms"] and row["mean_ms"] > 0 and row["two_sigma_ms"] >= 0
             assert row["min_ms"] <= row["median_ms"] <= row["p95_ms"] <= row["max_ms"]
     peer_rows = [r for r in written["rows"] if r["group"] == "peer"]
-    if written["versions"]["torch"] is not None:
+    if peers_measured and written["versions"]["torch"] is not None:
         assert all(r["ratio"] > 0 for r in peer_rows)
-    else:  # without the bench extra the peer is skipped, and says so
+    elif peers_measured:  # without the bench extra the peer is skipped, and says so
         assert peer_rows and all(r["status"] == peers.TORCH_MISSING for r in peer_rows)
         assert f"pytorch-mppi peer {peers.TORCH_MISSING}" in printed
     assert written["rows"][0]["num_samples"] == 16 and written["rows"][0]["horizon"] == 8
@@ -230,6 +267,24 @@ def test_smoke_run_writes_the_schema(smoke_run):
         "ratio_vs_pytorch_mppi <= 0.1 (N=512), 0.15 (N=2048)", "step_2048_over_512 <= 4.5",
         "step_8192_over_512 <= 16 (linear)", "dof_fraction >= 0.70", "loop_tick_ms <= 25",
         "vdof_over_dof_step <= 1.10", "eskf_tick_ms <= 1", "eskf_loop_over_truth <= 1.10"}
+
+
+def test_the_harness_writes_the_schema_from_its_parts_rows(recorded_smoke_run):
+    _assert_the_schema(recorded_smoke_run, peers_measured=False)
+    tmp_path, result, written, _ = recorded_smoke_run
+    assert [r["name"] for r in written["rows"]] == [r["name"] for r in json.loads(RECORDED_ROWS.read_text())]
+    summary = written["summary"]
+    loop = {r["controller"]: r for r in written["rows"] if r["group"] == "loop" and r["estimator"] == "truth"}
+    assert summary["loop_tick_median_ms"] == loop["pixelmpc"]["median_ms"]
+    assert summary["nominal_loop_tick_median_ms"] == loop["mppi"]["median_ms"]
+    md = (tmp_path / "bench.md").read_text()
+    assert "## Closed loop: the tick of a lap (target 25 ms median" in md
+    assert md.count("| closed-loop tick: ") == 3
+
+
+@pytest.mark.slow  # about a minute of compilation; the recorded rows above cover the assembly
+def test_smoke_run_writes_the_schema(smoke_run):
+    _assert_the_schema(smoke_run, peers_measured=True)
 
 
 def test_scaling_growth_reads_the_default_rollout_at_t_80():
@@ -243,6 +298,7 @@ def test_scaling_growth_reads_the_default_rollout_at_t_80():
     assert suite._scaling_growth(rows[1:], large=8192) is None  # no 512 row
 
 
+@pytest.mark.slow  # the smoke run's closed-loop rows; the recorded rows above cover their summary
 def test_smoke_run_has_the_closed_loop_rows(smoke_run):
     tmp_path, _, written, _ = smoke_run
     rows = {(r["controller"], r["estimator"]): r for r in written["rows"] if r["group"] == "loop"}

@@ -111,7 +111,7 @@ def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
     assert lap["crash"] is None
 
 
-def test_batch_equals_single_runs(straight, small_runner):
+def test_batch_equals_single_runs(straight):
     config = E.EpisodeConfig(max_time_s=1.5)
     runner = E.make_runner(policies.nominal_mppi_policy(paper_mppi_config(num_samples=64, horizon=20,
                                                                       temperature=200.0)), config)

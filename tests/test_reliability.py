@@ -158,9 +158,19 @@ def test_mppi_config_refuses_what_float32_cannot_carry(field, value, message):
 
 
 def test_mppi_config_accepts_the_edges_of_its_ranges():
+    """Each edge builds (a range one step too narrow raises here) and is kept as given, the sequences as tuples of
+    floats; each edge's square and inverse square are float32 numbers, as the step needs them."""
     for kwargs in (dict(temperature=1e-30), dict(temperature=3e38), dict(noise_sigma=(0.0, 1e-18)),
                    dict(noise_sigma=(1e18, 1.0)), dict(u_min=(-3e38, -1.0), u_max=(3e38, 1.0))):
-        MPPIConfig(**{"noise_sigma": (1.0, 1.0), **kwargs})
+        config = MPPIConfig(**{"noise_sigma": (1.0, 1.0), **kwargs})
+        for name, value in kwargs.items():
+            kept = getattr(config, name)
+            assert kept == (tuple(float(v) for v in value) if isinstance(value, tuple) else value), name
+            assert all(type(v) is float for v in kept) if isinstance(kept, tuple) else True
+        sigma = np.asarray(config.noise_sigma, np.float64)
+        positive = sigma[sigma > 0]
+        assert np.all(np.isfinite(np.float32(positive**2))) and np.all(np.isfinite(np.float32(positive**-2)))
+        assert np.float32(positive**2).min() > 0 and np.isfinite(np.float32(config.temperature))
 
 
 def test_batch_cost_of_the_wrong_shape_is_refused_when_traced():
