@@ -3,24 +3,28 @@
 The algorithms (``control/mppi.py``, the episode driver, the trainer) say what to compute; this module says where
 and how it runs, for every layer:
 
-* :func:`sample_shardings`: the samples of one MPPI step split over several devices (``MPPIConfig.sample_devices``).
-  Each device rolls out and costs its share of the N samples; only the weights' normalisers and the
-  weighted update cross devices. The noise is drawn whole from the same key (the partitionable threefry
-  lets each device draw just its rows), so the samples, and the plan up to float rounding, are those of one
-  device. On a CPU, the host's cores become devices with :func:`pixelmpc_jax.host.split_host_cpu` (before JAX
-  starts): XLA runs one device's program on one core but for its largest kernels, and splitting the samples
-  splits all of the step's work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the
-  noise). :func:`split_samples` and :func:`replicate` place a step's arrays accordingly.
-* :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``MPPIConfig.cpu_matmul``).
-* :func:`counted_jit`: a jitted function and how many times it has been traced (compiled).
+* :class:`Execution`: how a controller's step runs, not what it computes: over how many devices its samples are
+  split (``sample_devices``) and whose kernels run its products on a CPU (``cpu_matmul``).
+* :func:`compile_controller`: a pure MPPI controller (:class:`~pixelmpc_jax.control.mppi.Controller`) as an
+  :class:`Execution` runs it (:class:`CompiledController`): its step jitted with :func:`compiler_options`, its
+  compilations counted (:func:`counted_jit`), its inputs checked and, with ``sample_devices`` > 1, its samples
+  split over the local devices (:func:`sample_shardings`) and the rest placed whole on each (:func:`replicate`).
+  Each device rolls out and costs its share of the N samples; only the weights' normalisers and the weighted
+  update cross devices. The noise is drawn whole from the same key (the partitionable threefry lets each device
+  draw just its rows), so the samples, and the plan up to float rounding, are those of one device. On a CPU, the
+  host's cores become devices with :func:`pixelmpc_jax.host.split_host_cpu` (before JAX starts): XLA runs one
+  device's program on one core but for its largest kernels, and splitting the samples splits all of the step's
+  work (the rollout, the DOF's 40 sequential 512 x 128 x 128 products, the costs, the noise).
+* :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``Execution.cpu_matmul``).
 * :func:`shard_batch`, :func:`gather_batch`: batches of episodes over every device, across processes too;
   :func:`batch_shardings`: a training batch's rows over the devices.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,13 +33,37 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 SAMPLE_AXIS = "samples"
 BATCH_AXIS = "batch"
-CPU_MATMULS = ("auto", "xla", "ynnpack")  # MPPIConfig.cpu_matmul
+CPU_MATMULS = ("auto", "xla", "ynnpack")  # Execution.cpu_matmul
 YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
 
 
 # --------------------------------------------------------------------------------------------------
-# One MPPI step's samples over the local devices.
+# How one controller's step runs.
 # --------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Execution:
+    """How a controller's step runs, not what it computes (the same samples and plan, up to float rounding).
+
+    Attributes:
+        sample_devices: split each step's N samples over this many local devices (1: one device, the default). The
+            samples are the same (drawn whole from the same key) and so is the plan, up to float rounding; each
+            device rolls out N / sample_devices of them. N must split evenly. On a CPU the cores become devices
+            only if asked before JAX starts (:func:`~pixelmpc_jax.host.split_host_cpu`).
+        cpu_matmul: whose kernels run the step's products on a CPU: "auto", "xla" or "ynnpack"
+            (:func:`compiler_options`); the same products either way.
+    """
+
+    sample_devices: int = 1
+    cpu_matmul: str = "auto"
+
+    def __post_init__(self):
+        devices = self.sample_devices
+        if not isinstance(devices, (int, np.integer)) or isinstance(devices, bool) or devices <= 0:
+            raise ValueError(f"Execution.sample_devices must be a positive integer, got {devices!r}")
+        if self.cpu_matmul not in CPU_MATMULS:
+            raise ValueError(f"Execution.cpu_matmul must be one of {CPU_MATMULS}, got {self.cpu_matmul!r}")
 
 
 class SampleShardings(NamedTuple):
@@ -66,17 +94,9 @@ def sample_shardings(num_devices: int, num_samples: int) -> SampleShardings:
 
 def usable_sample_devices(num_samples: int) -> int:
     """The most local devices, at most all of them, over which ``num_samples`` samples split evenly (1 with one
-    device): what to give ``MPPIConfig.sample_devices`` to use every device for one controller."""
+    device): what to give ``Execution.sample_devices`` to use every device for one controller."""
     count = len(jax.local_devices())
     return next(k for k in range(count, 0, -1) if num_samples % k == 0)
-
-
-def split_samples(samples: jax.Array, shardings: SampleShardings | None) -> jax.Array:
-    """Inside jit: ``samples`` (N, ...) with each device holding (and computing from here on) its own rows;
-    as it is with ``shardings`` None (one device)."""
-    if shardings is None:
-        return samples
-    return jax.lax.with_sharding_constraint(samples, shardings.samples)
 
 
 def replicate(tree, shardings: SampleShardings | None):
@@ -95,7 +115,7 @@ def replicate(tree, shardings: SampleShardings | None):
 
 def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
     """The XLA options a step is compiled with (``jax.jit(..., compiler_options=...)``), for
-    ``MPPIConfig.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
+    ``Execution.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
     splits even a 512 x 128 x 128 product over a CPU's cores (XLA's own kernel runs it on one); "xla" keeps
     XLA's; "auto" (the default) takes YNNPACK for a step on one CPU device and XLA's where the samples are
     split over devices already (each core then has its own share). Other platforms ignore the option."""
@@ -117,6 +137,53 @@ def counted_jit(fn: Callable, options: dict | None = None) -> tuple[Callable, Ca
         return fn(*args)
 
     return jax.jit(traced, compiler_options=options), lambda: traces[0]
+
+
+class CompiledController(NamedTuple):
+    """A pure controller as an :class:`Execution` runs it (:func:`compile_controller`).
+
+    Attributes:
+        init: ``init(key, u_init) -> state``, the state on every device of the sample split.
+        step: ``step(state, x0, params) -> (u0, state, info)``: one compiled call, its inputs checked
+            (``Controller.check``, outside jit) and placed on every device of the split before it.
+        placed: the pure controller with its samples split and its state placed (``placed.init`` is ``init``), to
+            compose inside a larger ``jax.jit`` compiled with ``compiler_options`` (a closed-loop episode).
+        num_compilations: ``() -> int``, how many times ``step`` has been traced: JAX traces it once per new input
+            signature (shapes, dtypes, static structure), right before compiling that version; a control loop
+            must keep it at 1.
+        shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live (put params
+            there once with ``jax.device_put(params, shardings.replicated)`` to save a copy per call); else None.
+        compiler_options: the XLA options ``step`` compiles with (:func:`compiler_options`); a larger jitted
+            function that composes ``placed.step`` passes them to its own ``jax.jit``.
+    """
+
+    init: Callable
+    step: Callable
+    placed: Any
+    num_compilations: Callable[[], int]
+    shardings: SampleShardings | None
+    compiler_options: dict | None
+
+
+def compile_controller(ctrl, execution: Execution = Execution()) -> CompiledController:
+    """The pure controller ``ctrl`` (:class:`~pixelmpc_jax.control.mppi.Controller`) jitted, checked and placed as
+    ``execution`` says. With ``sample_devices`` > 1 each step's white noise is constrained to the split over the
+    devices where it is drawn (``Controller.with_sample_placement``: the same samples) and the state and inputs
+    are placed whole on every device; a ValueError if those devices are not present or the samples do not split
+    evenly over them."""
+    placed, shardings = ctrl, None
+    if execution.sample_devices > 1:
+        shardings = sample_shardings(execution.sample_devices, ctrl.config.num_samples)
+        split = ctrl.with_sample_placement(lambda white: jax.lax.with_sharding_constraint(white, shardings.samples))
+        placed = split._replace(init=lambda key, u_init: replicate(split.init(key, u_init), shardings))
+    options = compiler_options(execution.cpu_matmul, execution.sample_devices)
+    step_jit, num_compilations = counted_jit(placed.step, options)
+
+    def step(state, x0, params):
+        return step_jit(*replicate(ctrl.check(state, x0, params), shardings))
+
+    return CompiledController(init=placed.init, step=step, placed=placed, num_compilations=num_compilations,
+                              shardings=shardings, compiler_options=options)
 
 
 # --------------------------------------------------------------------------------------------------

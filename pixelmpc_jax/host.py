@@ -5,7 +5,7 @@ runs. ``pixelmpc race``, ``bench``, ``reproduce``, ``tune`` and ``experiment`` c
 (``cli.SPLIT_CPU_COMMANDS``).
 
 * :func:`split_host_cpu`: make each usable core a JAX device (before JAX starts), so a step whose samples are
-  split over the devices (``MPPIConfig.sample_devices``) runs on every core.
+  split over the devices (``devices.Execution.sample_devices``) runs on every core.
 * :func:`keep_host_memory`: the C allocator keeps the memory a step frees for the next step, instead of
   handing its largest buffers back to the system and faulting them in again, page by page, every step.
 """

@@ -158,8 +158,8 @@ BORDER = ControllerConfig(pixel_cost="border", border_margin=0.2)
 
 def test_identical_races_have_one_key_and_any_difference_another():
     spec = RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2)
-    # the same race spelled otherwise: an int for a float, the MPPI config built another way, its samples' split
-    mppi = dataclasses.replace(paper_mppi_config(), sample_devices=2)
+    # the same race spelled otherwise: an int for a float, the MPPI config built another way
+    mppi = paper_mppi_config()
     same = RaceSpec("pixelmpc", ControllerConfig(mppi=mppi, border_margin=0.2, pixel_cost="border", t_f=1), speed=8,
                     laps=4, seed=2)
     assert same == spec and same.key() == spec.key()
@@ -176,6 +176,21 @@ def test_identical_races_have_one_key_and_any_difference_another():
     keys.update({name: spec.replace(config=dataclasses.replace(BORDER, **{name: value})).key()
                  for name, value in settings.items()})
     assert spec.key() not in keys.values() and len(set(keys.values())) == len(keys)
+
+
+def test_a_race_recorded_with_a_retired_setting_reads_back_with_the_key_it_was_flown_under():
+    """Races recorded while the MPPI configuration held how a step ran (``mppi.sample_devices`` 1,
+    ``mppi.cpu_matmul`` "auto", now :class:`~pixelmpc_jax.devices.Execution`) read back as the same race with the
+    same key; a record holding another value of one is refused, naming it."""
+    for spec in (RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2), RaceSpec("mppi")):
+        recorded = json.loads(json.dumps(spec.record()))
+        assert "sample_devices" not in recorded["config"]["mppi"]
+        recorded["config"]["mppi"].update(sample_devices=1, cpu_matmul="auto")
+        assert RaceSpec.from_record(recorded) == spec and RaceSpec.from_record(recorded).key() == spec.key()
+    assert RaceSpec("mppi").key() == "a91b7d227174b51c"  # its key before the retirement (moves with its defaults)
+    recorded["config"]["mppi"]["sample_devices"] = 2
+    with pytest.raises(ValueError, match="unknown setting config.mppi.sample_devices"):
+        RaceSpec.from_record(recorded)
 
 
 def test_a_nominal_race_has_no_pixel_settings():

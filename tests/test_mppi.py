@@ -8,6 +8,7 @@ import pytest
 from pixelmpc_jax.apps.racing.waypoint import fly_to_waypoint
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.sampling import importance_weights
+from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import quadrotor as Q
 
 DT = 0.05
@@ -26,7 +27,7 @@ def goal_cost(x, u, t, goal):
 def closed_loop(ctrl, state, x, params, steps, plant):
     def tick(carry, _):
         x, state = carry
-        u, state, info = ctrl.step_pure(state, x, params)
+        u, state, info = ctrl.step(state, x, params)
         return (plant(x, u, params), state), (x, u)
 
     (x, state), (xs, us) = jax.jit(lambda c: jax.lax.scan(tick, c, None, length=steps))((x, state))
@@ -88,7 +89,7 @@ def test_quadrotor_flies_to_waypoint_5m_away_and_holds_it():
 
 def test_same_key_identical_results_different_key_differs():
     cfg = MPPIConfig(num_samples=64, horizon=10, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     goal = jnp.asarray([1.0, 1.0])
     outs = []
     for seed in (0, 0, 1):
@@ -102,7 +103,7 @@ def test_same_key_identical_results_different_key_differs():
 
 def test_key_is_split_every_step():
     cfg = MPPIConfig(num_samples=16, horizon=5, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     _, state2, _ = ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
     assert not np.array_equal(jax.random.key_data(state.key), jax.random.key_data(state2.key))
@@ -116,7 +117,7 @@ def test_nonfinite_samples_are_ignored():
         return goal_cost(x, u, t, goal) + poison
 
     cfg = MPPIConfig(num_samples=128, horizon=10, dt=DT, noise_sigma=(1.0, 1.0), nominal_sample=False)
-    ctrl = make_mppi(cfg, double_integrator, cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     u0, state, info = ctrl.step(state, jnp.zeros(4), jnp.asarray([5.0, 0.0]))
     assert 0 < int(info.num_nonfinite) < 128
@@ -131,7 +132,7 @@ def test_all_nonfinite_keeps_the_plan_and_says_so():
         return jnp.nan * jnp.sum(x)
 
     cfg = MPPIConfig(num_samples=32, horizon=6, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, cost))
     plan = jnp.stack([jnp.arange(6.0), -jnp.arange(6.0)], axis=1)
     state = ctrl.init(jax.random.PRNGKey(0), plan)
     u0, new_state, info = ctrl.step(state, jnp.zeros(4), None)
@@ -143,7 +144,7 @@ def test_all_nonfinite_keeps_the_plan_and_says_so():
 def test_update_uses_clipped_noise_and_stays_in_bounds():
     cfg = MPPIConfig(num_samples=64, horizon=8, dt=DT, noise_sigma=(5.0, 5.0), u_min=(-1.0, -1.0),
                      u_max=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.asarray([0.9, -0.9]))
     for _ in range(5):
         u0, state, _ = ctrl.step(state, jnp.zeros(4), jnp.asarray([100.0, -100.0]))
@@ -153,7 +154,7 @@ def test_update_uses_clipped_noise_and_stays_in_bounds():
 
 def test_info_shapes_and_nominal_trajectory_follows_the_plan():
     cfg = MPPIConfig(num_samples=32, horizon=7, dt=DT, noise_sigma=(0.5, 0.5), iterations=3)
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     x0 = jnp.asarray([0.1, 0.2, 0.0, 0.0])
     u0, new_state, info = ctrl.step(state, x0, jnp.ones(2))
@@ -169,7 +170,8 @@ def test_gamma_control_cost_changes_the_result():
     goal = jnp.asarray([1.0, 1.0])
     results = []
     for gamma in (0.0, 5.0):
-        ctrl = make_mppi(MPPIConfig(**base, control_cost_weight=gamma), double_integrator, goal_cost)
+        config = MPPIConfig(**base, control_cost_weight=gamma)
+        ctrl = compile_controller(make_mppi(config, double_integrator, goal_cost))
         state = ctrl.init(jax.random.PRNGKey(0), jnp.ones(2))
         results.append(ctrl.step(state, jnp.zeros(4), goal)[2].costs)
     assert not np.allclose(results[0], results[1])
@@ -178,7 +180,7 @@ def test_gamma_control_cost_changes_the_result():
 
 def test_no_recompilation_across_20_steps_with_new_params_and_state():
     cfg = MPPIConfig(num_samples=32, horizon=10, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     x = jnp.zeros(4)
     assert ctrl.num_compilations() == 0
@@ -214,7 +216,7 @@ def test_bad_config_is_rejected_with_a_clear_message(kwargs, match):
 
 def test_bad_u_init_and_x0_are_rejected_before_tracing():
     cfg = MPPIConfig(num_samples=8, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     with pytest.raises(ValueError, match=r"u_init must have shape \(4, 2\)"):
         ctrl.init(jax.random.PRNGKey(0), jnp.zeros((3, 2)))
     with pytest.raises(ValueError, match="u_init must be finite"):
@@ -228,7 +230,7 @@ def test_bad_u_init_and_x0_are_rejected_before_tracing():
 
 def test_an_integer_state_steps_as_the_float_state():
     cfg = MPPIConfig(num_samples=8, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    ctrl = compile_controller(make_mppi(cfg, double_integrator, goal_cost))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     x = jnp.asarray([1, 0, -2, 1])
     u_int, _, info_int = ctrl.step(state, x.astype(jnp.int32), jnp.zeros(2))
@@ -278,7 +280,7 @@ def test_prefix_equals_one_time_varying_rollout():
     np.testing.assert_allclose(split_states, ref_states, atol=1e-6)
     # and the controller built with the prefix runs, keeping the extra state in its prediction
     cfg = MPPIConfig(num_samples=16, horizon=12, dt=DT, noise_sigma=(1.0, 1.0))
-    ctrl = make_mppi(cfg, main_dynamics, main_cost, prefix=prefix)
+    ctrl = compile_controller(make_mppi(cfg, main_dynamics, main_cost, prefix=prefix))
     _, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2)), x0, goal)
     assert info.nominal_trajectory.shape == (13, 5)
     with pytest.raises(ValueError, match="prefix.steps"):
@@ -386,7 +388,7 @@ def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works
 
     config = MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
     per_sample = TrajectoryCost(lambda X, U, steps, goal: jnp.sum(X, axis=0))  # (N, n): one row per sample, not step
-    ctrl = make_mppi(config, double_integrator, per_sample)
+    ctrl = compile_controller(make_mppi(config, double_integrator, per_sample))
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     with pytest.raises(ValueError, match=r"shape \(T, N\) = \(4, 16\); it returned shape \(16, 4\)"):
         ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
@@ -397,12 +399,46 @@ def test_trajectory_cost_of_the_wrong_shape_is_refused_and_one_sample_call_works
 
 def test_batched_step_is_the_same_with_and_without_jit():
     cfg = MPPIConfig(num_samples=32, horizon=8, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-2.0, -2.0), u_max=(2.0, 2.0))
-    ctrl = make_mppi(cfg, double_integrator, goal_cost)
-    state = ctrl.init(jax.random.PRNGKey(1), jnp.zeros(2))
+    pure = make_mppi(cfg, double_integrator, goal_cost)
+    state = pure.init(jax.random.PRNGKey(1), jnp.zeros(2))
     x, goal = jnp.asarray([0.1, 0.0, 0.0, 0.2]), jnp.asarray([1.0, -1.0])
-    u_jit, s_jit, info_jit = ctrl.step(state, x, goal)
+    u_jit, s_jit, info_jit = compile_controller(pure).step(state, x, goal)
     with jax.disable_jit():
-        u_eager, s_eager, info_eager = ctrl.step_pure(state, x, goal)
+        u_eager, s_eager, info_eager = pure.step(state, x, goal)
     np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-5)
     np.testing.assert_allclose(s_eager.plan, s_jit.plan, atol=1e-5)
     np.testing.assert_allclose(u_eager, u_jit, atol=1e-5)
+
+
+def test_the_pure_step_vmapped_over_8_robots_in_one_jit_gives_each_robot_its_own_step():
+    """The pure pair composes in the caller's program: init and step vmapped over 8 robots (8 keys, 8 warm starts,
+    8 states, 8 goals) inside one ``jax.jit`` give each robot what its own jitted step gives: the same keys, counts
+    and flags exactly, the same floats up to the rounding of batched reductions (rtol 1e-5, atol 1e-6; 3e-6 seen)."""
+    cfg = MPPIConfig(num_samples=64, horizon=10, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-2.0, -2.0), u_max=(2.0, 2.0))
+    ctrl = make_mppi(cfg, double_integrator, goal_cost)
+    keys = jax.random.split(jax.random.PRNGKey(7), 8)
+    plans = 0.5 * jax.random.normal(jax.random.PRNGKey(8), (8, 10, 2))
+    x0s = jax.random.normal(jax.random.PRNGKey(9), (8, 4))
+    goals = jax.random.normal(jax.random.PRNGKey(10), (8, 2))
+
+    @jax.jit
+    def fleet(keys, plans, x0s, goals):
+        states = jax.vmap(ctrl.init)(keys, plans)
+        return states, jax.vmap(ctrl.step)(states, x0s, goals)
+
+    states, (u, stepped, info) = fleet(keys, plans, x0s, goals)
+    single = jax.jit(ctrl.step)
+    close = dict(rtol=1e-5, atol=1e-6)
+    for i in range(8):
+        state = ctrl.init(keys[i], plans[i])
+        np.testing.assert_array_equal(states.plan[i], state.plan)
+        u_i, stepped_i, info_i = single(state, x0s[i], goals[i])
+        np.testing.assert_allclose(u[i], u_i, **close)
+        np.testing.assert_allclose(stepped.plan[i], stepped_i.plan, **close)
+        np.testing.assert_array_equal(jax.random.key_data(stepped.key[i]), jax.random.key_data(stepped_i.key))
+        for name, value in info._asdict().items():
+            if jnp.issubdtype(value.dtype, jnp.floating):
+                np.testing.assert_allclose(value[i], getattr(info_i, name), **close, err_msg=name)
+            else:
+                np.testing.assert_array_equal(value[i], getattr(info_i, name), err_msg=name)
+    assert len({tuple(np.asarray(row).tolist()) for row in u}) == 8  # 8 robots, 8 different controls

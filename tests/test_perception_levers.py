@@ -12,6 +12,7 @@ from pixelmpc_jax.control import costs, sampling
 from pixelmpc_jax.control import mppi as mppi_lib
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
+from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.sim import controllers
 from pixelmpc_jax.sim import metrics as M
@@ -53,7 +54,7 @@ def test_projection_model_gives_the_behind_camera_pixel_when_the_gate_is_behind(
     """Flying away from the target gate, the projection model's predicted pixel is the behind-camera pixel."""
     track = course_lib.load_course()
     config = PM.ControllerConfig(mppi=SMALL, pixel_model="projection", t_f=0.1, pixel_cost="border")
-    ctrl = PM.make_pixelmpc(config)
+    ctrl = compile_controller(PM.make_pixelmpc(config))
     gate = track.gate(0)
     yaw_away = float(np.arctan2(-gate.normal[1], -gate.normal[0]))
     x = Q.hover_state(gate.centre - 5.0 * gate.normal, yaw_away)
@@ -125,7 +126,7 @@ def test_coloured_noise_samples_have_sigma_and_are_smoother():
     for beta in (0.0, 2.0):
         config = mppi_lib.MPPIConfig(num_samples=4000, horizon=32, noise_sigma=(0.5,), temperature=1.0,
                                      noise_exponent=beta, nominal_sample=False)
-        ctrl = mppi_lib.make_mppi(config, dynamics, cost)
+        ctrl = compile_controller(mppi_lib.make_mppi(config, dynamics, cost))
         _, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(1), jnp.zeros((1,))), jnp.zeros((1,)), None)
         stds[beta] = float(jnp.sqrt(jnp.mean(info.costs) / config.horizon))
     assert stds[0.0] == pytest.approx(0.5, rel=0.03) and stds[2.0] == pytest.approx(0.5, rel=0.05)

@@ -10,6 +10,7 @@ import pytest
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.control.mppi import make_mppi
+from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.world import camera as C
@@ -50,7 +51,7 @@ def test_prefix_equals_full_horizon_computation(setup, model):
     track, dof_params = setup
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model=model)  # n_f = 10 of 24 steps
     assert config.pixel_steps == 10
-    fast = PM.make_pixelmpc(config)
+    fast = compile_controller(PM.make_pixelmpc(config))
     dt = SMALL.dt
 
     def full_dynamics(X, u, p):
@@ -68,7 +69,7 @@ def test_prefix_equals_full_horizon_computation(setup, model):
         pixel = jnp.where((t < config.pixel_steps) & ahead, PM.pixel_cost(X[10:], config), 0.0)
         return racing + p.target_active * pixel
 
-    full = make_mppi(SMALL, full_dynamics, full_cost)
+    full = compile_controller(make_mppi(SMALL, full_dynamics, full_cost))
     params = make_params(track, dof_params, config)
     key = jax.random.PRNGKey(3)
     u_init = Q.hover_control(Q.QuadParams())
@@ -88,13 +89,13 @@ def test_prefix_equals_full_horizon_computation(setup, model):
 def test_pixel_cost_counts_only_while_the_target_is_detected(setup):
     track, dof_params = setup
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.5, c_pixel=9e6)
-    ctrl = PM.make_pixelmpc(config)
+    ctrl = compile_controller(PM.make_pixelmpc(config))
     key = jax.random.PRNGKey(0)
     u_init = Q.hover_control(Q.QuadParams())
     off_centre = state(track, uv=(0.9, 0.1))
     _, _, on = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=True))
     _, _, off = ctrl.step(ctrl.init(key, u_init), off_centre, make_params(track, dof_params, config, active=False))
-    nominal = PM.make_pixelmpc(PM.ControllerConfig(mppi=SMALL, t_f=0.5, c_pixel=0.0))
+    nominal = compile_controller(PM.make_pixelmpc(PM.ControllerConfig(mppi=SMALL, t_f=0.5, c_pixel=0.0)))
     _, _, zero = nominal.step(nominal.init(key, u_init), off_centre, make_params(track, dof_params, config))
     np.testing.assert_allclose(off.costs, zero.costs, rtol=1e-6)
     # L1 of (0.9, 0.1) from the centre is 0.8: at least n_f steps of a large pixel cost in every sample
@@ -104,7 +105,7 @@ def test_pixel_cost_counts_only_while_the_target_is_detected(setup):
 def test_projection_model_predicts_the_projected_target(setup):
     track, dof_params = setup
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.5, pixel_model="projection")
-    ctrl = PM.make_pixelmpc(config)
+    ctrl = compile_controller(PM.make_pixelmpc(config))
     params = make_params(track, dof_params, config)
     _, _, info = ctrl.step(ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams())), state(track), params)
     traj = info.nominal_trajectory
@@ -117,7 +118,7 @@ def test_projection_model_predicts_the_projected_target(setup):
 def small_controller(track, dof_params, seed=0):
     """A PixelMPC controller at the small size with t_f = 0.25 s: (ctrl, config, its first state, params)."""
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25)
-    ctrl = PM.make_pixelmpc(config)
+    ctrl = compile_controller(PM.make_pixelmpc(config))
     s = ctrl.init(jax.random.PRNGKey(seed), Q.hover_control(Q.QuadParams()))
     return ctrl, config, s, make_params(track, dof_params, config)
 
@@ -165,9 +166,9 @@ def test_nominal_step_equals_a_one_sample_racing_cost(setup):
     rounding over a few ticks of a closed loop on the AlphaPilot course, compiled once."""
     track, _ = setup
     cfg = costs.RacingCostConfig()
-    nominal = PM.make_nominal_mppi(SMALL, cfg)
-    reference = make_mppi(SMALL, lambda x, u, p: Q.step(x, u, SMALL.dt, Q.QuadParams()),
-                          lambda x, u, t, p: one_state_racing(x, t, p, cfg))
+    nominal = compile_controller(PM.make_nominal_mppi(SMALL, cfg))
+    reference = compile_controller(make_mppi(SMALL, lambda x, u, p: Q.step(x, u, SMALL.dt, Q.QuadParams()),
+                                             lambda x, u, t, p: one_state_racing(x, t, p, cfg)))
     params = costs.racing_params(track, jnp.linspace(0.0, 20.0, SMALL.horizon), 14.0, cfg)
     x = state(track)[:10]
     u_init = Q.hover_control(Q.QuadParams())
@@ -185,11 +186,11 @@ def test_nominal_step_equals_a_one_sample_racing_cost(setup):
 
 @pytest.mark.slow  # ~18 s of op-by-op execution; test_mppi checks jit == no-jit for the generic step
 def test_batched_pixelmpc_step_is_the_same_with_and_without_jit(setup):
-    ctrl, _, s, params = small_controller(*setup, seed=2)
+    ctrl, config, s, params = small_controller(*setup, seed=2)
     track = setup[0]
     u_jit, s_jit, info_jit = ctrl.step(s, state(track), params)
     with jax.disable_jit():
-        u_eager, s_eager, info_eager = ctrl.step_pure(s, state(track), params)
+        u_eager, s_eager, info_eager = PM.make_pixelmpc(config).step(s, state(track), params)
     np.testing.assert_allclose(info_eager.costs, info_jit.costs, rtol=1e-4)
     np.testing.assert_allclose(s_eager.plan, s_jit.plan, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(u_eager, u_jit, rtol=1e-4, atol=1e-4)
@@ -221,7 +222,8 @@ def test_the_vdof_model_carries_the_box_size_and_its_limit_stops_the_pixel_cost(
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=3e7, pixel_cost="border", pixel_model="vdof",
                                box_size_limit=0.5)
     costs_of = {}
-    controllers = {c_pixel: PM.make_pixelmpc(dataclasses.replace(config, c_pixel=c_pixel)) for c_pixel in (3e7, 0.0)}
+    controllers = {c_pixel: compile_controller(PM.make_pixelmpc(dataclasses.replace(config, c_pixel=c_pixel)))
+                   for c_pixel in (3e7, 0.0)}
     params = make_params(track, params_vdof, config)
     for name, c_pixel, s in (("near", 3e7, 5.0), ("near_free", 0.0, 5.0), ("far", 3e7, 0.2), ("far_free", 0.0, 0.2)):
         ctrl = controllers[c_pixel]
@@ -254,7 +256,7 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     within the 0.25 s the pixel is costed)."""
     track, dof_params = setup
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
-    fast = PM.make_pixelmpc(config)
+    fast = compile_controller(PM.make_pixelmpc(config))
     dt = SMALL.dt
     centre, x0 = track.gates.centre[0], _before_gate_0(track)
 
@@ -271,7 +273,7 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
         following = jnp.where(in_prefix & ~ahead & before_next & p.next_active, PM.pixel_cost(X[12:14], config), 0.0)
         return racing + target + config.look_ahead * following
 
-    full = make_mppi(SMALL, full_dynamics, full_cost)
+    full = compile_controller(make_mppi(SMALL, full_dynamics, full_cost))
     params = make_params(track, dof_params, config).replace(
         next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
     X0 = jnp.concatenate([x0, _project(centre, x0), _project(track.gates.centre[1], x0)])
@@ -299,7 +301,7 @@ def test_the_projection_look_ahead_predicts_the_next_gate_from_the_map_and_the_t
     config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="dof", look_ahead=0.5,
                                  look_ahead_model="projection")
     assert config.next_pixel_dim == 2
-    fast = PM.make_pixelmpc(config)
+    fast = compile_controller(PM.make_pixelmpc(config))
     dt = SMALL.dt
     x0 = _before_gate_0(track)
 
@@ -323,7 +325,7 @@ def test_the_projection_look_ahead_predicts_the_next_gate_from_the_map_and_the_t
                                    atol=1e-5)
     np.testing.assert_allclose(traj[prefix_steps + 3, 10:], traj[prefix_steps, 10:])  # carried after n_f
     # the same config with the DOF predicting the next gate too moves it otherwise
-    own = PM.make_pixelmpc(dataclasses.replace(config, look_ahead_model="own"))
+    own = compile_controller(PM.make_pixelmpc(dataclasses.replace(config, look_ahead_model="own")))
     _, _, info_own = own.step(own.init(key, u_init), X0, params)
     assert np.abs(np.asarray(info_own.nominal_trajectory)[prefix_steps, 12:] - traj[prefix_steps, 12:]).max() > 1e-3
     with pytest.raises(ValueError, match="look_ahead_model must be one of"):

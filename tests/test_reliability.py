@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import quadrotor as Q
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -182,12 +183,12 @@ def test_batch_cost_of_the_wrong_shape_is_refused_when_traced():
     state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
     with pytest.raises(ValueError, match=r"must return one cost per sample, shape \(N,\) = \(16,\); it returned "
                                          r"shape \(\)"):
-        ctrl.step(state, jnp.zeros(4), jnp.zeros(2))
+        compile_controller(ctrl).step(state, jnp.zeros(4), jnp.zeros(2))
     with pytest.raises(ValueError, match=r"shape \(N,\) = \(16,\)"):  # composed inside a larger jit too
-        jax.jit(ctrl.step_pure)(state, jnp.zeros(4), jnp.zeros(2))
+        jax.jit(ctrl.step)(state, jnp.zeros(4), jnp.zeros(2))
     column = BatchCost(lambda X, U, t, goal: jnp.sum(X, axis=1, keepdims=True))  # (N, 1)
     with pytest.raises(ValueError, match=r"returned shape \(16, 1\)"):
-        make_mppi(config, double_integrator, column).step(state, jnp.zeros(4), jnp.zeros(2))
+        compile_controller(make_mppi(config, double_integrator, column)).step(state, jnp.zeros(4), jnp.zeros(2))
     with pytest.raises(ValueError, match=r"shape \(N,\) = \(1,\)"):  # called with one sample
         scalar(jnp.zeros(4), jnp.zeros(2), 0, jnp.zeros(2))
 
@@ -195,10 +196,11 @@ def test_batch_cost_of_the_wrong_shape_is_refused_when_traced():
 def test_one_sample_costs_must_return_a_scalar():
     config = MPPIConfig(num_samples=16, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
     state = make_mppi(config, double_integrator, goal_cost).init(jax.random.PRNGKey(0), jnp.zeros(2))
-    vector_cost = make_mppi(config, double_integrator, lambda x, u, t, goal: (x[:2] - goal) ** 2)
+    vector_cost = compile_controller(make_mppi(config, double_integrator, lambda x, u, t, goal: (x[:2] - goal) ** 2))
     with pytest.raises(ValueError, match=r"must return a scalar per sample \(shape \(\)\), it returned shape \(2,\)"):
         vector_cost.step(state, jnp.zeros(4), jnp.zeros(2))
-    vector_terminal = make_mppi(config, double_integrator, goal_cost, terminal_cost=lambda x, goal: x[:2])
+    vector_terminal = compile_controller(make_mppi(config, double_integrator, goal_cost,
+                                                   terminal_cost=lambda x, goal: x[:2]))
     with pytest.raises(ValueError, match="must return a scalar per sample"):
         vector_terminal.step(state, jnp.zeros(4), jnp.zeros(2))
 
@@ -227,7 +229,7 @@ def test_quadrotor_model_refuses_a_control_of_the_wrong_length(control_dim):
 def _bounded_controller(cost, **kwargs):
     config = MPPIConfig(num_samples=32, horizon=6, dt=DT, noise_sigma=(1.0, 1.0), u_min=(-3.0, -1.0),
                         u_max=(3.0, 5.0), **kwargs)
-    return make_mppi(config, double_integrator, cost)
+    return compile_controller(make_mppi(config, double_integrator, cost))
 
 
 def test_a_nan_in_the_carried_plan_is_reset_and_flagged():
@@ -257,7 +259,7 @@ def test_an_update_that_overflows_float32_keeps_the_last_finite_plan():
     # cannot push a float32 past its largest value); bypassing it tests the last guard in the step.
     config = MPPIConfig(num_samples=32, horizon=4, dt=DT, noise_sigma=(1.0, 1.0))
     object.__setattr__(config, "noise_sigma", (1e37, 1e37))
-    ctrl = make_mppi(config, lambda x, u, p: x, lambda x, u, t, p: jnp.sum(x))
+    ctrl = compile_controller(make_mppi(config, lambda x, u, p: x, lambda x, u, t, p: jnp.sum(x)))
     edge = jnp.full((4, 2), 3.4e38, jnp.float32)
     state = ctrl.init(jax.random.PRNGKey(0), edge)
     u0, new_state, info = ctrl.step(state, jnp.zeros(2), None)

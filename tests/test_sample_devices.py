@@ -1,4 +1,4 @@
-"""MPPIConfig.sample_devices: one step's samples split over (forced) CPU devices give the one-device step, and
+"""Execution.sample_devices: one step's samples split over (forced) CPU devices give the one-device step, and
 the `pixelmpc` command splits the CPU into devices where it should."""
 
 import functools
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pixelmpc_jax import devices, host
-from pixelmpc_jax.control.mppi import MPPIConfig
+from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 
 SCRIPT = r"""
 import json
@@ -21,6 +21,7 @@ import jax, jax.numpy as jnp, numpy as np
 from pixelmpc_jax.apps.bench import problems
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import episode as E
+from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.world import course as C
 from pixelmpc_jax.sim import env as env_lib
@@ -40,6 +41,12 @@ for k in (1, 2):
         out["costs_shard_shape"] = list(info.costs.sharding.shard_shape(info.costs.shape))
         out["compilations"] = p.ctrl.num_compilations()
 out["steps"] = steps
+try:  # 63 samples do not split over two devices
+    devices.compile_controller(make_mppi(MPPIConfig(num_samples=63, horizon=4, noise_sigma=(1.0,)),
+                                         lambda x, u, p: x + u, lambda x, u, t, p: x[0] ** 2),
+                               devices.Execution(sample_devices=2))
+except ValueError as err:
+    out["uneven"] = str(err)
 course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
 world = env_lib.make_world(course, target_speed=8.0)
 spec = RaceSpec(controller="mppi", config=ControllerConfig(mppi=paper_mppi_config(num_samples=64, horizon=12)))
@@ -85,18 +92,16 @@ def test_a_lap_with_its_samples_over_two_devices_flies_the_one_device_lap():
 
 
 def test_sample_devices_is_checked_before_anything_runs():
-    with pytest.raises(ValueError, match="sample_devices"):
-        MPPIConfig(num_samples=10, sample_devices=3)
+    assert "does not split evenly over sample_devices=2" in two_devices()["uneven"]
     with pytest.raises(ValueError, match="positive integer"):
-        MPPIConfig(sample_devices=0)
+        devices.Execution(sample_devices=0)
     import jax
 
-    from pixelmpc_jax.control.mppi import make_mppi
-
     present = len(jax.local_devices())
-    config = MPPIConfig(num_samples=8 * (present + 1), horizon=4, noise_sigma=(1.0,), sample_devices=present + 1)
+    config = MPPIConfig(num_samples=8 * (present + 1), horizon=4, noise_sigma=(1.0,))
+    ctrl = make_mppi(config, lambda x, u, p: x + u, lambda x, u, t, p: x[0] ** 2)
     with pytest.raises(ValueError, match="split_host_cpu"):
-        make_mppi(config, lambda x, u, p: x + u, lambda x, u, t, p: x[0] ** 2)
+        devices.compile_controller(ctrl, devices.Execution(sample_devices=present + 1))
 
 
 def test_split_host_cpu_after_jax_started_changes_nothing():
@@ -126,8 +131,6 @@ def test_the_command_splits_the_cpu_on_request_and_refuses_a_bad_count():
 
 
 def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same_step():
-    import dataclasses
-
     import jax
 
     from pixelmpc_jax.apps.bench import problems
@@ -138,12 +141,12 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
     assert devices.compiler_options("auto", 2) is None and devices.compiler_options("xla", 1) is None
     assert devices.compiler_options("ynnpack", 2) == devices.YNNPACK_MATMULS
     with pytest.raises(ValueError, match="cpu_matmul"):
-        MPPIConfig(cpu_matmul="mkl")
+        devices.Execution(cpu_matmul="mkl")
     steps = {}
     for matmul in ("xla", "auto"):
         problem = problems.pixelmpc_problem(64, 12, 0.15)
-        config = dataclasses.replace(problem.config, mppi=dataclasses.replace(problem.config.mppi, cpu_matmul=matmul))
-        ctrl = pixelmpc_lib.make_pixelmpc(config)
+        ctrl = devices.compile_controller(pixelmpc_lib.make_pixelmpc(problem.config),
+                                          devices.Execution(cpu_matmul=matmul))
         state = ctrl.init(jax.random.PRNGKey(0), np.asarray([0.0, 0.0, 0.0, 9.81], np.float32))
         steps[matmul] = ctrl.step(state, problem.x0, problem.params)
         assert ctrl.compiler_options == devices.compiler_options(matmul, 1)

@@ -1,4 +1,4 @@
-"""Model Predictive Path Integral control (Williams et al. 2017), generic and compiled.
+"""Model Predictive Path Integral control (Williams et al. 2017), generic, as a pair of pure functions.
 
 This module knows nothing of quadrotors or pixels. A problem is three functions written for ONE sample:
 
@@ -27,14 +27,18 @@ Numerics: non-finite sample costs get zero weight; an iteration whose every samp
 plan (``info.all_nonfinite``); a plan holding a non-finite value (carried in, or after the update) is
 replaced by the last finite one, or by the middle of the bounds (``info.plan_reset``), so ``U[0]`` is always
 finite. Settings float32 cannot carry and costs of the wrong shape are refused with a ValueError before
-anything runs (:mod:`~pixelmpc_jax.control.mppi_checks`). How the step runs (its devices, compiler options
-and compile count) is :mod:`pixelmpc_jax.devices`'s concern.
+anything runs (:mod:`~pixelmpc_jax.control.mppi_checks`); ``Controller.check`` checks a step's inputs outside
+any jit.
 
-Usage::
+Like an optax transformation, a :class:`Controller` is ``init`` and ``step``, pure functions over a small
+NamedTuple state: jit them, vmap them over robots, scan them over time, as the caller's program needs::
 
     ctrl = make_mppi(config, dynamics, running_cost)
     state = ctrl.init(key, u_init)
-    u0, state, info = ctrl.step(state, x0, params)     # jitted, validated
+    u0, state, info = jax.jit(ctrl.step)(state, x0, params)
+
+How a step runs, as opposed to what it computes, is :mod:`pixelmpc_jax.devices`'s concern
+(:func:`~pixelmpc_jax.devices.compile_controller`).
 """
 
 from __future__ import annotations
@@ -50,14 +54,6 @@ from pixelmpc_jax import timing
 from pixelmpc_jax.control.mppi_checks import check_prefix, checked_config, checked_u_init, step_input_checks
 from pixelmpc_jax.control.rollout import Prefix, rollout_costs, rollout_states
 from pixelmpc_jax.control.sampling import coloured_noise_filter, importance_weights
-from pixelmpc_jax.devices import (
-    SampleShardings,
-    compiler_options,
-    counted_jit,
-    replicate,
-    sample_shardings,
-    split_samples,
-)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,12 +75,6 @@ class MPPIConfig:
             along the horizon, as in iCEM and MPPI-Generic's coloured sampler: 0 (the paper's) samples white
             noise, 1 pink, 2 red (smooth, slowly varying). Every step's marginal std stays ``noise_sigma``;
             see :func:`~pixelmpc_jax.control.sampling.coloured_noise_filter`.
-        sample_devices: split the N samples over this many local devices (1: one device, the default). The
-            samples are the same (drawn whole from the same key) and so is the plan, up to float rounding;
-            each device rolls out N / sample_devices of them. N must split evenly. On a CPU the cores become
-            devices only if asked before JAX starts (:func:`~pixelmpc_jax.host.split_host_cpu`).
-        cpu_matmul: whose kernels run the step's products on a CPU: "auto", "xla" or "ynnpack"
-            (:func:`~pixelmpc_jax.devices.compiler_options`); the same products either way.
     """
 
     num_samples: int = 512
@@ -98,8 +88,6 @@ class MPPIConfig:
     control_cost_weight: float = 0.0
     nominal_sample: bool = True
     noise_exponent: float = 0.0
-    sample_devices: int = 1
-    cpu_matmul: str = "auto"
 
     def __post_init__(self):
         for name, value in checked_config(self).items():  # the sequences as tuples of floats
@@ -148,31 +136,27 @@ class MPPIInfo(NamedTuple):
 
 
 class Controller(NamedTuple):
-    """An init/step pair.
+    """MPPI as a pair of pure functions over :class:`MPPIState` (optax's ``(init, update)``).
 
     Attributes:
         init: ``init(key, u_init) -> MPPIState``; u_init is (T, m) or (m,) (repeated over the horizon).
-        step: ``step(state, x0, params) -> (u0, state, info)``, jitted, inputs validated before tracing.
-        step_pure: the same step, unjitted and unvalidated, to compose inside a larger jitted function
-            (a closed-loop episode scanned over time).
+        step: ``step(state, x0, params) -> (u0, state, info)``: one MPPI step, pure (nothing is mutated, the key
+            travels in the state), to ``jax.jit``, ``jax.vmap`` or ``lax.scan`` as the caller's program needs.
         config: the MPPIConfig it was built with.
-        num_compilations: ``() -> int``, how many times the jitted step has been traced: JAX traces it once
-            per new input signature (shapes, dtypes, static structure), right before compiling that version;
-            a control loop must keep it at 1.
-        shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live
-            (:class:`~pixelmpc_jax.devices.SampleShardings`; put params there once with
-            ``jax.device_put(params, ctrl.shardings.replicated)`` to save a copy per call); else None.
-        compiler_options: the XLA options the step compiles with (``MPPIConfig.cpu_matmul``); a larger jitted
-            function that composes ``step_pure`` passes them to its own ``jax.jit``.
+        check: ``check(state, x0, params) -> (state, x0, params)``: the step's inputs checked outside jit (a
+            ValueError naming what is wrong; :func:`~pixelmpc_jax.control.mppi_checks.step_input_checks`), x0 made
+            an array (an integer or bool state in the plan's float type).
+        with_sample_placement: ``with_sample_placement(place) -> Controller``: the same controller with
+            ``place`` applied to each iteration's (N, T, m) white noise as it is drawn, which says where the caller
+            wants the samples to live (how the step runs, not what it computes); ``place`` must return the values
+            it is given, so the step computes the same numbers.
     """
 
     init: Callable[..., MPPIState]
     step: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
-    step_pure: Callable[..., tuple[jax.Array, MPPIState, MPPIInfo]]
     config: MPPIConfig
-    num_compilations: Callable[[], int]
-    shardings: SampleShardings | None = None
-    compiler_options: dict | None = None
+    check: Callable[..., tuple]
+    with_sample_placement: Callable[[Callable | None], Controller]
 
 
 class _Sampling(NamedTuple):
@@ -183,7 +167,8 @@ class _Sampling(NamedTuple):
         lo, hi: (m,) control bounds, or None where unbounded.
         colour: (T, T) filter of time-correlated noise, or None for white noise.
         reset_plan: (T, m) what a non-finite plan is reset to: the middle of the bounds (zero where unbounded).
-        shardings: where the samples live when split over devices, else None.
+        place_samples: applied to the (N, T, m) white noise as drawn (see ``Controller.with_sample_placement``),
+            or None.
     """
 
     config: MPPIConfig
@@ -193,11 +178,11 @@ class _Sampling(NamedTuple):
     hi: jax.Array | None
     colour: jax.Array | None
     reset_plan: jax.Array
-    shardings: SampleShardings | None
+    place_samples: Callable[[jax.Array], jax.Array] | None = None
 
 
 def _sampling(config: MPPIConfig) -> _Sampling:
-    T, m, N = config.horizon, config.control_dim, config.num_samples
+    T, m = config.horizon, config.control_dim
     sigma = jnp.asarray(config.noise_sigma, dtype=jnp.float32)
     lo = None if config.u_min is None else jnp.asarray(config.u_min, jnp.float32)
     hi = None if config.u_max is None else jnp.asarray(config.u_max, jnp.float32)
@@ -208,8 +193,7 @@ def _sampling(config: MPPIConfig) -> _Sampling:
     return _Sampling(
         config=config, sigma=sigma, inv_sigma2=jnp.where(sigma > 0, 1.0 / jnp.where(sigma > 0, sigma, 1.0) ** 2, 0.0),
         lo=lo, hi=hi, reset_plan=jnp.broadcast_to(reset_control, (T, m)),
-        colour=None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent)),
-        shardings=sample_shardings(config.sample_devices, N) if config.sample_devices > 1 else None)
+        colour=None if config.noise_exponent == 0.0 else jnp.asarray(coloured_noise_filter(T, config.noise_exponent)))
 
 
 def _clip(u: jax.Array, lo: jax.Array | None, hi: jax.Array | None) -> jax.Array:
@@ -225,7 +209,8 @@ def _sample(key: jax.Array, plan: jax.Array, s: _Sampling) -> tuple[jax.Array, j
     """Sampled control sequences around the plan (T, m): controls = clip(U + eps), (N, T, m), and the noise
     eps = controls - U actually applied (sample 0 is the plan itself with ``nominal_sample``)."""
     white = jax.random.normal(key, (s.config.num_samples,) + s.reset_plan.shape, dtype=plan.dtype)
-    white = split_samples(white, s.shardings)  # each device draws, rolls out and costs its own rows
+    if s.place_samples is not None:
+        white = s.place_samples(white)  # where the caller's execution puts the samples, from the draw on
     if s.colour is not None:
         white = jnp.einsum("ts,nsm->ntm", s.colour, white)  # time-correlated, unit variance per step
     noise = white * s.sigma  # (N, T, m)
@@ -275,14 +260,21 @@ def _iteration_stats(costs: jax.Array, weights: jax.Array, finite: jax.Array, al
 
 def make_mppi(config: MPPIConfig, dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None = None,
               prefix: Prefix | None = None) -> Controller:
-    """Build a compiled MPPI controller for the given one-sample model and costs (see module docstring).
+    """MPPI for the given one-sample model and costs (see module docstring), as pure ``init`` and ``step``.
 
     ``prefix`` optionally gives the first steps of the horizon their own model and cost (see Prefix).
     """
     if not isinstance(config, MPPIConfig):
         raise TypeError(f"config must be an MPPIConfig, got {type(config).__name__}")
     check_prefix(prefix, config.horizon)
-    s = _sampling(config)
+    check = step_input_checks(dynamics, MPPIState, config.horizon, config.control_dim)
+    return _controller(_sampling(config), dynamics, running_cost, terminal_cost, prefix, check)
+
+
+def _controller(s: _Sampling, dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None,
+                prefix: Prefix | None, check: Callable) -> Controller:
+    """The init/step pair over the sampling ``s``, closed over once."""
+    config = s.config
 
     def iteration(carry, key, x0, params):
         """One MPPI update of the plan: sample, roll out, weigh, update."""
@@ -297,9 +289,9 @@ def make_mppi(config: MPPIConfig, dynamics: Callable, running_cost: Callable, te
     def init(key, u_init) -> MPPIState:
         u_init = checked_u_init(u_init, config.horizon, config.control_dim)
         plan = _clip(jnp.broadcast_to(u_init, s.reset_plan.shape).astype(jnp.float32), s.lo, s.hi)
-        return replicate(MPPIState(plan=plan, key=key), s.shardings)
+        return MPPIState(plan=plan, key=key)
 
-    def step_pure(state: MPPIState, x0, params):
+    def step(state: MPPIState, x0, params):
         key, key_iters = jax.random.split(state.key)
         keys = jax.random.split(key_iters, config.iterations)
         carried_finite = jnp.all(jnp.isfinite(state.plan))
@@ -315,12 +307,8 @@ def make_mppi(config: MPPIConfig, dynamics: Callable, running_cost: Callable, te
                         nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix))
         return u0, MPPIState(plan=shifted, key=key), info
 
-    check_inputs = step_input_checks(dynamics, MPPIState, config.horizon, config.control_dim)
-    options = compiler_options(config.cpu_matmul, config.sample_devices)
-    step_jit, num_compilations = counted_jit(step_pure, options)
+    def with_sample_placement(place_samples):
+        return _controller(s._replace(place_samples=place_samples), dynamics, running_cost, terminal_cost, prefix,
+                           check)
 
-    def step(state: MPPIState, x0, params):
-        return step_jit(*replicate(check_inputs(state, x0, params), s.shardings))
-
-    return Controller(init=init, step=step, step_pure=step_pure, config=config, num_compilations=num_compilations,
-                      shardings=s.shardings, compiler_options=options)
+    return Controller(init=init, step=step, config=config, check=check, with_sample_placement=with_sample_placement)

@@ -7,7 +7,8 @@ compiles, never broadcast over the samples.
 
 * :func:`checked_config`: ``MPPIConfig``'s fields (its ``__post_init__``).
 * :func:`check_prefix`, :func:`checked_u_init`, :func:`step_input_checks`: what ``make_mppi``, ``init`` and
-  ``step`` are given.
+  ``step`` are given (the step's inputs by ``Controller.check``, outside jit: the compiled step of
+  :func:`~pixelmpc_jax.devices.compile_controller` runs it before every call).
 * :func:`checked_costs`, :func:`checked_trajectory_costs`: what a running or terminal cost returns.
 """
 
@@ -18,8 +19,6 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from pixelmpc_jax.devices import CPU_MATMULS
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
@@ -33,15 +32,10 @@ def _is_number(value) -> bool:
 def checked_config(config) -> dict[str, tuple[float, ...] | None]:
     """The sequences of an ``MPPIConfig`` as tuples of floats, ``{"noise_sigma", "u_min", "u_max"}``, once every
     field is checked; a ValueError naming the first field out of its range."""
-    if config.cpu_matmul not in CPU_MATMULS:
-        raise ValueError(f"MPPIConfig.cpu_matmul must be one of {CPU_MATMULS}, got {config.cpu_matmul!r}")
-    for name in ("num_samples", "horizon", "iterations", "sample_devices"):
+    for name in ("num_samples", "horizon", "iterations"):
         value = getattr(config, name)
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
             raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
-    if config.num_samples % config.sample_devices:
-        raise ValueError(f"MPPIConfig.num_samples={config.num_samples} does not split evenly over "
-                         f"sample_devices={config.sample_devices}")
     if not (_is_number(config.dt) and 0 < config.dt <= FLOAT32_MAX):
         raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {config.dt!r}")
     if not (_is_number(config.temperature) and TEMPERATURE_MIN <= config.temperature <= FLOAT32_MAX):

@@ -17,6 +17,7 @@ from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
 from pixelmpc_jax.control.mppi import MPPIConfig
 from pixelmpc_jax.control.pixelmpc import paper_mppi_config
+from pixelmpc_jax.devices import Execution, compile_controller
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics import vdof as vdof_lib
 from pixelmpc_jax.sim.env import Observation, World
@@ -28,7 +29,8 @@ class Policy(NamedTuple):
     ``init(key, world) -> state`` once per episode; ``act(state, obs, world) -> (u, state, predicted)`` every
     tick, with ``u`` (4,) the command, ``world`` the :class:`~pixelmpc_jax.sim.env.World` and ``predicted``
     the (T+1, n) nominal prediction (its columns past the 10 robot states, if any, are the target pixel).
-    ``compiler_options``: the XLA options of its controller's step, for the episode's ``jax.jit``.
+    ``compiler_options``: the XLA options of its controller's step (:func:`~pixelmpc_jax.devices.compile_controller`),
+    for the episode's ``jax.jit``.
     """
 
     init: Callable[[jax.Array, World], Any]
@@ -102,8 +104,11 @@ def disturbance_update(disturbance: jax.Array, expected: jax.Array, x_est: jax.A
 
 def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostConfig, build, name: str,
                   quad_params: quadrotor.QuadParams, latency_ticks: int = 0,
-                  disturbance_tau: float | None = None, kept_pixel_dim: int = 0) -> Policy:
-    """A Policy around an MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`).
+                  disturbance_tau: float | None = None, kept_pixel_dim: int = 0,
+                  execution: Execution | None = None) -> Policy:
+    """A Policy around a pure MPPI racing controller (from :mod:`pixelmpc_jax.control.pixelmpc`), its step placed as
+    ``execution`` says (:func:`~pixelmpc_jax.devices.compile_controller`: its samples over the devices; None: one
+    device).
 
     ``build(obs, world, racing_params, disturbance, kept) -> (x0, params)`` makes the controller's state and params
     from an observation (``disturbance``: (3,) or None; ``kept``: a :class:`KeptPixel` or None); the nominal
@@ -116,6 +121,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
     ``disturbance_tau`` the model's external acceleration is estimated each tick (:func:`disturbance_update`).
     """
     horizon, dt = mppi_config.horizon, mppi_config.dt
+    run = compile_controller(ctrl, execution or Execution())
 
     def init(key: jax.Array, world: World) -> RacingPolicyState:
         hover = quadrotor.hover_control(quad_params)
@@ -124,7 +130,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
             if disturbance_tau else (None, None)
         kept = KeptPixel(jnp.zeros((kept_pixel_dim,), jnp.float32), jnp.asarray(False), jnp.asarray(-1, jnp.int32)) \
             if kept_pixel_dim else None
-        return RacingPolicyState(ctrl.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
+        return RacingPolicyState(run.placed.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
                                  costs.racing_constants(world.track, cost_config), pending, *observer, kept)
 
     def act(state: RacingPolicyState, obs: Observation, world: World):
@@ -138,7 +144,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         if latency_ticks:
             obs = obs._replace(x_est=predict_through(x_now, state.pending, quad_params, dt, disturbance))
         x0, params = build(obs, world, racing, disturbance, state.kept)
-        u, mppi_state, info = ctrl.step_pure(state.mppi, x0, params)
+        u, mppi_state, info = run.placed.step(state.mppi, x0, params)
         kept = state.kept
         if kept_pixel_dim:
             pixel = info.nominal_trajectory[1, quadrotor.STATE_DIM:quadrotor.STATE_DIM + kept_pixel_dim]
@@ -155,16 +161,16 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         return (u, RacingPolicyState(mppi_state, next_progress, state.racing_constants, pending, disturbance,
                                      expected, kept), info.nominal_trajectory)
 
-    return Policy(init=init, act=act, name=name, compiler_options=ctrl.compiler_options)
+    return Policy(init=init, act=act, name=name, compiler_options=run.compiler_options)
 
 
 def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
                         cost_config: costs.RacingCostConfig | None = None,
                         quad_params: quadrotor.QuadParams | None = None, latency_ticks: int = 0,
-                        disturbance_tau: float | None = None) -> Policy:
+                        disturbance_tau: float | None = None, execution: Execution | None = None) -> Policy:
     """The paper's baseline: MPPI on the robot model with the racing cost of Eq. (19) only (``latency_ticks``:
     the actuation latency its model predicts across; ``disturbance_tau``: the time constant of its estimate of an
-    external acceleration; see :func:`racing_policy`)."""
+    external acceleration; ``execution``: how its step runs; see :func:`racing_policy`)."""
     mppi_config = mppi_config or paper_mppi_config()
     cost_config = cost_config or costs.RacingCostConfig()
     quad_params = quad_params or quadrotor.QuadParams()
@@ -173,18 +179,19 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
     def build(obs, world, racing, disturbance, kept):
         return obs.x_est, racing if disturbance is None else (racing, disturbance)
 
-    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks, disturbance_tau)
+    return racing_policy(ctrl, mppi_config, cost_config, build, "mppi", quad_params, latency_ticks, disturbance_tau,
+                         execution=execution)
 
 
 def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
-                    quad_params: quadrotor.QuadParams | None = None) -> Policy:
+                    quad_params: quadrotor.QuadParams | None = None, execution: Execution | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
     size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
     (``config.target_prior``: an undetected target's pixel from the map and the estimate), or since it was first
     seen with the kept-alive one (the pixel the controller's pixel model predicted for this tick, from the last), or
     always with the seeded one (kept alive once seen, from the map and the estimate before it is first seen); with
     ``config.look_ahead`` the next gate's pixel state follows, from the map and the estimate; the learned pixel
-    model's weights come from ``world.dof``."""
+    model's weights come from ``world.dof``; ``execution``: how its step runs."""
     config = config or pixelmpc_lib.ControllerConfig()
     quad_params = quad_params or quadrotor.QuadParams()
     ctrl = pixelmpc_lib.make_pixelmpc(config, quad_params)
@@ -232,4 +239,5 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
 
     kept_pixel_dim = config.pixel_dim if config.target_prior in ("kept", "seeded") else 0
     return racing_policy(ctrl, config.mppi, config.racing, build, f"pixelmpc-{config.pixel_model}",
-                         quad_params, config.model_latency_ticks, config.disturbance_time_constant_s, kept_pixel_dim)
+                         quad_params, config.model_latency_ticks, config.disturbance_time_constant_s, kept_pixel_dim,
+                         execution=execution)

@@ -47,7 +47,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
         runner: "single" (the jitted episode) or "batch" (the vmapped episode with a batch of one lap, the
             way ``pixelmpc race`` flies it).
         dof_params: the DOF weights for PixelMPC with the DOF (None: the packaged weights).
-        sample_devices: ``MPPIConfig.sample_devices`` of the controller ("single" only): ``pixelmpc race`` flies
+        sample_devices: ``Execution.sample_devices`` of the controller ("single" only): ``pixelmpc race`` flies
             a lap at a time with its samples over every device (:func:`usable_sample_devices`).
 
     Returns:

@@ -1,7 +1,8 @@
 """The controller step: PixelMPC (DOF pixel model over t_f = 1 s) and nominal MPPI at the paper's sizes,
 scaling over N and T, and the step's fraction of this device's matmul rate.
 
-Every timed call is the public jitted ``ctrl.step`` with the MPPI state carried from call to call.
+Every timed call is the compiled step (:func:`~pixelmpc_jax.devices.compile_controller`) with the MPPI state carried
+from call to call.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 
     pixelmpc bench mppi-step [--samples 512] [--horizon 80] [--repeats 50] [--cost racing|waypoint]
 
-The step is the public jitted ``ctrl.step`` (inputs validated, one compiled call), timed after
-compilation with ``block_until_ready``; the state changes every call as in a control loop.
+The step is the compiled ``step`` of :func:`~pixelmpc_jax.devices.compile_controller` (inputs validated, one
+compiled call), timed after compilation with ``block_until_ready``; the state changes every call as in a control
+loop.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.rollout import TrajectoryCost
+from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_description
 
@@ -47,7 +49,7 @@ def run_mppi_step(samples: int = 512, horizon: int = 80, repeats: int = 50, cost
         def running_cost(x, u, t, p):
             return costs.waypoint_cost(x, u, p, weights)
 
-    ctrl = make_mppi(config, lambda x, u, p: quadrotor.step(x, u, config.dt, params), running_cost)
+    ctrl = compile_controller(make_mppi(config, lambda x, u, p: quadrotor.step(x, u, config.dt, params), running_cost))
     state = ctrl.init(jax.random.PRNGKey(0), quadrotor.hover_control(params))
     holder = {"state": state, "x": x}
 

@@ -15,7 +15,8 @@ import numpy as np
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
-from pixelmpc_jax.control.mppi import Controller, MPPIConfig, MPPIState, make_mppi
+from pixelmpc_jax.control.mppi import MPPIConfig, MPPIState, make_mppi
+from pixelmpc_jax.devices import CompiledController, Execution, compile_controller
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics import vdof as vdof_lib
@@ -44,14 +45,14 @@ class ControllerProblem(NamedTuple):
     """One controller and the inputs of its step.
 
     Attributes:
-        ctrl: the compiled-on-first-call controller.
+        ctrl: the controller compiled (on its first call) as its execution says.
         state: its initial MPPIState.
         x0: (n,) the state the step plans from.
         params: the dynamic params pytree of the step.
         config: the ControllerConfig (or MPPIConfig for the nominal/diff-drive problems).
     """
 
-    ctrl: Controller
+    ctrl: CompiledController
     state: MPPIState
     x0: jax.Array
     params: Any
@@ -73,7 +74,7 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
     """The full PixelMPC step (a learned pixel model over t_f, racing + pixel cost) at the given sizes.
 
     ``t_f = 0`` gives the same 12-state controller without the pixel model (the DOF part's baseline);
-    ``sample_devices`` is ``MPPIConfig.sample_devices`` (x0 and the params are then placed on every device
+    ``sample_devices`` is ``Execution.sample_devices`` (x0 and the params are then placed on every device
     once, as a control loop keeps them); ``pixel_model`` "vdof" flies the packaged vdof weights (the pixel state
     then carries the box size too).
     """
@@ -82,10 +83,9 @@ def pixelmpc_problem(num_samples: int = 512, horizon: int = 80, t_f: float = 1.0
         dof_params = vdof_lib.load_packaged_vdof() if dof_params is None else dof_params
     else:
         dof_params = bench_dof_params() if dof_params is None else dof_params
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
-                                      sample_devices=sample_devices)
-    config = pixelmpc_lib.ControllerConfig(mppi=mppi_config, t_f=t_f, pixel_model=pixel_model)
-    ctrl = pixelmpc_lib.make_pixelmpc(config)
+    config = pixelmpc_lib.ControllerConfig(mppi=pixelmpc_lib.paper_mppi_config(num_samples, horizon), t_f=t_f,
+                                           pixel_model=pixel_model)
+    ctrl = compile_controller(pixelmpc_lib.make_pixelmpc(config), Execution(sample_devices=sample_devices))
     racing = _racing_params(track, step_progress(horizon, config.mppi.dt), TARGET_SPEED, config.racing)
     params = pixelmpc_lib.PixelMPCParams(racing=racing, dof=dof_params, target_active=jnp.asarray(True),
                                          target_centre=track.gates.centre[0], target_normal=track.gates.normal[0],
@@ -110,12 +110,12 @@ def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed:
     """Nominal MPPI (the paper's baseline): the 10-state quadrotor with the racing cost, no pixel model;
     ``sample_devices`` as in :func:`pixelmpc_problem`."""
     track = track or course_lib.load_course()
-    mppi_config = dataclasses.replace(pixelmpc_lib.paper_mppi_config(num_samples, horizon),
-                                      sample_devices=sample_devices)
+    mppi_config = pixelmpc_lib.paper_mppi_config(num_samples, horizon)
     cost_config = costs.RacingCostConfig()
     quad_params = quadrotor.QuadParams()
     dt = mppi_config.dt
-    ctrl = pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params)
+    ctrl = compile_controller(pixelmpc_lib.make_nominal_mppi(mppi_config, cost_config, quad_params),
+                              Execution(sample_devices=sample_devices))
     params = _racing_params(track, step_progress(horizon, dt), TARGET_SPEED, cost_config)
     x0 = track.start.at[quadrotor.VEL].set(track.path_tangents[0] * START_SPEED)
     state = ctrl.init(jax.random.PRNGKey(seed), quadrotor.hover_control(quad_params))
@@ -123,7 +123,7 @@ def nominal_problem(num_samples: int = 512, horizon: int = 80, track=None, seed:
 
 
 def control_loop_call(problem: ControllerProblem):
-    """A zero-argument call of the public jitted step that carries the MPPI state from call to call, as a
+    """A zero-argument call of the compiled step that carries the MPPI state from call to call, as a
     control loop does (the plan and key change every call; x0 and params stay)."""
     holder = {"state": problem.state}
 
@@ -217,7 +217,7 @@ def diff_drive_problem(num_samples: int, config: DiffDriveConfig = DiffDriveConf
         obstacle = costmap_lookup(p["costmap"], x[:2], p["origin"], config.resolution, config.lookup)
         return config.goal_weight * jnp.sum((x[:2] - goal) ** 2) + config.obstacle_weight * obstacle
 
-    ctrl = make_mppi(mppi_config, dynamics, running_cost)
+    ctrl = compile_controller(make_mppi(mppi_config, dynamics, running_cost))
     params = {"costmap": jnp.asarray(make_costmap(config)), "origin": jnp.zeros(2, jnp.float32)}
     x0 = jnp.asarray([1.0, 1.0, 0.785], jnp.float32)
     state = ctrl.init(jax.random.PRNGKey(seed), jnp.asarray([0.5, 0.0], jnp.float32))

@@ -194,7 +194,7 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     spec names (None: the packaged weights; a ValueError if their fingerprint is not the spec's). The result
     also holds what :meth:`LapBook.flown` adds. Laps fly ``batch_size`` at a time. With a batch of one and several
     local devices (a CPU's cores split by ``pixelmpc race``), a lap flies at a time with the controller's samples
-    split over the devices (``MPPIConfig.sample_devices``: the same samples, the plan up to float rounding);
+    split over the devices (``Execution.sample_devices``: the same samples, the plan up to float rounding);
     ``sample_devices`` in the result says how many. With ``out``, ``metrics.json`` and ``ticks_<controller>.npz``
     are rewritten after every batch, ``trajectories.png`` drawn at the end (:func:`plot_coloured_trajectories`)
     and, with ``video``, the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C (or SIGTERM,

@@ -9,13 +9,15 @@ latency and disturbance model configure nominal MPPI too. Every setting lives in
 the record, the key and the policy are derived from it.
 
 Settings that do not change a lap stay out of it: the batch size, the progress bar, the output folder, the
-video, and how many devices a step's samples are split over. The DOF weights enter as their fingerprint
+video, and how a step runs (:class:`~pixelmpc_jax.devices.Execution`: how many devices its samples are split
+over). The DOF weights enter as their fingerprint
 (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`); the weights themselves are passed beside the
 spec.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -38,6 +40,11 @@ from pixelmpc_jax.world.course import COURSES
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
                   ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
                   ("camera_tilt_deg",), ("config", "look_ahead_model"), ("eskf",))
+# Settings taken out of the configuration after races were recorded, with the one value every race was recorded
+# with: how a step ran, not what it computed (now :class:`~pixelmpc_jax.devices.Execution`). A record that holds one
+# at that value reads back without it, and the key hashes it at that value, so every race flown before keeps its
+# record and its key.
+RETIRED_SETTINGS = ((("config", "mppi", "sample_devices"), 1), (("config", "mppi", "cpu_matmul"), "auto"))
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
 
@@ -53,8 +60,7 @@ class RaceSpec:
         controller: "mppi" (nominal MPPI) or "pixelmpc".
         config: the controller's configuration. Nominal MPPI flies its ``mppi``, ``racing``,
             ``model_latency_ticks`` and ``disturbance_time_constant_s``; its PixelMPC fields are reset to their
-            defaults for a nominal race (they fly nothing there), and ``mppi.sample_devices`` to 1 (how a step
-            runs, not what it computes: :meth:`policy` sets it).
+            defaults for a nominal race (they fly nothing there).
         speed: target speed, m/s.
         laps: number of laps.
         seed: seed of the first lap.
@@ -115,14 +121,10 @@ class RaceSpec:
             raise ValueError(f"camera_tilt_deg must be an upward tilt in [0, {CAMERA_TILT_MAX_DEG:g}] deg, "
                              f"got {self.camera_tilt_deg!r}")
         object.__setattr__(self, "camera_tilt_deg", float(self.camera_tilt_deg))
-        mppi = dataclasses.replace(self.config.mppi, sample_devices=1)
         if self.controller == "mppi":
-            config = ControllerConfig(mppi=mppi, racing=self.config.racing,
-                                    model_latency_ticks=self.config.model_latency_ticks,
-                                    disturbance_time_constant_s=self.config.disturbance_time_constant_s)
-        else:
-            config = dataclasses.replace(self.config, mppi=mppi)
-        object.__setattr__(self, "config", config)
+            object.__setattr__(self, "config", ControllerConfig(
+                mppi=self.config.mppi, racing=self.config.racing, model_latency_ticks=self.config.model_latency_ticks,
+                disturbance_time_constant_s=self.config.disturbance_time_constant_s))
         if not isinstance(self.faults, Faults) or not isinstance(self.guards, GuardConfig):
             raise ValueError(f"faults must be a Faults and guards a GuardConfig, got {type(self.faults).__name__} "
                              f"and {type(self.guards).__name__}")
@@ -180,8 +182,9 @@ class RaceSpec:
     @classmethod
     def from_record(cls, record: dict) -> RaceSpec:
         """The spec a :meth:`record` describes (read back from JSON). A setting the record lacks takes its
-        default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``."""
-        return _from_record(cls(), record, "")
+        default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``; a
+        :data:`RETIRED_SETTINGS` at its one value is dropped."""
+        return _from_record(cls(), _without_retired(record), "")
 
     def changed_settings(self) -> dict:
         """The controller settings that differ from the defaults, as ``{dotted name: value}`` (for reports)."""
@@ -217,6 +220,11 @@ class RaceSpec:
         same race however it was written; any other setting, seed, number of laps or DOF weights gives another
         key."""
         record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
+        for (*parents, name), value in RETIRED_SETTINGS:  # hashed as every race before their retirement was
+            node = record
+            for parent in parents:
+                node = node[parent]
+            node[name] = value
         text = json.dumps(_canonical(record), sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -228,13 +236,11 @@ class RaceSpec:
 
     def policy(self, sample_devices: int = 1):
         """The controller as an episode Policy (:func:`~pixelmpc_jax.sim.controllers.make_policy`), its samples
-        split over ``sample_devices`` devices (``MPPIConfig.sample_devices``)."""
+        split over ``sample_devices`` devices (:class:`~pixelmpc_jax.devices.Execution`)."""
+        from pixelmpc_jax.devices import Execution
         from pixelmpc_jax.sim.controllers import make_policy
 
-        config = self.config
-        if sample_devices != 1:
-            config = dataclasses.replace(config, mppi=dataclasses.replace(config.mppi, sample_devices=sample_devices))
-        return make_policy(self.controller, config)
+        return make_policy(self.controller, self.config, Execution(sample_devices=sample_devices))
 
     def check_weights(self, dof_params) -> None:
         """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names."""
@@ -259,6 +265,18 @@ def _canonical(value):
     if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
         return float(value)
     return value
+
+
+def _without_retired(record):
+    """``record`` without the :data:`RETIRED_SETTINGS` it holds at their one value (a copy; the rest as it is)."""
+    record = copy.deepcopy(record)
+    for (*parents, name), value in RETIRED_SETTINGS:
+        node = record
+        for parent in parents:
+            node = node.get(parent) if isinstance(node, dict) else None
+        if isinstance(node, dict) and name in node and node[name] == value:
+            del node[name]
+    return record
 
 
 def _from_record(default, record: dict, where: str):

@@ -72,7 +72,7 @@ def fly_to_waypoint(
 
         def tick(carry, _):
             x, mppi_state = carry
-            u, mppi_state, info = ctrl.step_pure(mppi_state, x, target)
+            u, mppi_state, info = ctrl.step(mppi_state, x, target)
             x_next = quadrotor.step(x, u, dt, params)
             return (x_next, mppi_state), (x_next, u, info.min_cost)
 

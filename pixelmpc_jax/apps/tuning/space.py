@@ -53,7 +53,6 @@ SPACES = {
                    "look_ahead": {"low": 0.25, "high": 3.0, "log": True},
                    "look_ahead_model": {"choices": ["projection"]}},
 }
-NOT_SEARCHED = {"mppi.sample_devices": "how a step runs, not what it computes (a race always records 1)"}
 _NUMERIC = {"float": float, "float | None": float, "int": int, "int | None": int}  # annotations a range may take
 
 
@@ -148,8 +147,6 @@ def check_entry(name: str, entry, base: RaceSpec) -> tuple[Param | None, str | N
     """``(Param, None)`` for a good entry, ``(None, one line)`` for a bad one."""
     if not isinstance(name, str) or not name:
         return None, f"setting name must be a non-empty string, got {name!r}"
-    if name in NOT_SEARCHED:
-        return None, f"{name} is not searched: {NOT_SEARCHED[name]}"
     annotation, problem = _field_annotation(name)
     if problem:
         return None, problem
