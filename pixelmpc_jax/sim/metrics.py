@@ -83,17 +83,22 @@ def after_seen_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np.nda
 
 @jax.jit
 def pointed_visibility(gates, positions: jax.Array, camera: camera_lib.Camera) -> jax.Array:
-    """(S,) visibility of gate s from position s with the camera pointed at the gate's centre, without roll.
+    """(S,) visibility of gate s from position s with the camera's optical axis pointed at the gate's centre,
+    without roll.
 
     That is about the most any attitude shows from there: below 50 % the gate is too close (or too far
     off to the side of its opening) to fit the field of view however the vehicle turns, so no controller
     can avoid that low visibility at that position; low visibility elsewhere comes from the attitude.
+
+    The optical axis is the body's +x tilted up by the mount's ``camera.tilt``: the body pitches that much further
+    nose down than the ray to the gate (a positive pitch is nose down). Untilted, the body's +x points at the gate.
     """
 
     def one(gate, position):
         to_gate = gate.centre - position
         yaw = jnp.arctan2(to_gate[1], to_gate[0])
-        pitch = -jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))  # body +x (the optical axis) at it
+        elevation = jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))
+        pitch = -elevation + camera.tilt  # the optical axis, tilted up from body +x by camera.tilt, at the gate
         q = quadrotor.quat_from_euler(jnp.zeros_like(yaw), pitch, yaw)
         x = jnp.concatenate([position, q, jnp.zeros_like(position)])
         return camera_lib.gate_visibility(gate, x, camera)
