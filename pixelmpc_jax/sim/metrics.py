@@ -378,6 +378,36 @@ def aggregate(laps: list[dict]) -> dict:
     return out
 
 
+TAIL_OVER_MEDIAN = 0.10  # a lap more than 10 % over the median lap time is in the tail
+
+
+def lap_tail(laps: list[dict]) -> dict:
+    """A set of laps' tail, to report beside its mean: ``laps``, ``laps_finished``, ``median_lap_s`` and
+    ``worst_lap_s`` of the finished laps, ``worst_over_median`` (the worst lap's excess over the median, a fraction)
+    and ``share_over_median`` (the share of the finished laps more than :data:`TAIL_OVER_MEDIAN` over the median;
+    the laps not finished are counted in ``laps_finished``, not here). Lap time figures are None with no lap
+    finished."""
+    times = np.asarray([lap["lap_time_s"] for lap in laps if lap.get("success") and lap.get("lap_time_s") is not None],
+                       np.float64)
+    tail = {"laps": len(laps), "laps_finished": int(times.size), "median_lap_s": None, "worst_lap_s": None,
+            "worst_over_median": None, "share_over_median": None}
+    if times.size:
+        median, worst = float(np.median(times)), float(times.max())
+        tail.update(median_lap_s=median, worst_lap_s=worst, worst_over_median=worst / median - 1.0,
+                    share_over_median=float(np.mean(times > (1.0 + TAIL_OVER_MEDIAN) * median)))
+    return tail
+
+
+def tail_columns(tail: dict) -> tuple[str, str, str]:
+    """A table's three tail columns of :func:`lap_tail`: laps finished (``39/40``), the worst lap against the median
+    (``+4.0 %``) and the laps more than 10 % over the median (``1 (2.6 %)``)."""
+    finished = f"{tail['laps_finished']}/{tail['laps']}"
+    if tail["worst_over_median"] is None:
+        return finished, "-", "-"
+    slow = round(tail["share_over_median"] * tail["laps_finished"])
+    return finished, f"{100 * tail['worst_over_median']:+.1f} %", f"{slow} ({100 * tail['share_over_median']:.1f} %)"
+
+
 def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:
     """A fixed-width summary table of the laps for the terminal."""
     header = f"{'lap':>4} {'ok':>3} {'gates':>5} {'lap [s]':>8} {'end':>12} {'vis<50 [s]':>10} {'vis=0 [s]':>9} " \
