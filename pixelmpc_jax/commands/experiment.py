@@ -179,9 +179,11 @@ def _add_frontier(jobs) -> None:
                         "border (the border cost alone, at each model's weight of the 4-lap sweep) or preset (the "
                         "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
                         "of knowing where the gate is)")
-    p.add_argument("--speeds", type=arg.target_speed, nargs="+", default=None, metavar="M_S",
-                   help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (at least 2; default "
-                        "6 7 8 8.5 9.1 10 12 14, quick 6 8 8.5 10)")
+    p.add_argument("--speeds", type=arg.target_speeds, nargs="+", default=None, metavar="M_S|LO:HI:STEP",
+                   help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}], each a speed or a range "
+                        "(6:9:0.25 flies 6, 6.25, ..., 9: a frontier without gaps for the paired gain; nominal "
+                        "points already flown in --out are kept). At least 2; default 6 7 8 8.5 9.1 10 12 14, quick "
+                        "6 8 8.5 10")
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
@@ -191,8 +193,13 @@ def _add_frontier(jobs) -> None:
     p.set_defaults(func=_cmd_frontier, validate=_two_speeds, precheck=_check_course)
 
 
+def _nominal_speeds(args) -> tuple[float, ...] | None:
+    """The speeds of ``--speeds`` (each a speed or a range), sorted, each once; None when not given."""
+    return None if args.speeds is None else tuple(sorted({v for speeds in args.speeds for v in speeds}))
+
+
 def _two_speeds(args) -> str | None:
-    if args.speeds is not None and len(set(args.speeds)) < 2:
+    if args.speeds is not None and len(_nominal_speeds(args)) < 2:
         return "argument --speeds: needs at least 2 different speeds to draw a frontier"
     return None
 
@@ -217,7 +224,7 @@ def _cmd_frontier(args) -> int:
 
         changes["cells"] = frontier.ceiling_cells(PAPER_PACE_SPEED)
     if args.speeds:
-        changes["nominal_speeds"] = tuple(sorted(set(args.speeds)))
+        changes["nominal_speeds"] = _nominal_speeds(args)
     if args.laps is not None:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
