@@ -150,6 +150,15 @@ def grid_dir(path: str) -> Path:
     return folder
 
 
+def result_dir(path: str) -> Path:
+    """An argparse type: a result folder, a grid's (``results.json``) or a race's (``metrics.json``)."""
+    folder = Path(path)
+    if not ((folder / "results.json").is_file() or (folder / "metrics.json").is_file()):
+        reason = "the directory does not exist" if not folder.is_dir() else "it holds no results.json or metrics.json"
+        raise argparse.ArgumentTypeError(f"no result folder at {path!r}: {reason}")
+    return folder
+
+
 def weights_file(path: str) -> Path:
     """An argparse type: an existing file (its contents are checked before anything runs)."""
     file = Path(path)

@@ -237,6 +237,7 @@ def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
     assert row["success_rate"] == 0.0 and row["lap_time_s"] is None and row["frontier_gain"] is None
     json.loads((tmp_path / "frontier.json").read_text(), parse_constant=lambda name: 1 / 0)
     assert (tmp_path / "frontier.png").exists() and "completed no lap" in (tmp_path / "REPORT.md").read_text()
+    assert (tmp_path / "laps.png").exists() and "(laps.png)" in (tmp_path / "REPORT.md").read_text()
     capsys.readouterr()
     F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=True, max_time_s=0.2)
     assert capsys.readouterr().out.count("kept from") == 2  # resumed: nothing flown again

@@ -18,10 +18,11 @@ FRONTIER_CELLS = ("all", "border", "preset")
 def add_experiment(sub) -> None:
     """``pixelmpc experiment``: its jobs as sub-commands."""
     p = sub.add_parser("experiment", help="one experiment on its own, resumable: table2, table4, robustness, "
-                                          "fault-curves, frontier, margin-probe, speed-probe")
+                                          "fault-curves, frontier, margin-probe, speed-probe; lap-picture draws "
+                                          "the laps of result folders")
     jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
     for add in (_add_table2, _add_table4, _add_robustness, _add_fault_curves, _add_frontier, _add_margin_probe,
-                _add_speed_probe):
+                _add_speed_probe, _add_lap_picture):
         add(jobs)
 
 
@@ -278,4 +279,23 @@ def _cmd_speed_probe(args) -> int:
     speed_probe(args.out, speed=args.speed, laps=args.laps, models=tuple(args.models), c_pixels=tuple(args.c_pixel),
                 t_f=args.t_f, dof_weights=args.dof_weights)
     _print_report(args.out)
+    return 0
+
+
+def _add_lap_picture(jobs) -> None:
+    p = jobs.add_parser("lap-picture", help="every lap of result folders (a frontier's or any grid's, a `pixelmpc race "
+                                            "--out` comparison's): lap time against avoidable low-visibility time, "
+                                            "one dot per lap, both controllers, every pace, beside the share of time "
+                                            "in view (flies nothing)")
+    p.add_argument("folders", type=arg.result_dir, nargs="+", metavar="DIR",
+                   help="result folders: results.json (a grid's) or metrics.json (a race's)")
+    p.add_argument("--out", type=arg.output_file, default=None, help="the PNG to write (default DIR/laps.png of the "
+                                                                      "first folder)")
+    p.set_defaults(func=_cmd_lap_picture)
+
+
+def _cmd_lap_picture(args) -> int:
+    from pixelmpc_jax.apps.experiments.lap_picture import write_lap_picture
+
+    print(write_lap_picture(args.folders, args.out))
     return 0

@@ -21,7 +21,7 @@ Pairing wants nominal speeds close together (``--speeds 6:9:0.25``): the report 
 between the nominal laps that bracket a paired lap.
 
 Files in ``out``: ``results.json`` (the grid, resumable per cell), ``frontier.json`` (strict JSON),
-``REPORT.md`` and ``frontier.png``.
+``REPORT.md``, ``frontier.png`` and ``laps.png`` (every lap, :mod:`~pixelmpc_jax.apps.experiments.lap_picture`).
 """
 
 from __future__ import annotations
@@ -283,9 +283,17 @@ def gains_against(results: dict, cells, frontier_dir: Path, nominal_speeds, laps
 
 
 def frontier_figure(frontier: dict, out: Path) -> str:
-    """Draw ``frontier.png`` (the report links it)."""
+    """Draw ``frontier.png`` (the report links it) and, from the grid's ``results.json``, ``laps.png``: every lap
+    of the frontier's points (:mod:`~pixelmpc_jax.apps.experiments.lap_picture`); returns the latter's link."""
+    from pixelmpc_jax.apps.experiments import lap_picture
+
     plot(frontier, Path(out) / "frontier.png")
-    return ""
+    names = {p["name"] for p in frontier["nominal"] + frontier["cells"]}
+    races = lap_picture.folder_races(out, names) if (Path(out) / "results.json").is_file() else []
+    if not races:
+        return ""
+    lap_picture.plot_laps(races, Path(out) / "laps.png", title="every lap of the frontier's points")
+    return "\n![every lap: avoidable time and share in view against lap time](laps.png)\n"
 
 
 def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S,
