@@ -70,6 +70,24 @@ def widths(text: str) -> tuple[int, ...]:
 
 seed = int_in(0, SEED_MAX)
 target_speed = float_in(0.0, TARGET_SPEED_MAX, lo_open=True, unit="m/s")  # a race's target speed
+SPEEDS_MAX = 200  # the most target speeds one range may name
+
+
+def target_speeds(text: str) -> tuple[float, ...]:
+    """An argparse type: target speeds, one (``8.5``) or a range ``LO:HI:STEP`` (``6:9:0.25``: 6, 6.25, ..., 9; HI
+    is in it where the steps land on it), each a :data:`target_speed`; at most :data:`SPEEDS_MAX` of them."""
+    parts = text.split(":")
+    if len(parts) == 1:
+        return (target_speed(text),)
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected a speed or a range LO:HI:STEP (e.g. 6:9:0.25), got {text!r}")
+    low, high, step = (target_speed(part) for part in parts)
+    if high < low:
+        raise argparse.ArgumentTypeError(f"range {text!r}: HI must be at least LO")
+    count = math.floor((high - low) / step + 1e-9) + 1
+    if count > SPEEDS_MAX:
+        raise argparse.ArgumentTypeError(f"range {text!r} names {count} speeds, at most {SPEEDS_MAX}")
+    return tuple(round(low + i * step, 6) for i in range(count))  # 6.3, not 6.300000000000001: the cells' names
 
 
 def unwritable_reason(out: Path) -> str | None:
@@ -129,6 +147,15 @@ def grid_dir(path: str) -> Path:
     if not (folder / "results.json").is_file():
         reason = "the directory does not exist" if not folder.is_dir() else "it holds no results.json"
         raise argparse.ArgumentTypeError(f"no grid at {path!r}: {reason}")
+    return folder
+
+
+def result_dir(path: str) -> Path:
+    """An argparse type: a result folder, a grid's (``results.json``) or a race's (``metrics.json``)."""
+    folder = Path(path)
+    if not ((folder / "results.json").is_file() or (folder / "metrics.json").is_file()):
+        reason = "the directory does not exist" if not folder.is_dir() else "it holds no results.json or metrics.json"
+        raise argparse.ArgumentTypeError(f"no result folder at {path!r}: {reason}")
     return folder
 
 

@@ -15,7 +15,8 @@ from pixelmpc_jax.apps.racing import presets
 from pixelmpc_jax.commands import EXIT_USAGE
 
 ROOT = Path(__file__).resolve().parent.parent
-JOBS = {"experiment": ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe"),
+JOBS = {"experiment": ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe",
+                       "lap-picture"),
         "bench": ("suite", "device", "mppi-step", "closed-loop", "pf-step", "eskf-step", "render")}
 
 
@@ -79,6 +80,7 @@ def test_the_robustness_script_names_every_set_of_levers():
     ["experiment", "robustness", "--estimators", "ekf"], ["experiment", "fault-curves", "--levers", "filter"],
     ["experiment", "fault-curves", "--estimators", "truth"],
     ["experiment", "frontier", "--out", "{tmp}/out", "--speeds", "8", "60"],
+    ["experiment", "frontier", "--out", "{tmp}/out", "--speeds", "6:60:0.25"], ["experiment", "lap-picture", "{tmp}"],
     ["experiment", "margin-probe", "--out", "{tmp}/out", "--frontier", "{tmp}/nothing"],
     ["experiment", "speed-probe", "--t-f", "3"], ["experiment", "speed-probe", "--c-pixel", "0"],
     ["experiment", "speed-probe", "--dof-weights", "{tmp}/none.msgpack"], ["bench", "suite", "--quick", "--smoke"],

@@ -66,6 +66,24 @@ def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeyp
     assert "PixelMPC" in table.splitlines()[0] and "avoidable vis < 50 %" in table and "paper's rule" in table
 
 
+def test_the_side_by_side_table_holds_the_tail():
+    """PixelMPC finished 3 of 4 laps, the worst 39 s over a median of 33 s (+18.2 %, 1 of 3 more than 10 % over);
+    nominal MPPI all 3, the worst 1.6 % over."""
+    def laps(times):
+        return [{"success": t is not None, "lap_time_s": t, "gates_passed": 11, "crash": None if t else "gate"}
+                for t in times]
+
+    pixel, nominal = laps([33.0, 32.0, 39.0, None]), laps([32.0, 32.0, 32.5])
+    record = {"controllers": {"pixelmpc": {"laps": pixel, "aggregate": metrics.aggregate(pixel)},
+                              "mppi": {"laps": nominal, "aggregate": metrics.aggregate(nominal)}}}
+    lines = compare.side_by_side(record).splitlines()
+    start = len(lines[0]) - 30  # the label column, two spaces, then a value in 14 characters, two spaces, a value
+    rows = {line[:start].strip(): [line[start:start + 14].strip(), line[start + 16:].strip()] for line in lines[1:]}
+    assert rows["laps completed"] == ["3/4", "3/3"]
+    assert rows["worst lap vs median"] == ["+18.2 %", "+1.6 %"]
+    assert rows["laps > 10 % over median"] == ["1 (33.3 %)", "0 (0.0 %)"]
+
+
 def test_a_race_stopped_by_sigterm_keeps_the_finished_laps_of_both_controllers(tmp_path):
     """``pixelmpc race --laps 100`` stopped by SIGTERM, as a batch scheduler stops it, once both controllers have
     flown a lap: it exits 130 and its metrics.json and ticks files hold the finished laps of both."""

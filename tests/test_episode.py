@@ -223,6 +223,21 @@ def test_aggregate_mean_two_sigma_and_success_rate():
     assert agg["gates_passed"]["mean"] == pytest.approx(26 / 3)
 
 
+def test_the_tail_is_the_worst_lap_against_the_median_and_the_share_far_over_it():
+    """Eight finished laps, median 30.5 s: the worst (40 s) is 31.1 % over it, and two of the eight (34 s, 40 s)
+    lie more than 10 % over it (33.55 s); the lap not finished counts only in the laps finished."""
+    times = [30.0, 30.0, 30.0, 30.0, 31.0, 32.0, 34.0, 40.0]
+    laps = [{"success": True, "lap_time_s": t} for t in times] + [{"success": False, "lap_time_s": None}]
+    tail = M.lap_tail(laps)
+    assert tail == {"laps": 9, "laps_finished": 8, "median_lap_s": 30.5, "worst_lap_s": 40.0,
+                    "worst_over_median": pytest.approx(40.0 / 30.5 - 1.0), "share_over_median": 0.25}
+    assert M.tail_columns(tail) == ("8/9", "+31.1 %", "2 (25.0 %)")
+    none = M.lap_tail([{"success": False, "lap_time_s": None}])
+    assert none["laps_finished"] == 0 and none["worst_over_median"] is None
+    assert M.tail_columns(none) == ("0/1", "-", "-")
+    assert M.lap_tail([{"success": True, "lap_time_s": 33.0}] * 3)["share_over_median"] == 0.0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("speed", [14.0, 16.0])
 def test_nominal_mppi_completes_alphapilot_laps(speed):

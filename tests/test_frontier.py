@@ -138,7 +138,9 @@ def test_an_interrupted_run_writes_what_finished_and_raises_again(tmp_path, monk
 
 @pytest.mark.parametrize("args", [["--laps", "0"], ["--speeds", "8", "nan"], ["--speeds", "8", "-1"],
                                   ["--speeds", "8", "inf"], ["--speeds", "8"], ["--seed", "-1"],
-                                  ["--course", "monza"], ["--cells", "best"]])
+                                  ["--course", "monza"], ["--cells", "best"], ["--speeds", "9:6:0.25"],
+                                  ["--speeds", "6:9:0"], ["--speeds", "6:9"], ["--speeds", "6:9:x"],
+                                  ["--speeds", "8:8:0.25"], ["--speeds", "1:50:0.1"]])
 def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["experiment", "frontier", "--out", str(tmp_path / "out"), *args])
@@ -160,6 +162,53 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     assert [c.spec.config.pixel_cost for c in seen["cells"]] == ["border"] * 2
     assert {c.spec.config.pixel_model for c in seen["cells"]} == {"projection", "dof"}
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
+
+
+def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_path, monkeypatch):
+    """``--speeds 6:9:0.25 10`` asks for 6, 6.25, ..., 9 and 10 m/s: a frontier without gaps, its cells named
+    nominal_6.25 and so on (so a run resumed with other speeds keeps the points already flown)."""
+    seen = {}
+
+    def stop(speeds, cells, out, laps, seed, course=None, reuse=()):
+        seen.update(speeds=speeds)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(F, "run_frontier", stop)
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path), "--speeds", "6:9:0.25", "10", "7"]) == 130
+    assert seen["speeds"] == tuple(6.0 + 0.25 * i for i in range(13)) + (10.0,)
+    assert [F.nominal_cell(v).name for v in seen["speeds"][:3]] == ["nominal_6", "nominal_6.25", "nominal_6.5"]
+    from pixelmpc_jax import arguments
+
+    assert arguments.target_speeds("6:6.3:0.1") == (6.0, 6.1, 6.2, 6.3)  # not 6.300000000000001
+    assert arguments.target_speeds("6:6.2:0.25") == (6.0,)
+
+
+def test_every_table_holds_the_tail_and_every_cell_its_gain_three_ways():
+    """The hand-made frontier: nominal at 6 m/s flies 39 s and 41 s (the worst 2.5 % over the median of 40 s). The
+    cell of 35 s and 37 s laps, read on each seed's own nominal laps (lap i flies seed i): seed 0's 35 s between
+    (32 s, 5 s) and (39 s, 1 s) gives 5 - 4 * 3/7, seed 1's 37 s between (32 s, 5 s) and (41 s, 1 s) gives
+    5 - 4 * 5/9; over its 1.5 s: the paired gain. The joined means are the frontier gain, 2.0, the smallest; no
+    nominal lap lies within 2 s of 36 s, so there is no local fit."""
+    frontier = hand_made()
+    cell = by_name(frontier)[CELL_IN.name]
+    paired = ((5.0 - 4.0 * 3 / 7) + (5.0 - 4.0 * 5 / 9)) / 2 / 1.5
+    assert cell["gains"]["paired"]["gain"] == pytest.approx(paired)
+    assert cell["gains"]["joined_means"]["gain"] == pytest.approx(cell["frontier_gain"])
+    assert cell["gains"]["local_fit"]["gain"] is None
+    assert cell["gains"]["smallest"]["construction"] == "joined_means"
+    assert cell["gains"]["laps_paired"] == 2 and cell["gains"]["widest_gap_s"] == pytest.approx(9.0)
+    out = by_name(frontier)[CELL_OUT.name]["gains"]
+    assert out["laps_out_of_range"] == 1 and out["paired"]["gain"] is None  # slower than every nominal lap
+    assert frontier["nominal"][0]["tail"] == {"laps": 2, "laps_finished": 2, "median_lap_s": 40.0,
+                                              "worst_lap_s": 41.0, "worst_over_median": pytest.approx(0.025),
+                                              "share_over_median": 0.0}
+    assert by_name(frontier)[CELL_LOST.name]["tail"]["laps_finished"] == 1
+    text = F.report(frontier)
+    assert "| 6 | 2/2 | +2.5 % | 0 (0.0 %) |" in text
+    assert f"| {CELL_LOST.name} | dof | - | 8 | 1/2 | +0.0 % | 0 (0.0 %) |" in text
+    assert "## The gain three ways" in text
+    assert (f"| {CELL_IN.name} | {paired:.2f} [{cell['gains']['paired']['interval'][0]:.2f}, "
+            f"{cell['gains']['paired']['interval'][1]:.2f}] | 2 (0) | 9.0 |") in text
 
 
 def test_reproduce_shares_the_frontier_cells_with_the_tables():
@@ -188,6 +237,7 @@ def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
     assert row["success_rate"] == 0.0 and row["lap_time_s"] is None and row["frontier_gain"] is None
     json.loads((tmp_path / "frontier.json").read_text(), parse_constant=lambda name: 1 / 0)
     assert (tmp_path / "frontier.png").exists() and "completed no lap" in (tmp_path / "REPORT.md").read_text()
+    assert (tmp_path / "laps.png").exists() and "(laps.png)" in (tmp_path / "REPORT.md").read_text()
     capsys.readouterr()
     F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=True, max_time_s=0.2)
     assert capsys.readouterr().out.count("kept from") == 2  # resumed: nothing flown again

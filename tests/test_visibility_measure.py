@@ -11,6 +11,7 @@ The ways, and where each is closed:
 """
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -122,3 +123,84 @@ def test_the_avoidable_time_splits_by_the_second_after_the_switch():
     avoidable = masks(visibility, target)["avoidable"]
     split = [np.sum(avoidable & (phases == i)) for i in range(len(M.PHASES))]
     assert split == [40, 20, 10]
+
+
+def body_axis_pointed(gates, positions, camera):
+    """The floor as first written, kept here to hold the untilted figures to it: the body's +x, not the optical
+    axis, pointed at the gate's centre."""
+
+    def one(gate, position):
+        to_gate = gate.centre - position
+        yaw = jnp.arctan2(to_gate[1], to_gate[0])
+        pitch = -jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))
+        q = quadrotor.quat_from_euler(jnp.zeros_like(yaw), pitch, yaw)
+        return camera_lib.gate_visibility(gate, jnp.concatenate([position, q, jnp.zeros_like(position)]), camera)
+
+    return np.asarray(jax.jit(jax.vmap(one))(gates, positions))
+
+
+def around_the_gates(track, per_gate: int = 60, seed: int = 0):
+    """Each gate of ``track`` stacked ``per_gate`` times, and positions before it: 0.3-12 m off along its normal, up
+    to 3 m to the side and 2 m above or below."""
+    rng = np.random.default_rng(seed)
+    index = np.repeat(np.arange(np.asarray(track.gates.centre).shape[0]), per_gate)
+    gates = M.target_gates(track.gates, index)
+    normal = np.asarray(gates.normal)
+    side = np.cross(normal, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    n = len(index)
+    positions = (np.asarray(gates.centre) - rng.uniform(0.3, 12.0, (n, 1)) * normal
+                 + rng.uniform(-3.0, 3.0, (n, 1)) * side + rng.uniform(-2.0, 2.0, (n, 1)) * np.asarray([0.0, 0.0, 1.0]))
+    return gates, jnp.asarray(positions, jnp.float32)
+
+
+def test_the_untilted_floor_is_bit_for_bit_the_body_axis_one():
+    """With the paper's camera (no tilt) the optical axis is the body's +x: the floor is the one every recorded
+    figure was measured with, to the bit, near the gates (below 50 %) and far from them (all of the gate)."""
+    track = course_lib.make_course("alphapilot")
+    gates, positions = around_the_gates(track)
+    camera = camera_lib.default_camera()
+    floor = np.asarray(M.pointed_visibility(gates, positions, camera))
+    np.testing.assert_array_equal(floor, body_axis_pointed(gates, positions, camera))
+    assert (floor < 0.5).any() and (floor == 1.0).any()
+
+
+def aimed(gates, positions, tilt: float):
+    """(P, 10) states at ``positions`` whose camera, tilted up by ``tilt`` rad, looks straight at the gate's centre:
+    yawed at it, the body pitched nose down by ``tilt`` more than the ray to the centre rises."""
+    to_gate = np.asarray(gates.centre) - np.asarray(positions)
+    yaw = np.arctan2(to_gate[:, 1], to_gate[:, 0])
+    pitch = tilt - np.arctan2(to_gate[:, 2], np.hypot(to_gate[:, 0], to_gate[:, 1]))
+    q = jax.vmap(quadrotor.quat_from_euler)(jnp.zeros(len(yaw)), jnp.asarray(pitch, jnp.float32),
+                                            jnp.asarray(yaw, jnp.float32))
+    return jnp.concatenate([positions, q, jnp.zeros_like(positions)], axis=1)
+
+
+@pytest.mark.parametrize("tilt_deg", [20.0, 40.0])
+def test_a_tilted_camera_aimed_straight_at_the_gate_scores_the_floor_where_the_body_axis_floor_saw_less(tilt_deg):
+    """A camera tilted up (racers mount it 20-50 deg): the pose that puts the gate's centre at the principal point
+    sees exactly what the floor says, all of the gate from where it fits the field of view (beyond about 1.2 m).
+    The floor that pointed the body's +x at the gate held the gate's centre ``tilt`` below the optical axis: at 20 deg
+    it saw under all of the gate, at 40 deg under half of it on the whole approach (so it excused every tick there,
+    up to the cap)."""
+    track = course_lib.straight_course(num_gates=1, height=3.0, first_gate_x=10.0)
+    gate = track.gate(0)
+    tilt = np.radians(tilt_deg)
+    camera = camera_lib.default_camera(tilt=tilt)
+    distance = np.linspace(0.3, 12.0, 60)
+    height = np.tile([-1.5, 0.0, 1.5], 20)  # below, level with and above the gate's centre
+    positions = jnp.asarray(np.stack([10.0 - distance, np.zeros(60), 3.0 + height], axis=1), jnp.float32)
+    gates = M.target_gates(track.gates, np.zeros(60, int))
+    states = aimed(gates, positions, tilt)
+    uv, _, _ = jax.vmap(lambda x: camera_lib.project(gate.centre, x, camera))(states)
+    np.testing.assert_allclose(uv, np.tile([[camera.cx / camera.width, camera.cy / camera.height]], (60, 1)),
+                               atol=1e-4)  # the optical axis on the gate's centre
+    floor = np.asarray(M.pointed_visibility(gates, positions, camera))
+    seen = np.asarray(jax.vmap(lambda x: camera_lib.gate_visibility(gate, x, camera))(states))
+    np.testing.assert_array_equal(floor, seen)
+    fits = distance > 1.2
+    assert (floor[fits] == 1.0).all()
+    body_axis = body_axis_pointed(gates, positions, camera)
+    assert (body_axis[fits] < 1.0).sum() >= 5  # at 20 deg: from 1.5 m to 3 m off, level with and below the gate
+    if tilt_deg == 40.0:
+        assert (body_axis[fits] < 0.5).all()

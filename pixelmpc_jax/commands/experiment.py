@@ -18,10 +18,11 @@ FRONTIER_CELLS = ("all", "border", "preset")
 def add_experiment(sub) -> None:
     """``pixelmpc experiment``: its jobs as sub-commands."""
     p = sub.add_parser("experiment", help="one experiment on its own, resumable: table2, table4, robustness, "
-                                          "fault-curves, frontier, margin-probe, speed-probe")
+                                          "fault-curves, frontier, margin-probe, speed-probe; lap-picture draws "
+                                          "the laps of result folders")
     jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
     for add in (_add_table2, _add_table4, _add_robustness, _add_fault_curves, _add_frontier, _add_margin_probe,
-                _add_speed_probe):
+                _add_speed_probe, _add_lap_picture):
         add(jobs)
 
 
@@ -179,9 +180,11 @@ def _add_frontier(jobs) -> None:
                         "border (the border cost alone, at each model's weight of the 4-lap sweep) or preset (the "
                         "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
                         "of knowing where the gate is)")
-    p.add_argument("--speeds", type=arg.target_speed, nargs="+", default=None, metavar="M_S",
-                   help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (at least 2; default "
-                        "6 7 8 8.5 9.1 10 12 14, quick 6 8 8.5 10)")
+    p.add_argument("--speeds", type=arg.target_speeds, nargs="+", default=None, metavar="M_S|LO:HI:STEP",
+                   help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}], each a speed or a range "
+                        "(6:9:0.25 flies 6, 6.25, ..., 9: a frontier without gaps for the paired gain; nominal "
+                        "points already flown in --out are kept). At least 2; default 6 7 8 8.5 9.1 10 12 14, quick "
+                        "6 8 8.5 10")
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
@@ -191,8 +194,13 @@ def _add_frontier(jobs) -> None:
     p.set_defaults(func=_cmd_frontier, validate=_two_speeds, precheck=_check_course)
 
 
+def _nominal_speeds(args) -> tuple[float, ...] | None:
+    """The speeds of ``--speeds`` (each a speed or a range), sorted, each once; None when not given."""
+    return None if args.speeds is None else tuple(sorted({v for speeds in args.speeds for v in speeds}))
+
+
 def _two_speeds(args) -> str | None:
-    if args.speeds is not None and len(set(args.speeds)) < 2:
+    if args.speeds is not None and len(_nominal_speeds(args)) < 2:
         return "argument --speeds: needs at least 2 different speeds to draw a frontier"
     return None
 
@@ -217,7 +225,7 @@ def _cmd_frontier(args) -> int:
 
         changes["cells"] = frontier.ceiling_cells(PAPER_PACE_SPEED)
     if args.speeds:
-        changes["nominal_speeds"] = tuple(sorted(set(args.speeds)))
+        changes["nominal_speeds"] = _nominal_speeds(args)
     if args.laps is not None:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
@@ -271,4 +279,23 @@ def _cmd_speed_probe(args) -> int:
     speed_probe(args.out, speed=args.speed, laps=args.laps, models=tuple(args.models), c_pixels=tuple(args.c_pixel),
                 t_f=args.t_f, dof_weights=args.dof_weights)
     _print_report(args.out)
+    return 0
+
+
+def _add_lap_picture(jobs) -> None:
+    p = jobs.add_parser("lap-picture", help="every lap of result folders (a frontier's or any grid's, a `pixelmpc race "
+                                            "--out` comparison's): lap time against avoidable low-visibility time, "
+                                            "one dot per lap, both controllers, every pace, beside the share of time "
+                                            "in view (flies nothing)")
+    p.add_argument("folders", type=arg.result_dir, nargs="+", metavar="DIR",
+                   help="result folders: results.json (a grid's) or metrics.json (a race's)")
+    p.add_argument("--out", type=arg.output_file, default=None, help="the PNG to write (default DIR/laps.png of the "
+                                                                      "first folder)")
+    p.set_defaults(func=_cmd_lap_picture)
+
+
+def _cmd_lap_picture(args) -> int:
+    from pixelmpc_jax.apps.experiments.lap_picture import write_lap_picture
+
+    print(write_lap_picture(args.folders, args.out))
     return 0

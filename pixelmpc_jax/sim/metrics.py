@@ -83,17 +83,22 @@ def after_seen_ticks(visibility: np.ndarray, target: np.ndarray) -> tuple[np.nda
 
 @jax.jit
 def pointed_visibility(gates, positions: jax.Array, camera: camera_lib.Camera) -> jax.Array:
-    """(S,) visibility of gate s from position s with the camera pointed at the gate's centre, without roll.
+    """(S,) visibility of gate s from position s with the camera's optical axis pointed at the gate's centre,
+    without roll.
 
     That is about the most any attitude shows from there: below 50 % the gate is too close (or too far
     off to the side of its opening) to fit the field of view however the vehicle turns, so no controller
     can avoid that low visibility at that position; low visibility elsewhere comes from the attitude.
+
+    The optical axis is the body's +x tilted up by the mount's ``camera.tilt``: the body pitches that much further
+    nose down than the ray to the gate (a positive pitch is nose down). Untilted, the body's +x points at the gate.
     """
 
     def one(gate, position):
         to_gate = gate.centre - position
         yaw = jnp.arctan2(to_gate[1], to_gate[0])
-        pitch = -jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))  # body +x (the optical axis) at it
+        elevation = jnp.arctan2(to_gate[2], jnp.hypot(to_gate[0], to_gate[1]))
+        pitch = -elevation + camera.tilt  # the optical axis, tilted up from body +x by camera.tilt, at the gate
         q = quadrotor.quat_from_euler(jnp.zeros_like(yaw), pitch, yaw)
         x = jnp.concatenate([position, q, jnp.zeros_like(position)])
         return camera_lib.gate_visibility(gate, x, camera)
@@ -371,6 +376,36 @@ def aggregate(laps: list[dict]) -> dict:
         arr = np.asarray(values)
         out[key] = {"mean": float(arr.mean()), "two_sigma": float(2 * arr.std()), "n": len(values)}
     return out
+
+
+TAIL_OVER_MEDIAN = 0.10  # a lap more than 10 % over the median lap time is in the tail
+
+
+def lap_tail(laps: list[dict]) -> dict:
+    """A set of laps' tail, to report beside its mean: ``laps``, ``laps_finished``, ``median_lap_s`` and
+    ``worst_lap_s`` of the finished laps, ``worst_over_median`` (the worst lap's excess over the median, a fraction)
+    and ``share_over_median`` (the share of the finished laps more than :data:`TAIL_OVER_MEDIAN` over the median;
+    the laps not finished are counted in ``laps_finished``, not here). Lap time figures are None with no lap
+    finished."""
+    times = np.asarray([lap["lap_time_s"] for lap in laps if lap.get("success") and lap.get("lap_time_s") is not None],
+                       np.float64)
+    tail = {"laps": len(laps), "laps_finished": int(times.size), "median_lap_s": None, "worst_lap_s": None,
+            "worst_over_median": None, "share_over_median": None}
+    if times.size:
+        median, worst = float(np.median(times)), float(times.max())
+        tail.update(median_lap_s=median, worst_lap_s=worst, worst_over_median=worst / median - 1.0,
+                    share_over_median=float(np.mean(times > (1.0 + TAIL_OVER_MEDIAN) * median)))
+    return tail
+
+
+def tail_columns(tail: dict) -> tuple[str, str, str]:
+    """A table's three tail columns of :func:`lap_tail`: laps finished (``39/40``), the worst lap against the median
+    (``+4.0 %``) and the laps more than 10 % over the median (``1 (2.6 %)``)."""
+    finished = f"{tail['laps_finished']}/{tail['laps']}"
+    if tail["worst_over_median"] is None:
+        return finished, "-", "-"
+    slow = round(tail["share_over_median"] * tail["laps_finished"])
+    return finished, f"{100 * tail['worst_over_median']:+.1f} %", f"{slow} ({100 * tail['share_over_median']:.1f} %)"
 
 
 def format_table(laps: list[dict], aggregate_row: dict | None = None) -> str:

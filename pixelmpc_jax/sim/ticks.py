@@ -7,7 +7,7 @@ floats, -1 for the target):
 - ``target`` (L, S) int, the target gate's index at each state;
 - ``visibility`` (L, S), the target's visibility from the true pose;
 - ``pointed_visibility`` (L, S), the target's visibility from a camera at the same position pointed at its centre
-  (the floor's input, :func:`~pixelmpc_jax.sim.metrics.pointed_visibility`);
+  (the floor's input, :func:`~pixelmpc_jax.sim.metrics.pointed_visibility`: its optical axis, the tilt included);
 - ``states`` (L, S, 10), the true states; ``estimates`` (L, S, 10), the state the controller acted on at each
   state's tick (NaN at the last state, where no tick followed);
 - ``gate_centre`` (L, G, 3), ``gate_rotation`` (L, G, 3, 3), ``gate_width``, ``gate_height``, ``gate_border``,

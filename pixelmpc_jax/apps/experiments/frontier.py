@@ -11,10 +11,17 @@ each row holds nominal MPPI's raw time below 50 % (nothing excused), share of ti
 mean angle to the target at the same lap time (``frontier_<figure>``), to hold the cell's own against.
 The frontier is never extrapolated: a cell whose lap time lies outside the nominal lap times gets no gain
 and the report names the nominal speed to add. All per-lap figures are means over the *completed* laps (a
-lost lap also ends its low visibility early); a cell that lost laps is flagged.
+lost lap also ends its low visibility early); a cell that lost laps is flagged, and every point reports its tail
+(:func:`~pixelmpc_jax.sim.metrics.lap_tail`: the worst lap against the median, the laps more than 10 % over it).
+
+Beside that gain (the joined means), each cell's ``gains`` hold the headline one, **paired**: each lap against its
+own seed's nominal laps, and a local linear fit, each with a bootstrap interval over seeds
+(:func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains`); a claim's bars apply to the smallest of the three.
+Pairing wants nominal speeds close together (``--speeds 6:9:0.25``): the report gives the widest lap-time gap
+between the nominal laps that bracket a paired lap.
 
 Files in ``out``: ``results.json`` (the grid, resumable per cell), ``frontier.json`` (strict JSON),
-``REPORT.md`` and ``frontier.png``.
+``REPORT.md``, ``frontier.png`` and ``laps.png`` (every lap, :mod:`~pixelmpc_jax.apps.experiments.lap_picture`).
 """
 
 from __future__ import annotations
@@ -26,17 +33,18 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.apps.experiments import gains as gains_lib
 from pixelmpc_jax.apps.experiments import skeleton
+from pixelmpc_jax.apps.experiments.gains import AVOIDABLE_FLOOR_S, BOOTSTRAP_DRAWS, BOOTSTRAP_LEVEL
 from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing import grid
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
-from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES, lap_tail, tail_columns
 from pixelmpc_jax.strict_json import json_safe
-from pixelmpc_jax.timing import CONTROL_DT, LAP_TIME_LIMIT_S
+from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
-AVOIDABLE_FLOOR_S = CONTROL_DT  # a cell with no avoidable loss is divided by one control tick (0.025 s)
 # 42.5 s .. 21.9 s laps: brackets the cells slowed to ~40 s at the pace and the 14 m/s label's cells (22-26 s); 8.5
 # and 9.1 m/s are the paper's 14 and 16 m/s paces (presets.PAPER_PACE_SPEEDS), so the tables' nominal cells are here
 # nominal MPPI's figures interpolated at each cell's lap time, beside the gain
@@ -148,7 +156,7 @@ def summarise(result: dict) -> dict:
             "mean_target_angle_deg": angle,
             "success_rate": len(done) / len(laps) if laps else None, "laps": len(laps), "laps_completed": len(done),
             "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes,
-            "phases": phases}
+            "phases": phases, "tail": lap_tail(laps)}
 
 
 def _curve(nominal: list[dict], y: str) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +182,6 @@ def suggest_speed(nominal: list[dict], lap_time: float) -> float | None:
     if lap_time > points[-1][0]:
         return max(0.5, math.floor(2 * points[-1][1] * points[-1][0] / lap_time) / 2)
     return math.ceil(2 * points[0][1] * points[0][0] / lap_time) / 2
-
-
-BOOTSTRAP_DRAWS = 2000
-BOOTSTRAP_LEVEL = 0.90
 
 
 def _lap_pairs(result: dict) -> np.ndarray:
@@ -217,13 +221,14 @@ def gain_interval(cell: np.ndarray, nominal: list[np.ndarray], draws: int = BOOT
 def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S) -> dict:
     """The frontier from the grid's results (``{cell name: race results}``); cells not run yet are listed
     under ``missing``."""
-    nominal, missing = [], []
+    nominal, nominal_laps, missing = [], [], []
     for speed in nominal_speeds:
         cell = nominal_cell(speed, max_time_s)
         if cell.name not in results:
             missing.append(cell.name)
             continue
         nominal.append({"name": cell.name, "speed": float(speed), **summarise(results[cell.name])})
+        nominal_laps.append(gains_lib.completed_laps(results[cell.name]))
     nominal.sort(key=lambda p: p["speed"])
     rows = []
     for cell in cells:
@@ -248,6 +253,7 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
                                              for v in nominal_speeds if nominal_cell(v, max_time_s).name in results])
         row["suggested_nominal_speed"] = (None if row["bracketed"] or row["lap_time_s"] is None
                                           else suggest_speed(nominal, row["lap_time_s"]))
+        row["gains"] = gains_lib.frontier_gains(gains_lib.completed_laps(results[cell.name]), nominal_laps)
         rows.append(row)
     from pixelmpc_jax.platform_info import device_description
 
@@ -257,7 +263,12 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
                          "written": datetime.datetime.now().isoformat(timespec="seconds"),
                          "avoidable_floor_s": AVOIDABLE_FLOOR_S,
                          "gain_interval": f"{BOOTSTRAP_LEVEL:.0%} percentile bootstrap over the cell's and each "
-                                          f"nominal point's completed laps, {BOOTSTRAP_DRAWS} draws"}}
+                                          f"nominal point's completed laps, {BOOTSTRAP_DRAWS} draws",
+                         "gains": f"paired: each lap on its own seed's nominal laps joined by lap time (out of their "
+                                  f"range: left out); joined means; a line fitted to nominal's laps within "
+                                  f"{gains_lib.LOCAL_FIT_HALF_WIDTH_S:g} s of the cell's mean lap time. Intervals: "
+                                  f"{BOOTSTRAP_LEVEL:.0%} percentile bootstrap over seeds, {BOOTSTRAP_DRAWS} draws, "
+                                  f"generator seed {gains_lib.BOOTSTRAP_SEED}"}}
 
 
 def gains_against(results: dict, cells, frontier_dir: Path, nominal_speeds, laps: int, seed: int = 0) -> dict:
@@ -272,9 +283,17 @@ def gains_against(results: dict, cells, frontier_dir: Path, nominal_speeds, laps
 
 
 def frontier_figure(frontier: dict, out: Path) -> str:
-    """Draw ``frontier.png`` (the report links it)."""
+    """Draw ``frontier.png`` (the report links it) and, from the grid's ``results.json``, ``laps.png``: every lap
+    of the frontier's points (:mod:`~pixelmpc_jax.apps.experiments.lap_picture`); returns the latter's link."""
+    from pixelmpc_jax.apps.experiments import lap_picture
+
     plot(frontier, Path(out) / "frontier.png")
-    return ""
+    names = {p["name"] for p in frontier["nominal"] + frontier["cells"]}
+    races = lap_picture.folder_races(out, names) if (Path(out) / "results.json").is_file() else []
+    if not races:
+        return ""
+    lap_picture.plot_laps(races, Path(out) / "laps.png", title="every lap of the frontier's points")
+    return "\n![every lap: avoidable time and share in view against lap time](laps.png)\n"
 
 
 def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S,
@@ -322,6 +341,41 @@ def _done(p: dict) -> str:
     return f"{p['laps_completed']}/{p['laps']}"
 
 
+def _tail(p: dict) -> str:
+    """The three tail columns of a point: laps finished, the worst lap against the median, the slow laps."""
+    return " | ".join(tail_columns(p["tail"]))
+
+
+def _with_interval(entry: dict | None) -> str:
+    if not entry or entry.get("gain") is None:
+        return "-"
+    interval = entry.get("interval")
+    return f"{entry['gain']:.2f}" + (" [{:.2f}, {:.2f}]".format(*interval) if interval else "")
+
+
+def gains_table(cells: list[dict]) -> list[str]:
+    """Markdown lines: each cell's gain three ways (:mod:`~pixelmpc_jax.apps.experiments.gains`) and the smallest,
+    with the laps paired and out of their seed's range."""
+    lines = ["", "## The gain three ways", "",
+             "Paired (the headline): each completed lap against its own seed's nominal laps, joined by lap time, at "
+             "the lap's time; a lap outside its seed's nominal lap times is left out (out of range). Joined means: "
+             "the frontier gain above. Local fit: a line through nominal's laps near the cell's mean lap time. "
+             "Intervals: bootstrap over seeds. Widest gap: the largest lap-time gap between the two nominal laps "
+             "that bracket a paired lap (a dense frontier keeps it small). A claim's bars apply to the smallest.", "",
+             "| cell | paired gain | laps paired (out of range) | widest gap [s] | joined means | local fit "
+             "| smallest |", "|---|---|---|---|---|---|---|"]
+    for c in cells:
+        g = c.get("gains")
+        if not g:
+            continue
+        least = g["smallest"]
+        smallest = "-" if least is None else f"{_with_interval(least)} ({least['construction'].replace('_', ' ')})"
+        lines.append(f"| {c['name']} | {_with_interval(g['paired'])} | {g['laps_paired']} "
+                     f"({g['laps_out_of_range']}) | {_f(g['widest_gap_s'], 1)} | {_with_interval(g['joined_means'])} "
+                     f"| {_with_interval(g['local_fit'])} | {smallest} |")
+    return lines
+
+
 def report(frontier: dict) -> str:
     """Markdown: the nominal frontier, the PixelMPC cells against it, the causes, how it was measured."""
     causes = " | ".join(LOSS_CAUSES)
@@ -333,19 +387,21 @@ def report(frontier: dict) -> str:
              "cell's (above 1: better than flying slower). In view: share of flown time with the target in the "
              "image; angle: mean angle between the optical axis and the target's centre. Nominal's figures at the "
              "cell's lap time stand in brackets.", "",
-             "## Nominal MPPI", "", "| target [m/s] | laps done | lap time [s] | raw vis < 50 % [s] | avoidable [s] "
-             "| in view [%] | angle [deg] |", "|---|---|---|---|---|---|---|"]
+             "## Nominal MPPI", "", "| target [m/s] | laps done | worst lap vs median | laps > 10 % over median "
+             "| lap time [s] | raw vis < 50 % [s] | avoidable [s] | in view [%] | angle [deg] |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for p in frontier["nominal"]:
-        lines.append(f"| {p['speed']:g} | {_done(p)} | {_f(p['lap_time_s'], 1, p['lap_time_two_sigma_s'])} | "
+        lines.append(f"| {p['speed']:g} | {_tail(p)} | {_f(p['lap_time_s'], 1, p['lap_time_two_sigma_s'])} | "
                      f"{_f(p['vis_below_50_s'])} | {_f(p['avoidable_s'], 2, p['avoidable_two_sigma_s'])} | "
                      f"{_percent(p.get('share_target_in_view'))} | {_f(p.get('mean_target_angle_deg'), 1)} |")
     pace = frontier["paper_pace"]
     lines += ["", f"Paper's pace (nominal lap of {frontier['paper_lap_time_s']:g} s): "
               + (f"{pace:.2f} m/s." if pace is not None else "not bracketed by the nominal speeds."), "",
               "## PixelMPC cells", "",
-              "| cell | model | options | target [m/s] | laps done | lap time [s] | raw vis < 50 % [s] (nominal) "
-              "| in view [%] (nominal) | angle [deg] (nominal) | avoidable [s] | frontier at its lap time [s] "
-              "| frontier gain |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| cell | model | options | target [m/s] | laps done | worst lap vs median | laps > 10 % over median "
+              "| lap time [s] | raw vis < 50 % [s] (nominal) | in view [%] (nominal) | angle [deg] (nominal) "
+              "| avoidable [s] | frontier at its lap time [s] | frontier gain |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in frontier["cells"]:
         options = ", ".join(f"{k}={v}" for k, v in c["options"].items()) or "-"
         gain = _f(c["frontier_gain"]) if c["bracketed"] else "not bracketed"
@@ -355,7 +411,7 @@ def report(frontier: dict) -> str:
             gain += " (no avoidable time: over the floor)"
         if c["frontier_gain"] is not None and not c["all_laps_completed"]:
             gain += " (laps lost)"
-        lines.append(f"| {c['name']} | {c['pixel_model']} | {options} | {c['speed']:g} | {_done(c)} | "
+        lines.append(f"| {c['name']} | {c['pixel_model']} | {options} | {c['speed']:g} | {_tail(c)} | "
                      f"{_f(c['lap_time_s'], 1, c['lap_time_two_sigma_s'])} | "
                      f"{_f(c['vis_below_50_s'])} ({_f(c.get('frontier_vis_below_50_s'))}) | "
                      f"{_percent(c.get('share_target_in_view'))} "
@@ -372,6 +428,7 @@ def report(frontier: dict) -> str:
         if c["lap_time_s"] is not None and not c["all_laps_completed"]:
             lines += ["", f"`{c['name']}` lost laps: its figures are over the completed laps only (a lost lap also "
                       "ends its low visibility early)."]
+    lines += gains_table(frontier["cells"])
     lines += ["", "## Where the low-visibility time goes (s per lap)", "", f"| point | {causes} |",
               "|---|" + "---|" * len(LOSS_CAUSES)]
     for p in frontier["nominal"] + frontier["cells"]:

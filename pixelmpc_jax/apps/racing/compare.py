@@ -17,7 +17,7 @@ from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.presets import nominal_of
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import ticks as ticks_lib
-from pixelmpc_jax.sim.metrics import LOSS_CAUSES
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES, lap_tail, tail_columns
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.timing import CONTROL_DT
 from pixelmpc_jax.world.course import make_course
@@ -101,10 +101,14 @@ def _mean(results: dict, key: str) -> float | None:
 
 
 def side_by_side(record: dict) -> str:
-    """A terminal table: one column per controller, rows of lap time, low visibility, its causes and the view."""
+    """A terminal table: one column per controller, rows of the laps finished and their tail, lap time, low
+    visibility, its causes and the view."""
     names = list(record["controllers"])
     results = [record["controllers"][n] for n in names]
-    rows = [("laps completed", [f"{sum(lap['success'] for lap in r['laps'])}/{len(r['laps'])}" for r in results]),
+    tails = [tail_columns(lap_tail(r["laps"])) for r in results]
+    rows = [("laps completed", [t[0] for t in tails]),
+            ("worst lap vs median", [t[1] for t in tails]),
+            ("laps > 10 % over median", [t[2] for t in tails]),
             ("lap time [s]", [_fmt(_mean(r, "lap_time_s")) for r in results]),
             ("avoidable vis < 50 % [s]", [_fmt(_mean(r, "time_vis_avoidable_s")) for r in results]),
             ("vis < 50 %, nothing excused [s]", [_fmt(_mean(r, "time_vis_below_50_s")) for r in results]),
