@@ -159,6 +159,25 @@ def result_dir(path: str) -> Path:
     return folder
 
 
+def checkout_dir(path: str) -> Path:
+    """An argparse type: a checkout of the project (a folder holding ``README.md`` and ``experiments/results``)."""
+    root = Path(path)
+    missing = [name for name in ("README.md", "experiments/results") if not (root / name).exists()]
+    if missing:
+        raise argparse.ArgumentTypeError(f"{path!r} is not a checkout of the project: it lacks {', '.join(missing)}")
+    return root
+
+
+def ticks_dir(path: str) -> Path:
+    """An argparse type: a folder holding a race's or a grid's per-tick records (``ticks_<race>.npz``)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"no folder at {path!r}")
+    if not [p for p in folder.glob("ticks_*.npz") if p.name != "ticks_compact.npz"]:
+        raise argparse.ArgumentTypeError(f"{path!r} holds no per-tick record (ticks_<race>.npz)")
+    return folder
+
+
 def weights_file(path: str) -> Path:
     """An argparse type: an existing file (its contents are checked before anything runs)."""
     file = Path(path)

@@ -30,6 +30,7 @@ from pixelmpc_jax.commands.evaluate import add_evaluate
 from pixelmpc_jax.commands.experiment import add_experiment
 from pixelmpc_jax.commands.race import add_race
 from pixelmpc_jax.commands.render import add_render
+from pixelmpc_jax.commands.report import add_report
 from pixelmpc_jax.commands.reproduce import add_reproduce
 from pixelmpc_jax.commands.train import add_train
 from pixelmpc_jax.commands.tune import add_tune
@@ -37,7 +38,7 @@ from pixelmpc_jax.commands.version import add_version
 
 # every command, in the order `pixelmpc --help` lists them
 COMMANDS = (add_version, add_demo, add_render, add_collect, add_train, add_evaluate, add_bench, add_reproduce, add_race,
-            add_course, add_tune, add_experiment)
+            add_course, add_tune, add_experiment, add_report)
 
 # the commands that split the CPU into devices by default
 SPLIT_CPU_COMMANDS = ("race", "bench", "reproduce", "tune", "experiment")

@@ -26,7 +26,8 @@ def test_the_help_lists_every_job(capsys):
     assert done.value.code == 0
     text = capsys.readouterr().out
     unwrapped = re.sub(r"-\n\s+", "-", text)  # argparse wraps a long help after a hyphen
-    for command in ("race", "tune", "reproduce", "course", "demo", "render", "collect", "train", "evaluate", *JOBS):
+    for command in ("race", "tune", "reproduce", "course", "demo", "render", "collect", "train", "evaluate", "report",
+                    *JOBS):
         assert f"    {command} " in text
     for jobs in JOBS.values():
         for job in jobs:
@@ -36,7 +37,7 @@ def test_the_help_lists_every_job(capsys):
 def test_each_command_lives_in_its_own_module_and_the_cli_defines_none():
     parser = cli.build_parser()
     names = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-    assert len(names) == 12
+    assert len(names) == 13
     assert [add.__module__ for add in cli.COMMANDS] == [f"pixelmpc_jax.commands.{name}" for name in names]
     tree = ast.parse(Path(cli.__file__).read_text())
     defined = [node.attr for node in ast.walk(tree) if isinstance(node, ast.Attribute)

@@ -16,7 +16,7 @@ from pixelmpc_jax.apps.racing import compare, presets, race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
-from pixelmpc_jax.sim import metrics
+from pixelmpc_jax.sim import metrics, ticks_compact
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
@@ -61,6 +61,11 @@ def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeyp
             recomputed = ticks_lib.lap_visibility(record_ticks, i)
             for key, value in recomputed.items():
                 assert lap[key] == pytest.approx(value, abs=1e-9), key
+    compact = ticks_compact.load(ticks_compact.convert_folder(tmp_path))  # what a result folder commits
+    for name in ("pixelmpc", "mppi"):
+        for lap, recomputed in zip(saved["controllers"][name]["laps"], ticks_compact.race_laps(compact[name])):
+            for key, value in recomputed.items():
+                assert lap[key] == pytest.approx(value, abs=1e-9), (name, key)
     assert (tmp_path / "trajectories.png").stat().st_size > 0 and (tmp_path / "visibility.png").stat().st_size > 0
     table = compare.side_by_side(record)
     assert "PixelMPC" in table.splitlines()[0] and "avoidable vis < 50 %" in table and "paper's rule" in table

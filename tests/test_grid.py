@@ -15,7 +15,11 @@ from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.dynamics.dof import packaged_dof_hash
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
+from pixelmpc_jax.sim import ticks as ticks_lib
+from pixelmpc_jax.sim import ticks_compact
 from pixelmpc_jax.sim.metrics import MEASURE
+from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import course as course_lib
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
@@ -306,6 +310,38 @@ def test_a_cell_another_grid_flew_is_copied_not_flown(flown, tmp_path, monkeypat
         assert (tmp_path / "second" / f"trajectories_again_{cell.name}.npz").exists()
     with pytest.raises(AssertionError, match="flown again"):  # another seed is another race
         grid.run_grid(renamed[:1], tmp_path / "third", laps=2, seed=1, progress=False, reuse=[first])
+
+
+def test_each_finished_cell_adds_its_laps_to_the_folders_compact_record(monkeypatch, tmp_path):
+    """A grid writes ``ticks_compact.npz`` as its cells finish (flown or copied from another grid): what a result
+    folder commits, from which each lap's figures recompute."""
+    gates = course_lib.load_course().gates
+
+    def lap(seed: int) -> dict:  # 10 ticks 5 m before gate 0, its visibility 0 for the last 3
+        states = np.zeros((11, 10), np.float32)
+        states[:, :3] = np.asarray(gates.centre[0]) - np.asarray([5.0, 0.0, 0.0])
+        states[:, 3] = 1.0
+        return {"seed": seed, "num_ticks": 10, "finished": False, "target": np.zeros(11, np.int32),
+                "visibility": np.r_[np.ones(8), np.zeros(3)].astype(np.float32),
+                "pointed_visibility": np.ones(11, np.float32), "states": states, "estimates": states,
+                **{f"gate_{f}": np.asarray(getattr(gates, f)) for f in ticks_lib.GATE_FIELDS}}
+
+    def run_laps(spec, dof_params=None, **kwargs):
+        return {"laps": [{"success": False, "seed": spec.seed + i} for i in range(spec.laps)], "aggregate": {},
+                "seed": spec.seed, "interrupted": False, "trajectories": [np.zeros((2, 10))] * spec.laps,
+                "covariances": [], "measure": MEASURE, "ticks": [lap(spec.seed + i) for i in range(spec.laps)],
+                "camera": camera_lib.default_camera()}
+
+    monkeypatch.setattr(race, "run_laps", run_laps)
+    grid.run_grid(CELLS[:2], tmp_path / "first", laps=2, seed=5, progress=False)
+    compact = ticks_compact.load(tmp_path / "first" / ticks_compact.FILE_NAME)
+    assert sorted(compact) == ["dof", "nominal"]
+    laps = ticks_compact.race_laps(compact["dof"])
+    assert [lap["seed"] for lap in laps] == [5, 6]
+    assert [lap["time_vis_below_50_s"] for lap in laps] == pytest.approx([3 * 0.025, 3 * 0.025])
+    grid.run_grid([grid.Cell("again_dof", CELLS[1].spec)], tmp_path / "second", laps=2, seed=5, progress=False,
+                  reuse=[tmp_path / "first"])
+    assert list(ticks_compact.load(tmp_path / "second" / ticks_compact.FILE_NAME)) == ["again_dof"]
 
 
 def test_a_tilted_camera_is_a_race_setting_both_controllers_fly_and_the_packaged_pixel_models_refuse():

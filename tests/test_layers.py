@@ -1,4 +1,4 @@
-"""The import rule of the README's Architecture section: layers import only the layers above them, no module of
+"""The import rule of docs/architecture.md: layers import only the layers above them, no module of
 the library imports the experiment apps (``pixelmpc_jax.apps``), and the package needs nothing of the checkout
 beside it (``benchmarks/``, ``experiments/``, ``tests/``), so it runs from a plain ``pip install``."""
 

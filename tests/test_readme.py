@@ -1,8 +1,10 @@
-"""The README: short, every Python example runs as pasted on its own, every link resolves.
+"""The README: short, every Python example runs as pasted on its own, every link resolves, its results table is
+the one the result folders give.
 
-Each ```python block of the README runs alone in a fresh interpreter (its own imports, nothing from the block
-before it), so a reader can paste any one of them. The long notes live in ``docs/``; every relative link or
-image of the README and of ``docs/*.md`` must name a file that exists.
+Each ```python block of the README and of ``docs/*.md`` runs alone in a fresh interpreter (its own imports,
+nothing from the block before it), so a reader can paste any one of them. The long notes live in ``docs/``; every
+relative link or image of the README and of ``docs/*.md`` must name a file that exists. The results table is
+what ``pixelmpc report --readme`` builds from ``experiments/results/`` (:mod:`pixelmpc_jax.apps.readme_table`).
 """
 
 import re
@@ -20,14 +22,18 @@ PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)[^)]*\)")  # [text](target) and ![alt](target)
 
 
-def _python_blocks() -> list[tuple[int, str]]:
-    """(line number in README.md, code) of every ```python block."""
-    text = README.read_text()
-    return [(text.count("\n", 0, match.start()) + 1, match.group(1)) for match in PYTHON_BLOCK.finditer(text)]
-
-
 def _markdown_files() -> list[Path]:
     return [README, *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def _python_blocks(paths=None) -> list[tuple[str, str]]:
+    """("file:line", code) of every ```python block of the README and the docs (or of ``paths``)."""
+    blocks = []
+    for path in paths or _markdown_files():
+        text = path.read_text()
+        blocks += [(f"{path.relative_to(ROOT).as_posix()}:{text.count(chr(10), 0, match.start()) + 1}", match.group(1))
+                   for match in PYTHON_BLOCK.finditer(text)]
+    return blocks
 
 
 def _relative_links(path: Path) -> list[str]:
@@ -37,18 +43,35 @@ def _relative_links(path: Path) -> list[str]:
     return [t for t in targets if t and not re.match(r"[a-z][a-z0-9+.-]*:", t)]
 
 
-def test_readme_has_python_examples():
-    assert len(_python_blocks()) >= 2
+def test_the_readme_and_the_docs_have_python_examples():
+    readme = _python_blocks([README])
+    assert readme, "the README shows no library example"
+    assert any("jax.vmap(ctrl.step)" in code and "jax.jit(" in code for _, code in readme), (
+        "the README's example no longer composes the pure MPPI step in the user's own jit and vmap")
+    assert len(_python_blocks()) >= 3
 
 
-@pytest.mark.parametrize("line, code", _python_blocks(), ids=[f"README.md:{line}" for line, _ in _python_blocks()])
-def test_python_example_runs_alone(tmp_path, line, code):
+@pytest.mark.parametrize("where, code", _python_blocks(), ids=[where for where, _ in _python_blocks()])
+def test_python_example_runs_alone(tmp_path, where, code):
     if re.search(r"^u0, ", code, re.M):  # an example that steps a controller must give a finite control
         code += "\nimport numpy\nassert numpy.isfinite(numpy.asarray(u0)).all() and numpy.shape(u0) == (4,), u0\n"
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                           timeout=EXAMPLE_TIMEOUT_S)
-    assert done.returncode == 0, (f"the ```python block at README.md:{line} failed when run alone "
+    assert done.returncode == 0, (f"the ```python block at {where} failed when run alone "
                                   f"(exit {done.returncode}):\n{done.stderr[-4000:]}")
+
+
+def test_the_readme_is_short():
+    assert len(README.read_text().splitlines()) <= 150
+
+
+def test_the_readme_results_table_is_what_the_result_folders_give():
+    """``pixelmpc report --readme --check`` passes: the table between the markers is :func:`readme_table.table` of
+    the committed folders (run ``pixelmpc report --readme`` after a result changes)."""
+    from pixelmpc_jax.apps import readme_table
+
+    old, new = readme_table.rewrite_readme(ROOT, check=True)
+    assert old == new, "README.md's results table is stale: run `pixelmpc report --readme`"
 
 
 def test_the_docs_the_readme_links_to_exist():

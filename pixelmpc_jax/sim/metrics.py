@@ -207,8 +207,12 @@ def tick_geometry(states: np.ndarray, target: np.ndarray, gates, camera) -> tupl
     targets = target_gates(gates, target)
     positions = np.asarray(states)[:, quadrotor.POS]
     pointed = np.asarray(pointed_visibility(targets, jnp.asarray(positions, jnp.float32), camera))
-    distance = np.linalg.norm(positions - np.asarray(targets.centre), axis=1)
-    return pointed, distance
+    return pointed, target_distance(states, target, gates)
+
+
+def target_distance(states: np.ndarray, target: np.ndarray, gates) -> np.ndarray:
+    """(S,) the distance from each state's position to its target gate's centre, m."""
+    return np.linalg.norm(np.asarray(states)[:, quadrotor.POS] - np.asarray(target_gates(gates, target).centre), axis=1)
 
 
 @jax.jit

@@ -114,8 +114,7 @@ def lap_masks(lap: dict, target_speed: float) -> dict:
     :func:`lap_ticks`."""
     target = np.asarray(lap["target"])
     gates = track_lib.Gate(**{f: np.asarray(lap[f"gate_{f}"]) for f in GATE_FIELDS})
-    centres = np.asarray(metrics_lib.target_gates(gates, target).centre)
-    distance = np.linalg.norm(np.asarray(lap["states"])[:, :3] - centres, axis=1)
+    distance = metrics_lib.target_distance(lap["states"], target, gates)
     return metrics_lib.visibility_masks(np.asarray(lap["visibility"]), np.asarray(lap["pointed_visibility"]), target,
                                         distance, int(lap["num_ticks"]), target_speed)
 

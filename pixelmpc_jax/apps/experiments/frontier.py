@@ -184,7 +184,7 @@ def suggest_speed(nominal: list[dict], lap_time: float) -> float | None:
     return math.ceil(2 * points[0][1] * points[0][0] / lap_time) / 2
 
 
-def _lap_pairs(result: dict) -> np.ndarray:
+def lap_pairs(result: dict) -> np.ndarray:
     """(L, 2) lap time and avoidable low-visibility time of each completed lap of one cell's results."""
     return np.asarray([(lap["lap_time_s"], lap["time_vis_avoidable_s"])
                        for lap in result.get("laps", []) if lap.get("success") and lap.get("lap_time_s") is not None
@@ -218,6 +218,27 @@ def gain_interval(cell: np.ndarray, nominal: list[np.ndarray], draws: int = BOOT
     return float(np.percentile(gains, tail)), float(np.percentile(gains, 100 - tail))
 
 
+def against_nominal(result: dict, nominal: list[dict], nominal_results: list[dict]) -> dict:
+    """One cell's race ``result`` (:func:`summarise`'s figures) held against the nominal points ``nominal`` (each
+    ``{"speed", **summarise(...)}``) at its own lap time: ``bracketed``, ``frontier_avoidable_s``, ``frontier_gain``,
+    ``frontier_<figure>`` of :data:`SAME_LAP_TIME_FIGURES`, ``frontier_gain_interval`` (:func:`gain_interval` over
+    the cell's and the points' laps, ``nominal_results`` being the points' race results in the bootstrap's order) and
+    ``suggested_nominal_speed``."""
+    row = summarise(result)
+    frontier = interpolate(nominal, row["lap_time_s"])
+    row["bracketed"] = frontier is not None
+    row["frontier_avoidable_s"] = frontier
+    row["frontier_gain"] = None
+    if frontier is not None and row["avoidable_s"] is not None:
+        row["frontier_gain"] = frontier / max(row["avoidable_s"], AVOIDABLE_FLOOR_S)
+    for figure in SAME_LAP_TIME_FIGURES:
+        row[f"frontier_{figure}"] = interpolate(nominal, row["lap_time_s"], figure)
+    row["frontier_gain_interval"] = gain_interval(lap_pairs(result), [lap_pairs(point) for point in nominal_results])
+    row["suggested_nominal_speed"] = (None if row["bracketed"] or row["lap_time_s"] is None
+                                      else suggest_speed(nominal, row["lap_time_s"]))
+    return row
+
+
 def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S) -> dict:
     """The frontier from the grid's results (``{cell name: race results}``); cells not run yet are listed
     under ``missing``."""
@@ -230,6 +251,8 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         nominal.append({"name": cell.name, "speed": float(speed), **summarise(results[cell.name])})
         nominal_laps.append(gains_lib.completed_laps(results[cell.name]))
     nominal.sort(key=lambda p: p["speed"])
+    nominal_results = [results[nominal_cell(v, max_time_s).name] for v in nominal_speeds
+                       if nominal_cell(v, max_time_s).name in results]
     rows = []
     for cell in cells:
         if cell.name not in results:
@@ -238,21 +261,7 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         spec = cell.spec
         row = {"name": cell.name, "pixel_model": spec.config.pixel_model, "speed": spec.speed,
                "t_f": spec.config.t_f, "c_pixel": spec.config.c_pixel, "options": cell_settings(spec),
-               "estimator": spec.estimator,
-               **summarise(results[cell.name])}
-        frontier = interpolate(nominal, row["lap_time_s"])
-        row["bracketed"] = frontier is not None
-        row["frontier_avoidable_s"] = frontier
-        row["frontier_gain"] = None
-        if frontier is not None and row["avoidable_s"] is not None:
-            row["frontier_gain"] = frontier / max(row["avoidable_s"], AVOIDABLE_FLOOR_S)
-        for figure in SAME_LAP_TIME_FIGURES:
-            row[f"frontier_{figure}"] = interpolate(nominal, row["lap_time_s"], figure)
-        row["frontier_gain_interval"] = gain_interval(
-            _lap_pairs(results[cell.name]), [_lap_pairs(results[nominal_cell(v, max_time_s).name])
-                                             for v in nominal_speeds if nominal_cell(v, max_time_s).name in results])
-        row["suggested_nominal_speed"] = (None if row["bracketed"] or row["lap_time_s"] is None
-                                          else suggest_speed(nominal, row["lap_time_s"]))
+               "estimator": spec.estimator, **against_nominal(results[cell.name], nominal, nominal_results)}
         row["gains"] = gains_lib.frontier_gains(gains_lib.completed_laps(results[cell.name]), nominal_laps)
         rows.append(row)
     from pixelmpc_jax.platform_info import device_description

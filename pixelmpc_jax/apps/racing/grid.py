@@ -21,6 +21,7 @@ from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim import ticks as ticks_lib
+from pixelmpc_jax.sim import ticks_compact
 from pixelmpc_jax.sim.metrics import MEASURE
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -166,6 +167,14 @@ def _copy_shared(shared: tuple[Path, str, dict], out: Path, name: str) -> dict:
     return {**done, "shared_from": f"{folder.name}/{shared_name}", "wall_time_s": 0.0}
 
 
+def _add_to_compact_record(out: Path, name: str) -> None:
+    """Add cell ``name``'s per-tick record in ``out`` (``ticks_<name>.npz``, when it has one) to the folder's compact
+    record (:mod:`~pixelmpc_jax.sim.ticks_compact`), the one a result folder commits."""
+    source = out / f"ticks_{name}.npz"
+    if source.exists():
+        ticks_compact.update(out / ticks_compact.FILE_NAME, {name: ticks_compact.from_record(ticks_lib.load(source))})
+
+
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
              progress: bool = True, dof_params=None, reuse=()) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
@@ -179,10 +188,11 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     not depend on it (lap i always uses seed ``seed + i``).
 
     Each finished cell also leaves ``trajectories_<cell>.npz`` (the flown states per lap), ``ticks_<cell>.npz``
-    (the per-tick record, :mod:`~pixelmpc_jax.sim.ticks`, from which any measure is recomputed) and, with the
-    particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). A cell whose race a
-    finished cell in one of the ``reuse`` folders already answers (:func:`find_shared`) is copied from there, not
-    flown again (its results name it in ``shared_from``). Interrupted (Ctrl-C),
+    (the per-tick record, :mod:`~pixelmpc_jax.sim.ticks`, from which any measure is recomputed), its part of
+    ``ticks_compact.npz`` (what the measure reads, small enough to commit: :mod:`~pixelmpc_jax.sim.ticks_compact`)
+    and, with the particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). A cell whose
+    race a finished cell in one of the ``reuse`` folders already answers (:func:`find_shared`) is copied from there,
+    not flown again (its results name it in ``shared_from``). Interrupted (Ctrl-C),
     the finished cells stay in ``results.json`` and the KeyboardInterrupt is raised again: a grid never returns
     as if it were complete."""
     out = Path(out)
@@ -202,6 +212,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         if shared is not None:
             results[cell.name] = _copy_shared(shared, out, cell.name)
             write_json_atomic(path, results)
+            _add_to_compact_record(out, cell.name)
             if progress:
                 print(f"[{cell.name}] shared from {results[cell.name]['shared_from']}")
             continue
@@ -225,6 +236,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
         if lap_ticks:
             ticks_lib.write(out / f"ticks_{cell.name}.npz", lap_ticks, camera, spec.speed)
+            _add_to_compact_record(out, cell.name)
         if covariances:
             np.savez_compressed(out / f"covariances_{cell.name}.npz", *covariances)
     return results

@@ -1,0 +1,402 @@
+"""The README's results table, rebuilt from the committed result folders (``pixelmpc report --readme``).
+
+One row per headline claim: what is claimed, our figure with its interval where the folder records one, its tail
+(the worst lap, the slowest step), the paper's figure, the loop and the machine it was measured on, the folder and
+whether the folder commits its per-tick record (``ticks_compact.npz``, :mod:`~pixelmpc_jax.sim.ticks_compact`; "n/a"
+where the figure is not one of laps). A row reads its figures, its device and its date from its folder's files
+only; the paper's figures are the paper's (:data:`PAPER`). Where a folder commits its per-tick record, every lap
+of it must give the figures the folder's results record (:func:`check_compact_record`), and a frontier row's gain
+is recomputed from it (:func:`frontier_row_from_compact`).
+
+The table sits in ``README.md`` between :data:`BEGIN` and :data:`END`; :func:`rewrite_readme` replaces that block,
+and ``tests/test_readme.py`` fails when it differs from :func:`table`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+from pixelmpc_jax.apps.bench.table1 import PAPER as PAPER_TABLE_I
+from pixelmpc_jax.apps.experiments import frontier
+from pixelmpc_jax.apps.experiments.estimation import PAPER_TABLE_IV
+from pixelmpc_jax.apps.experiments.paper import PAPER_LAP_TIME, PAPER_VIS_BELOW_50
+from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
+from pixelmpc_jax.sim import ticks_compact
+from pixelmpc_jax.sim.metrics import MEASURE
+
+BEGIN = "<!-- results:begin -->"
+END = "<!-- results:end -->"
+RESULTS = Path("experiments/results")
+BENCHMARKS = Path("benchmarks/results")
+NOT_RECORDED = "-"
+
+# The paper's figures held against ours, each from the table or section that reports it (the values live with the
+# job that reproduces that table).
+PAPER = {
+    "aee_px": PAPER_AEE_PX,  # Section V-A: the DOF's AEE on its test set
+    "nominal_lap_s": PAPER_LAP_TIME[(0.0, 0.0)],  # Table III: nominal MPPI's lap at 14 m/s (mean, 2 sigma)
+    "pixelmpc_lap_s": PAPER_LAP_TIME[(1.0, 9e6)],  # Table III: PixelMPC's best cell (t_f 1 s, c_pixel 9e6)
+    "nominal_vis_below_50_s": PAPER_VIS_BELOW_50[(0.0, 0.0)],  # Table II: nominal MPPI at 14 m/s
+    "pixelmpc_vis_below_50_s": PAPER_VIS_BELOW_50[(1.0, 9e6)],  # Table II: its best cell
+    "nominal_success_16": PAPER_TABLE_IV[("mppi", 16.0)][0],  # Table IV: particle filter, 16 m/s, 25 laps
+    "pixelmpc_success_16": PAPER_TABLE_IV[("pixelmpc", 16.0)][0],
+    "step_ms": PAPER_TABLE_I[("dof", 1, 512, 80)],  # Table I: DOF, 512 samples x 80 steps (mean, 2 sigma, max)
+}
+COLUMNS = ("claim", "ours [90 % interval]", "tail", "paper", "loop", "measured on", "folder", "per-tick record")
+
+
+class Row(NamedTuple):
+    """One claim of the table; ``folder`` is relative to the checkout's root."""
+
+    claim: str
+    ours: str
+    tail: str
+    paper: str
+    loop: str
+    measured_on: str
+    folder: Path
+    per_tick: str
+
+
+def _json(path: Path):
+    return json.loads(Path(path).read_text())
+
+
+DEVICE_LINE = re.compile(r"^(?P<platform>\w+) \((?P<kind>[^,]+), \d+ device\(s\)\); CPU (?P<cpu>.+?), "
+                         r"(?P<cores>\d+) cores; jax (?P<jax>[\d.]+)")
+ISO_DATE = re.compile(r"\b20\d\d-\d\d-\d\d\b")
+
+
+def device_name(device: dict | str) -> str:
+    """The machine in a few words, from a :func:`~pixelmpc_jax.platform_info.device_description` record or its
+    :func:`~pixelmpc_jax.platform_info.device_line`: the accelerator, or the CPU and its cores; and JAX's version."""
+    if isinstance(device, str):
+        match = DEVICE_LINE.match(device)
+        if match is None:
+            return device
+        device = {"platform": match["platform"], "device_kind": match["kind"], "cpu_model": match["cpu"],
+                  "cpu_count": match["cores"], "jax": match["jax"]}
+    if device["platform"] != "cpu":
+        return f"{device['device_kind']}, jax {device['jax']}"
+    return f"{device['cpu_count']}-core {device['cpu_model']}, jax {device['jax']}"
+
+
+def stated_device(path: Path) -> str:
+    """The machine a report or README states on its ``Device:`` line (a device line or plain words)."""
+    for line in Path(path).read_text().splitlines():
+        if line.startswith("Device: "):
+            text = line.removeprefix("Device: ")
+            match = DEVICE_LINE.match(text)
+            return device_name(match.group(0)) if match else text.split(". ")[0].rstrip(".")
+    raise ValueError(f"{path} states no device (a line 'Device: ...')")
+
+
+def stated_date(path: Path) -> str:
+    """The first date (YYYY-MM-DD) a report or README states."""
+    match = ISO_DATE.search(Path(path).read_text())
+    if match is None:
+        raise ValueError(f"{path} states no date")
+    return match.group(0)
+
+
+def per_tick(folder: Path) -> str:
+    """"yes" when the folder commits its compact per-tick record, else "no"."""
+    return "yes" if (folder / ticks_compact.FILE_NAME).is_file() else "no"
+
+
+def _seeds(first: int, laps: int) -> str:
+    return f"seeds {first}-{first + laps - 1}"
+
+
+def _loop(estimator: str) -> str:
+    return {"truth": "true state", "pf": "particle filter", "eskf": "ESKF"}.get(estimator, estimator)
+
+
+def _share(count: int, total: int) -> str:
+    return f"{count}/{total}"
+
+
+def wilson_interval(successes: int, trials: int, level: float = 0.90) -> tuple[float, float]:
+    """The Wilson score interval of a success rate (two-sided, ``level`` 0.90: z = 1.645)."""
+    z = {0.90: 1.6448536269514722, 0.95: 1.959963984540054}[level]
+    p = successes / trials
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+# the lap figures a compact per-tick record must give back as its folder's results record them
+CHECKED_FIGURES = ("success", "lap_time_s", "time_vis_below_50_s", "time_vis_avoidable_s", "share_target_in_view")
+
+
+def check_compact_record(folder: Path, results: dict) -> None:
+    """Every lap of the folder's compact per-tick record gives the figures its results record (``results``: ``{race
+    name: {"laps": [...]}}``), or a ValueError names the first that does not."""
+    races = ticks_compact.load(folder / ticks_compact.FILE_NAME)
+    for name, race in races.items():
+        if name not in results:
+            raise ValueError(f"{folder}: the per-tick record holds {name!r}, its results do not")
+        recorded = {lap["seed"]: lap for lap in results[name]["laps"]}
+        for lap in ticks_compact.race_laps(race):
+            want = recorded.get(lap["seed"])
+            if want is None or any(not _same(lap[key], want.get(key)) for key in CHECKED_FIGURES):
+                gives = {key: lap[key] for key in CHECKED_FIGURES}
+                recorded_figures = {key: (want or {}).get(key) for key in CHECKED_FIGURES}
+                raise ValueError(f"{folder}: race {name!r}, seed {lap['seed']}: the per-tick record gives {gives}, "
+                                 f"the results {recorded_figures}")
+
+
+def _same(a, b) -> bool:
+    if a is None or b is None:
+        return a is b
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
+
+
+def frontier_row_from_compact(folder: Path, cell: str) -> dict:
+    """A frontier folder's row for ``cell`` (:func:`~pixelmpc_jax.apps.experiments.frontier.against_nominal`: its
+    gain, the gain's interval, the figures at the same lap time) recomputed from the folder's compact per-tick
+    record alone; the nominal points are its races named ``nominal_<speed>``, in order of speed (the order the
+    frontier's bootstrap draws them in when its speeds were given ascending)."""
+    races = ticks_compact.load(Path(folder) / ticks_compact.FILE_NAME)
+    results = {name: {"laps": ticks_compact.race_laps(race)} for name, race in races.items()}
+    speeds = sorted(float(race["target_speed"]) for name, race in races.items()
+                    if name == frontier.nominal_cell(float(race["target_speed"])).name)
+    names = [frontier.nominal_cell(speed).name for speed in speeds]
+    nominal = [{"name": name, "speed": speed, **frontier.summarise(results[name])}
+               for speed, name in zip(speeds, names)]
+    if cell not in results:
+        raise ValueError(f"{folder}: the per-tick record holds no race {cell!r}")
+    return frontier.against_nominal(results[cell], nominal, [results[name] for name in names])
+
+
+def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
+    """(the frontier's record, the cell's row, the nominal point at the cell's target) of a frontier folder; the row
+    recomputed from the compact per-tick record where the folder commits one (and checked against the record's)."""
+    record = _json(root / folder / "frontier.json")
+    row = next(r for r in record["cells"] if r["name"] == cell)
+    if per_tick(root / folder) == "yes":
+        check_compact_record(root / folder, _json(root / folder / "results.json"))
+        recomputed = frontier_row_from_compact(root / folder, cell)
+        for key in ("frontier_gain", "lap_time_s", "avoidable_s"):
+            if not _same(recomputed[key], row[key]):
+                raise ValueError(f"{folder}: {cell}'s {key} is {row[key]} in frontier.json, {recomputed[key]} from "
+                                 f"its per-tick record")
+        row = {**row, **recomputed}
+    at_target = next(p for p in record["nominal"] if p["speed"] == row["speed"])
+    return record, row, at_target
+
+
+def _measured(record: dict) -> str:
+    measured = record["measured"]
+    return f"{device_name(measured['device'])}, {measured['written'][:10]}"
+
+
+def _frontier_loop(root: Path, folder: Path, record: dict, row: dict) -> str:
+    results = _json(root / folder / "results.json")[row["name"]]
+    course = results["config"]["course"]
+    course = "AlphaPilot" if course == "alphapilot" else f"course {Path(course).stem}"
+    seeds = record["measured"]["seeds"]
+    return f"{_loop(row['estimator'])}, {course}, {record['measured']['laps']} laps, seeds {seeds[0]}-{seeds[1]}"
+
+
+def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
+    """A row of `best`'s frontier gain in a frontier folder: the gain [interval] at its lap time against nominal MPPI
+    at the same target, its worst lap's avoidable time beside nominal's at the same lap time."""
+
+    def row(root: Path) -> Row:
+        path = RESULTS / folder
+        record, cell_row, at_target = _frontier(root, path, cell)
+        laps = [lap for lap in _json(root / path / "results.json")[cell]["laps"] if lap["success"]]
+        worst = max(lap["time_vis_avoidable_s"] for lap in laps)
+        low, high = cell_row["frontier_gain_interval"]
+        lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
+        return Row(claim, f"**{cell_row['frontier_gain']:.2f}** [{low:.2f}, {high:.2f}] at {lap_change:+.1%} lap time, "
+                          f"{_share(cell_row['laps_completed'], cell_row['laps'])} laps",
+                   f"worst lap {worst:.2f} s avoidable (nominal {cell_row['frontier_avoidable_s']:.2f} s)",
+                   "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
+                   path, per_tick(root / path))
+
+    return row
+
+
+def visibility_at_same_lap_time(root: Path) -> Row:
+    """Time below 50 % a lap, nominal MPPI at `best`'s lap time -> `best`, beside the paper's nominal -> best cell."""
+    path = RESULTS / "best_heldout_700"
+    record, row, _ = _frontier(root, path, "best_v8.5")
+    laps = [lap for lap in _json(root / path / "results.json")["best_v8.5"]["laps"] if lap["success"]]
+    worst = max(lap["time_vis_below_50_s"] for lap in laps)
+    (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
+    (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
+    return Row("Time a lap with the target gate under 50 % in view: nominal MPPI -> PixelMPC (ours at the same lap "
+               "time, the paper's at the same target)",
+               f"{row['frontier_vis_below_50_s']:.2f} -> **{row['vis_below_50_s']:.2f}** s",
+               f"worst lap {worst:.2f} s", f"{nominal:g} -> {best:g} s (laps {nominal_lap:g} -> {best_lap:g} s)",
+               _frontier_loop(root, path, record, row), _measured(record), path, per_tick(root / path))
+
+
+def dof_accuracy(root: Path) -> Row:
+    """The DOF's AEE against Farneback on held-out frames."""
+    path = RESULTS / "dof_eval"
+    data = _json(root / path / "dof_eval.json")
+    return Row("The DOF's flow error (AEE against Farneback) on held-out frames", f"{data['aee_px']:.2f} px/frame",
+               NOT_RECORDED, f"{PAPER['aee_px']:g} px/frame",
+               f"{data['frames']:,} frames of {len(data['data']['test_laps'])} held-out laps of nominal MPPI",
+               f"{stated_device(root / path / 'README.md')}, {data['created'][:10]}", path, "n/a")
+
+
+def nominal_lap(root: Path) -> Row:
+    """Nominal MPPI's lap at the paper's 14 m/s target."""
+    path = RESULTS / "race_mppi_14ms"
+    data = _json(root / path / "metrics.json")
+    laps = data["laps"]
+    done = [lap["lap_time_s"] for lap in laps if lap["success"]]
+    lap_time = data["aggregate"]["lap_time_s"]
+    paper_mean, paper_sigma = PAPER["nominal_lap_s"]
+    return Row(f"Nominal MPPI flies the course at the paper's {data['speed']:g} m/s target: lap time (mean ± 2σ)",
+               f"{lap_time['mean']:.1f} ± {lap_time['two_sigma']:.1f} s, {_share(len(done), len(laps))} laps",
+               f"slowest lap {max(done):.1f} s", f"{paper_mean:.1f} ± {paper_sigma:.1f} s",
+               f"{_loop('truth')}, AlphaPilot, {len(laps)} laps, {_seeds(data['seed'], len(laps))}",
+               f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}", path,
+               per_tick(root / path))
+
+
+def paper_formulation(root: Path) -> Row:
+    """The paper's own controller (its L1 cost and DOF) over Table II's grid at the 14 m/s target."""
+    path = RESULTS / "reproduce"
+    cells = [c for c in _json(root / path / "table2" / "summary.json") if c["speed"] == 14.0]
+    results = _json(root / path / "table2" / "results.json")
+    nominal = next(c for c in cells if c["pixel_model"] is None)
+    grid = [c for c in cells if c["pixel_model"] == "dof"]  # the t_f x c_pixel grid, the `paper` preset's cell in it
+    means = [c["time_vis_below_50_s"]["mean"] for c in grid]
+    worst = max(lap["time_vis_below_50_s"] for c in grid for lap in results[c["cell"]]["laps"])
+    measures = {results[c["cell"]].get("measure") for c in [nominal, *grid]}
+    rule = "this measure" if measures == {MEASURE} else "the paper's \"after first seen\" rule (measure not recorded)"
+    seed = results[nominal["cell"]]["seed"]
+    (paper_nominal, _), (paper_best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
+    finished = _json(root / path / "reproduce.json")["table2"]["finished"][:10]
+    return Row("The paper's formulation (L1 pixel cost, its DOF; Table II's t_f x c_pixel grid) at 14 m/s: time a lap "
+               "under 50 % in view, nominal MPPI -> the grid",
+               f"{nominal['time_vis_below_50_s']['mean']:.1f} -> {min(means):.1f}-{max(means):.1f} s",
+               f"worst lap {worst:.1f} s", f"{paper_nominal:g} -> {paper_best:g} s",
+               f"{_loop('truth')}, AlphaPilot, {len(grid)} cells, {nominal['num_laps']} laps a cell, "
+               f"{_seeds(seed, nominal['num_laps'])}; {rule}",
+               f"{stated_device(root / path / 'table2' / 'REPORT.md')}, {finished}", path, per_tick(root / path))
+
+
+def _table_iv(root: Path, estimator: str) -> tuple[Path, dict, dict, dict]:
+    path = RESULTS / "table4_heldout"
+    cells = {c["cell"]: c for c in _json(root / path / "summary.json")["table_iv"]}
+    return path, cells[f"mppi_9.1ms_{estimator}"], cells[f"best_9.1ms_{estimator}"], _json(root / path / "results.json")
+
+
+def _successes(cell: dict) -> int:
+    return round(cell["success_rate"] * cell["num_laps"])
+
+
+def table_iv_filter(root: Path) -> Row:
+    """Table IV: laps finished on the particle filter at the paper's 16 m/s pace, nominal MPPI -> `best`."""
+    path, nominal, best, results = _table_iv(root, "pf")
+    intervals = [wilson_interval(_successes(c), c["num_laps"]) for c in (nominal, best)]
+    failures = ", ".join(f"{cause.replace('_', ' ')} {count}" for cause, count in sorted(nominal["failures"].items()))
+    seed = results[best["cell"]]["seed"]
+    return Row(f"Table IV: laps finished racing on the particle filter at the paper's {best['label']:g} m/s "
+               "(our pace for it), nominal MPPI -> PixelMPC (`best`)",
+               f"{_share(_successes(nominal), nominal['num_laps'])} -> "
+               f"**{_share(_successes(best), best['num_laps'])}** "
+               f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
+               f"nominal's failures: {failures or 'none'}",
+               f"{PAPER['nominal_success_16']:.0%} -> {PAPER['pixelmpc_success_16']:.0%}",
+               f"{_loop('pf')}, AlphaPilot, {best['speed']:g} m/s, {best['num_laps']} laps a cell, "
+               f"{_seeds(seed, best['num_laps'])}",
+               f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
+               per_tick(root / path))
+
+
+def table_iv_eskf(root: Path) -> Row:
+    """The same cells on the error-state Kalman filter: laps finished and the RMS position error."""
+    path, nominal, best, results = _table_iv(root, "eskf")
+    _, nominal_pf, best_pf, _ = _table_iv(root, "pf")
+    worst = max(lap["rms_position_error_m"] for lap in results[best["cell"]]["laps"])
+    seed = results[best["cell"]]["seed"]
+    return Row("The same on the error-state Kalman filter (`--estimator eskf`): laps finished and RMS position error, "
+               "nominal MPPI -> `best`",
+               f"{_share(_successes(nominal), nominal['num_laps'])} -> {_share(_successes(best), best['num_laps'])}; "
+               f"{nominal['rms_position_error_m']:.3f} -> **{best['rms_position_error_m']:.3f}** m (particle filter "
+               f"{nominal_pf['rms_position_error_m']:.3f} -> {best_pf['rms_position_error_m']:.3f} m)",
+               f"`best`'s worst lap {worst:.3f} m", "not measured (particle filter only)",
+               f"{_loop('eskf')}, AlphaPilot, {best['speed']:g} m/s, {best['num_laps']} laps a cell, "
+               f"{_seeds(seed, best['num_laps'])}",
+               f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
+               per_tick(root / path))
+
+
+def real_time(root: Path) -> Row:
+    """The PixelMPC step and the closed-loop tick on two CPU cores, beside the paper's Table I row on a GPU."""
+    path = BENCHMARKS / "cpu-amd-epyc-2core"
+    bench = _json(root / path / "bench.json")
+    summary = bench["summary"]
+    step = next(r for r in bench["rows"] if r["group"] == "controller" and r["name"].startswith("PixelMPC step (DOF")
+                and r.get("rollout") == "batched" and r.get("sample_devices") == bench["device"]["num_devices"])
+    mean, two_sigma, most = PAPER["step_ms"]
+    return Row(f"Real time: the PixelMPC step ({summary['num_samples']} samples x {summary['horizon']} steps), "
+               "median",
+               f"**{summary['pixelmpc_step_median_ms']:.2f}** ms; the closed-loop tick "
+               f"{summary['loop_tick_median_ms']:.2f} ms, {summary['loop_real_time_factor']:.2f}x real time",
+               f"p95 {step['p95_ms']:.2f} ms, slowest {step['max_ms']:.2f} ms of {step['repeats']}",
+               f"{mean:.1f} ± {two_sigma:.1f} ms, max {most:.1f} ms (GTX 1060)",
+               f"the harness, samples over {bench['device']['num_devices']} CPU devices",
+               f"{device_name(bench['device'])}, {stated_date(root / path / 'README.md')}", path, "n/a")
+
+
+ROWS = (
+    visibility_at_same_lap_time,
+    frontier_gain("best_heldout_700", "PixelMPC (`best`) against nominal MPPI flown slower: frontier gain, nominal's "
+                  "avoidable low-visibility time at the same lap time over ours"),
+    frontier_gain("best_heldout_course_700", "The same on a generated course, made after the preset was chosen"),
+    frontier_gain("best_heldout_500", "The same on other held-out seeds, on two CPU cores"),
+    paper_formulation,
+    table_iv_filter,
+    table_iv_eskf,
+    nominal_lap,
+    dof_accuracy,
+    real_time,
+)
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def table(root: Path) -> str:
+    """The results table (Markdown) from the result folders under the checkout ``root``."""
+    root = Path(root)
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for make in ROWS:
+        row = make(root)
+        link = f"[{row.folder.name}]({row.folder.as_posix()}/)"
+        lines.append("| " + " | ".join(_cell(v) for v in (*row[:6], link, row.per_tick)) + " |")
+    return "\n".join(lines)
+
+
+def replace_block(text: str, block: str) -> str:
+    """``text`` with what lies between :data:`BEGIN` and :data:`END` replaced by ``block``."""
+    if text.count(BEGIN) != 1 or text.count(END) != 1 or text.index(BEGIN) > text.index(END):
+        raise ValueError(f"the README must hold one {BEGIN} ... {END} block")
+    head, rest = text.split(BEGIN)
+    _, tail = rest.split(END)
+    return f"{head}{BEGIN}\n{block}\n{END}{tail}"
+
+
+def rewrite_readme(root: Path, check: bool = False) -> tuple[str, str]:
+    """(the README as it is, as the table makes it); the README is rewritten unless ``check`` (or it is current)."""
+    readme = Path(root) / "README.md"
+    old = readme.read_text()
+    new = replace_block(old, table(root))
+    if new != old and not check:
+        readme.write_text(new)
+    return old, new

@@ -1,0 +1,133 @@
+"""The README's results table (apps/readme_table.py, `pixelmpc report`): its rows come from the result folders, a
+frontier gain recomputes from a folder's compact per-tick record, and the command rewrites or checks the table."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pixelmpc_jax import cli
+from pixelmpc_jax.apps import readme_table
+from pixelmpc_jax.commands import EXIT_FAILED
+from pixelmpc_jax.sim import metrics, ticks_compact
+
+ROOT = Path(__file__).resolve().parent.parent
+DT = 0.025
+
+
+def _race(speed: float, num_ticks: int, avoidable_ticks: int, laps: int = 2, first_seed: int = 0) -> dict:
+    """A compact record of ``laps`` finished laps of ``num_ticks`` ticks, each with ``avoidable_ticks`` ticks at 20 %
+    visibility that the floor cannot excuse (a pointed camera would see the whole gate)."""
+    visibility = np.ones((laps, num_ticks + 1), np.float32)
+    visibility[:, 1:avoidable_ticks + 1] = 0.2
+    return {"seed": np.arange(first_seed, first_seed + laps), "num_ticks": np.full(laps, num_ticks),
+            "finished": np.ones(laps, bool), "target": np.zeros((laps, num_ticks + 1), np.int8),
+            "visibility": visibility, "pointed_visibility": np.ones((laps, num_ticks + 1), np.float32),
+            "floor_distance": np.full((laps, num_ticks + 1), np.nan, np.float32), "target_speed": np.asarray(speed),
+            "dt": np.asarray(DT), "measure": np.asarray(metrics.MEASURE)}
+
+
+def test_a_gain_recomputes_from_a_folders_compact_record_alone(tmp_path):
+    """Nominal MPPI: 40 s laps with 1 s avoidable at 6 m/s, 30 s laps with 5 s at 8 m/s; the cell: 35 s laps with
+    0.5 s. Flying slower at 35 s would leave 3 s (halfway between the points), so the gain is 3 / 0.5 = 6, and every
+    lap being alike, its interval is [6, 6]."""
+    ticks_compact.write(tmp_path / ticks_compact.FILE_NAME, {
+        "nominal_6": _race(6.0, 1600, 40), "nominal_8": _race(8.0, 1200, 200), "best_v8.5": _race(8.5, 1400, 20)})
+    row = readme_table.frontier_row_from_compact(tmp_path, "best_v8.5")
+    assert row["lap_time_s"] == pytest.approx(35.0) and row["avoidable_s"] == pytest.approx(0.5)
+    assert row["frontier_avoidable_s"] == pytest.approx(3.0) and row["frontier_gain"] == pytest.approx(6.0)
+    assert row["frontier_gain_interval"] == pytest.approx((6.0, 6.0))
+    with pytest.raises(ValueError, match="no race 'paper_v8.5'"):
+        readme_table.frontier_row_from_compact(tmp_path, "paper_v8.5")
+
+
+def test_a_compact_record_that_disagrees_with_its_results_is_refused(tmp_path):
+    race = _race(8.0, 1200, 200)
+    ticks_compact.write(tmp_path / ticks_compact.FILE_NAME, {"nominal_8": race})
+    laps = [{**lap} for lap in ticks_compact.race_laps(race)]
+    readme_table.check_compact_record(tmp_path, {"nominal_8": {"laps": laps}})  # agrees
+    laps[1]["time_vis_avoidable_s"] += DT
+    with pytest.raises(ValueError, match="seed 1"):
+        readme_table.check_compact_record(tmp_path, {"nominal_8": {"laps": laps}})
+    with pytest.raises(ValueError, match="its results do not"):
+        readme_table.check_compact_record(tmp_path, {})
+
+
+def test_the_wilson_interval_of_all_or_none_is_hand_computed():
+    z2 = 1.6448536269514722 ** 2
+    assert readme_table.wilson_interval(25, 25) == pytest.approx((25 / (25 + z2), 1.0))
+    assert readme_table.wilson_interval(0, 10) == pytest.approx((0.0, z2 / (10 + z2)))
+    low, high = readme_table.wilson_interval(22, 25)
+    assert low < 22 / 25 < high and math.isclose(high - low, 0.2, abs_tol=0.05)
+
+
+def test_devices_read_from_a_record_or_a_report_line():
+    line = "cpu (cpu, 2 device(s)); CPU AMD EPYC, 2 cores; jax 0.10.2, jaxlib 0.10.2"
+    assert readme_table.device_name(line) == "2-core AMD EPYC, jax 0.10.2"
+    assert readme_table.device_name({"platform": "gpu", "device_kind": "NVIDIA H200", "jax": "0.11.2"}) == (
+        "NVIDIA H200, jax 0.11.2")
+
+
+def test_every_row_names_a_folder_that_exists_and_says_whether_it_commits_per_tick_data():
+    rows = [make(ROOT) for make in readme_table.ROWS]
+    assert len(rows) == len(readme_table.ROWS) >= 8
+    for row in rows:
+        assert (ROOT / row.folder).is_dir(), row.folder
+        assert row.per_tick in ("yes", "no", "n/a")
+        assert row.per_tick != "yes" or (ROOT / row.folder / ticks_compact.FILE_NAME).is_file()
+        assert readme_table.ISO_DATE.search(row.measured_on), row
+
+
+def test_the_paper_formulation_row_spans_the_whole_grid_of_table_ii():
+    """Table II's grid is 2 horizons x 3 weights, the `paper` preset's cell among them; the row's range covers all
+    six cells' means."""
+    row = readme_table.paper_formulation(ROOT)
+    cells = [c for c in json.loads((ROOT / row.folder / "table2" / "summary.json").read_text())
+             if c["speed"] == 14.0 and c["pixel_model"] == "dof"]
+    means = [c["time_vis_below_50_s"]["mean"] for c in cells]
+    assert len(cells) == 6 and "6 cells" in row.loop
+    assert row.ours.endswith(f"{min(means):.1f}-{max(means):.1f} s")
+
+
+def test_a_row_follows_its_folder(tmp_path):
+    """The table reads the folders as they are: a changed figure in a folder changes its row."""
+    folder = tmp_path / "experiments" / "results" / "dof_eval"
+    shutil.copytree(ROOT / "experiments" / "results" / "dof_eval", folder)
+    data = json.loads((folder / "dof_eval.json").read_text())
+    (folder / "dof_eval.json").write_text(json.dumps({**data, "aee_px": 9.876}))
+    row = readme_table.dof_accuracy(tmp_path)
+    assert row.ours == "9.88 px/frame" and row.paper == "2.45 px/frame" and row.per_tick == "n/a"
+    assert row.measured_on == f"2-core Intel Xeon @ 2.80 GHz, jax 0.10.2, {data['created'][:10]}"
+
+
+def _checkout(tmp_path, readme: str) -> Path:
+    for name in ("experiments", "benchmarks"):
+        (tmp_path / name).symlink_to(ROOT / name)
+    (tmp_path / "README.md").write_text(readme)
+    return tmp_path
+
+
+def test_report_checks_then_rewrites_a_stale_table(tmp_path, capsys):
+    stale = f"# title\n\n{readme_table.BEGIN}\n| old | table |\n{readme_table.END}\n\ntail\n"
+    root = _checkout(tmp_path, stale)
+    assert cli.main(["report", "--readme", "--check", "--root", str(root)]) == EXIT_FAILED
+    assert "-| old | table |" in capsys.readouterr().out
+    assert (root / "README.md").read_text() == stale  # --check changes nothing
+    assert cli.main(["report", "--readme", "--root", str(root)]) == 0
+    rewritten = (root / "README.md").read_text()
+    assert rewritten.startswith("# title\n") and rewritten.endswith(f"{readme_table.END}\n\ntail\n")
+    assert readme_table.table(root) in rewritten
+    assert cli.main(["report", "--readme", "--check", "--root", str(root)]) == 0
+
+
+def test_a_readme_without_its_markers_is_refused(tmp_path, capsys):
+    root = _checkout(tmp_path, "# no table here\n")
+    assert cli.main(["report", "--readme", "--root", str(root)]) == 2
+    assert "results:begin" in capsys.readouterr().err
+    for argv in (["report", "--readme", "--compact", str(root)], ["report"], ["report", "--compact", str(root)]):
+        with pytest.raises(SystemExit) as done:  # one of the two jobs, and a folder with per-tick records
+            cli.main(argv)
+        assert done.value.code == 2
