@@ -1,0 +1,150 @@
+"""Nominal MPPI's committed frontier shipped in the package (apps/racing/nominal_frontier.py): the file is what its
+folder gives (`pixelmpc report --frontier-data`), and it is read at PixelMPC's lap time, only for a race it speaks
+for."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pixelmpc_jax import cli
+from pixelmpc_jax.apps.racing import nominal_frontier
+from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.commands import EXIT_FAILED
+from pixelmpc_jax.control.pixelmpc import ControllerConfig
+from pixelmpc_jax.sim import metrics
+from pixelmpc_jax.sim.faults import Faults
+
+ROOT = Path(__file__).resolve().parent.parent
+# nominal MPPI's two points of the shipped frontier either side of 28.3875 s (lap time s, avoidable s, share in view)
+AT_10_M_S = (26.5425, 19.4325, 0.5296985915293456)
+AT_8_5_M_S = (30.2325, 13.2375, 0.7888726587549725)
+PROJECTION = RaceSpec("pixelmpc", ControllerConfig(pixel_model="projection"), speed=8.5)
+
+
+def _lap(lap_time_s, avoidable_s=1.0, share=0.97) -> dict:
+    return {"success": lap_time_s is not None, "lap_time_s": lap_time_s, "time_vis_avoidable_s": avoidable_s,
+            "time_vis_below_50_s": avoidable_s + 2.0, "share_target_in_view": share, "mean_target_angle_deg": 28.0,
+            "gates_passed": 11 if lap_time_s is not None else 4, "crash": None if lap_time_s is not None else "gate"}
+
+
+def _results(laps: list[dict], measure: str | None = metrics.MEASURE) -> dict:
+    """A controller's results in a comparison's record, as the race's lap book keeps them."""
+    return {"measure": measure, "laps": laps, "aggregate": metrics.aggregate(laps)}
+
+
+def test_the_shipped_frontier_is_what_its_folder_gives():
+    """``pixelmpc report --frontier-data --check`` passes: run ``pixelmpc report --frontier-data`` when the folder
+    changes."""
+    old, new = nominal_frontier.rewrite(ROOT, check=True)
+    assert old == new, "pixelmpc_jax/data/nominal_frontier.json is stale: run `pixelmpc report --frontier-data`"
+    shipped = nominal_frontier.load()
+    assert shipped == json.loads(new) and shipped["source"] == "experiments/results/best_heldout_700"
+    assert (shipped["course"], shipped["estimator"], shipped["perturb"], shipped["camera_tilt_deg"],
+            shipped["faults"]) == ("alphapilot", "truth", False, 0.0, {})
+    assert shipped["measure"] == metrics.MEASURE
+    assert (shipped["device"], shipped["date"], shipped["seeds"]) == ("NVIDIA H200, jax 0.11.2", "2026-11-26",
+                                                                      [700, 709])
+    assert [point["speed"] for point in shipped["points"]] == [7.0, 8.0, 8.5, 10.0]
+    assert nominal_frontier.FILE == ROOT / nominal_frontier.IN_PACKAGE  # the package's copy is the checkout's
+
+
+def _checkout(tmp_path) -> Path:
+    """A checkout whose frontier folder holds copies of the committed one's records, and the shipped file."""
+    folder = tmp_path / nominal_frontier.SOURCE
+    folder.mkdir(parents=True)
+    for name in ("frontier.json", "results.json"):
+        shutil.copy(ROOT / nominal_frontier.SOURCE / name, folder / name)
+    (tmp_path / "README.md").write_text("# a checkout\n")
+    (tmp_path / nominal_frontier.IN_PACKAGE).parent.mkdir(parents=True)
+    shutil.copy(nominal_frontier.FILE, tmp_path / nominal_frontier.IN_PACKAGE)
+    return tmp_path
+
+
+def test_report_checks_then_rewrites_the_file_when_its_folder_changes(tmp_path, capsys):
+    root = _checkout(tmp_path)
+    argv = ["report", "--frontier-data", "--root", str(root)]
+    assert cli.main([*argv, "--check"]) == 0
+    path = root / nominal_frontier.SOURCE / "frontier.json"
+    record = json.loads(path.read_text())
+    record["nominal"][1]["avoidable_s"] = 8.25  # nominal_8
+    path.write_text(json.dumps(record))
+    capsys.readouterr()
+    assert cli.main([*argv, "--check"]) == EXIT_FAILED
+    assert '+      "avoidable_s": 8.25,' in capsys.readouterr().out
+    assert (root / nominal_frontier.IN_PACKAGE).read_text() == nominal_frontier.FILE.read_text()  # unchanged
+    assert cli.main(argv) == 0
+    assert json.loads((root / nominal_frontier.IN_PACKAGE).read_text())["points"][1]["avoidable_s"] == 8.25
+    assert cli.main([*argv, "--check"]) == 0
+
+
+def test_a_folder_whose_nominal_points_were_flown_in_two_worlds_is_refused(tmp_path):
+    root = _checkout(tmp_path)
+    path = root / nominal_frontier.SOURCE / "results.json"
+    results = json.loads(path.read_text())
+    results["nominal_8"]["config"]["estimator"] = "pf"
+    path.write_text(json.dumps(results))
+    with pytest.raises(ValueError, match="one world under one measure"):
+        nominal_frontier.build(root)
+
+
+def test_the_frontier_is_read_at_pixelmpcs_mean_lap_time_between_two_points():
+    """PixelMPC's completed laps of 28.0 s and 28.775 s (a lost lap aside) average 28.3875 s, halfway between
+    nominal MPPI's points at 10 m/s (26.5425 s) and 8.5 m/s (30.2325 s): nominal's figures are their means."""
+    assert (AT_10_M_S[0] + AT_8_5_M_S[0]) / 2 == pytest.approx(28.3875, abs=1e-12)
+    laps = [_lap(28.0, 1.0, 0.96), _lap(28.775, 1.5, 0.98), _lap(None, 6.0, 0.5)]
+    entry = nominal_frontier.held_against(PROJECTION.record(), _results(laps))
+    assert entry["why"] is None and entry["lap_time_s"] == pytest.approx(28.3875, abs=1e-12)
+    assert entry["nominal"]["avoidable_s"] == pytest.approx(16.335, abs=1e-9)  # (19.4325 + 13.2375) / 2
+    assert entry["nominal"]["share_target_in_view"] == pytest.approx(0.6592856251, abs=1e-9)
+    assert entry["pixelmpc"] == pytest.approx({"avoidable_s": 1.25, "vis_below_50_s": 3.25,
+                                               "share_target_in_view": 0.97, "mean_target_angle_deg": 28.0,
+                                               "laps_completed": 2})
+    # at the committed best's lap time the read is the folder's own row for it
+    row = next(cell for cell in json.loads((ROOT / nominal_frontier.SOURCE / "frontier.json").read_text())["cells"]
+               if cell["name"] == "best_v8.5")
+    entry = nominal_frontier.held_against(PROJECTION.record(), _results([_lap(row["lap_time_s"])]))
+    assert entry["nominal"]["avoidable_s"] == pytest.approx(row["frontier_avoidable_s"], rel=1e-12)
+    assert entry["nominal"]["share_target_in_view"] == pytest.approx(row["frontier_share_target_in_view"], rel=1e-12)
+
+
+@pytest.mark.parametrize("race, measure, why", [
+    (PROJECTION.replace(course="straight"), metrics.MEASURE,
+     "the committed frontier was flown on the AlphaPilot course, this race on the straight lane"),
+    ({**PROJECTION.record(), "course": "runs/a_course_no_longer_here.json"}, metrics.MEASURE,
+     "the committed frontier was flown on the AlphaPilot course, this race on runs/a_course_no_longer_here.json"),
+    (PROJECTION.replace(estimator="pf"), metrics.MEASURE,
+     "the committed frontier was flown on estimator truth, this race on pf"),
+    (PROJECTION.replace(perturb=True), metrics.MEASURE,
+     "this race perturbs the gates; the committed frontier flew them where the map puts them"),
+    (PROJECTION.replace(camera_tilt_deg=20.0), metrics.MEASURE,
+     "this race's camera is tilted 20 deg; the committed frontier saw through the paper's camera (tilt 0 deg)"),
+    (PROJECTION.replace(faults=Faults(wind=(3.0, 0.0, 0.0), gust=1.5)), metrics.MEASURE,
+     "this race adds faults (wind, gust); the committed frontier flew without faults"),
+    (PROJECTION, "after-first-seen",
+     f"this race is measured under after-first-seen, the committed frontier under {metrics.MEASURE}"),
+    (PROJECTION, None, f"this race records no measure, the committed frontier under {metrics.MEASURE}"),
+])
+def test_a_race_the_frontier_does_not_speak_for_says_why_in_one_line(race, measure, why):
+    record = race if isinstance(race, dict) else race.record()
+    entry = nominal_frontier.held_against(record, _results([_lap(33.5)], measure))
+    assert entry["why"] == why and "nominal" not in entry
+    assert nominal_frontier.describe(entry) == (
+        f"nominal MPPI at PixelMPC's lap time, on the committed frontier: not shown, {why}")
+    # the same laps in the race the frontier speaks for are held against it
+    assert nominal_frontier.held_against(PROJECTION.record(), _results([_lap(33.5)]))["why"] is None
+
+
+@pytest.mark.parametrize("pixelmpc, why", [
+    (None, "PixelMPC did not fly"),
+    (_results([_lap(None), _lap(None)]), "PixelMPC completed no lap"),
+    (_results([_lap(40.0)]), "PixelMPC's lap time, 40.00 s, lies outside the committed frontier's lap times "
+                             "(26.54-35.96 s), and it is never extrapolated"),
+    (_results([_lap(22.0)]), "PixelMPC's lap time, 22.00 s, lies outside the committed frontier's lap times "
+                             "(26.54-35.96 s), and it is never extrapolated"),
+])
+def test_no_figure_without_a_completed_lap_inside_the_frontiers_lap_times(pixelmpc, why):
+    entry = nominal_frontier.held_against(PROJECTION.record(), pixelmpc)
+    assert entry["why"] == why and "nominal" not in entry
+    assert entry["frontier"]["source"] == "experiments/results/best_heldout_700"
