@@ -50,6 +50,9 @@ def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeyp
     assert saved["preset"] == "small" and not saved["interrupted"]
     assert saved["controllers"]["mppi"]["race"] == json.loads(json.dumps(presets.nominal_of(spec).record()))
     assert saved["controllers"]["mppi"]["measure"] == metrics.MEASURE
+    # no lap finishes in 0.2 s: nothing to read on the committed frontier, and metrics.json says why
+    assert saved["nominal_frontier"] == compare.frontier_entry(saved)
+    assert saved["nominal_frontier"]["why"] == "PixelMPC completed no lap"
     for name in ("pixelmpc", "mppi"):
         record_ticks = ticks_lib.load(tmp_path / f"ticks_{name}.npz")
         laps = saved["controllers"][name]["laps"]
@@ -79,7 +82,8 @@ def test_the_side_by_side_table_holds_the_tail():
                 for t in times]
 
     pixel, nominal = laps([33.0, 32.0, 39.0, None]), laps([32.0, 32.0, 32.5])
-    record = {"controllers": {"pixelmpc": {"laps": pixel, "aggregate": metrics.aggregate(pixel)},
+    record = {"race": RaceSpec("pixelmpc", SMALL, speed=8.5).record(),
+              "controllers": {"pixelmpc": {"laps": pixel, "aggregate": metrics.aggregate(pixel)},
                               "mppi": {"laps": nominal, "aggregate": metrics.aggregate(nominal)}}}
     lines = compare.side_by_side(record).splitlines()
     start = len(lines[0]) - 30  # the label column, two spaces, then a value in 14 characters, two spaces, a value

@@ -1,6 +1,6 @@
 """Nominal MPPI's committed frontier shipped in the package (apps/racing/nominal_frontier.py): the file is what its
-folder gives (`pixelmpc report --frontier-data`), and it is read at PixelMPC's lap time, only for a race it speaks
-for."""
+folder gives (`pixelmpc report --frontier-data`), it is read at PixelMPC's lap time, only for a race it speaks for,
+and the main job prints that beside its table (apps/racing/compare.py)."""
 
 import json
 import shutil
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pixelmpc_jax import cli
-from pixelmpc_jax.apps.racing import nominal_frontier
+from pixelmpc_jax.apps.racing import compare, nominal_frontier, presets
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.commands import EXIT_FAILED
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
@@ -17,6 +17,7 @@ from pixelmpc_jax.sim import metrics
 from pixelmpc_jax.sim.faults import Faults
 
 ROOT = Path(__file__).resolve().parent.parent
+DATA = Path(__file__).resolve().parent / "data"
 # nominal MPPI's two points of the shipped frontier either side of 28.3875 s (lap time s, avoidable s, share in view)
 AT_10_M_S = (26.5425, 19.4325, 0.5296985915293456)
 AT_8_5_M_S = (30.2325, 13.2375, 0.7888726587549725)
@@ -148,3 +149,32 @@ def test_no_figure_without_a_completed_lap_inside_the_frontiers_lap_times(pixelm
     entry = nominal_frontier.held_against(PROJECTION.record(), pixelmpc)
     assert entry["why"] == why and "nominal" not in entry
     assert entry["frontier"]["source"] == "experiments/results/best_heldout_700"
+
+
+def test_the_main_job_prints_nominal_mppi_at_pixelmpcs_lap_time_below_its_table():
+    """A race record as the comparison writes it (the `best` preset, PixelMPC's laps of 33.0 s and 34.01 s, nominal
+    MPPI's faster one): below the table, nominal MPPI read on the frontier at 33.505 s, between its points at 8 m/s
+    (31.735 s, 9.375 s avoidable) and 7 m/s (35.9575 s, 3.5925 s): 9.375 - 5.7825 * 1.77 / 4.2225 = 6.95 s."""
+    pixel, nominal = [_lap(33.0, 1.0, 0.97), _lap(34.01, 1.26, 0.98)], [_lap(30.2, 13.0, 0.79)]
+    spec = presets.preset("best").replace(laps=2)
+    record = {"preset": "best", "race": spec.record(), "interrupted": False,
+              "controllers": {"pixelmpc": {"race": spec.record(), **_results(pixel)},
+                              "mppi": {"race": presets.nominal_of(spec).record(), **_results(nominal)}}}
+    lines = compare.side_by_side(record).splitlines()
+    assert lines[-4:] == [
+        "",
+        "nominal MPPI at PixelMPC's lap time (33.50 s), on the committed frontier: avoidable 6.95 s below 50 %, in "
+        "view 90.3 %",
+        "  (PixelMPC here: avoidable 1.13 s, in view 97.5 %, over its 2 completed lap(s))",
+        "  from experiments/results/best_heldout_700: nominal MPPI at 7-10 m/s, 10 laps a speed, seeds 700-709 "
+        "(NVIDIA H200, jax 0.11.2, 2026-11-26)"]
+    assert lines[0].split() == ["PixelMPC", "nominal", "MPPI"]  # the table above it as before
+    entry = compare.frontier_entry(record)
+    assert entry["nominal"]["avoidable_s"] == pytest.approx(9.375 - 5.7825 * 1.77 / 4.2225, abs=1e-9)
+
+
+def test_a_recorded_race_without_a_finished_lap_says_so_below_its_table():
+    """The committed small race (`pixelmpc race --laps 2 --max-time 5 --samples 64`): no lap finished in 5 s."""
+    record = json.loads((DATA / "small_race_metrics.json").read_text())
+    assert compare.side_by_side(record).splitlines()[-1] == (
+        "nominal MPPI at PixelMPC's lap time, on the committed frontier: not shown, PixelMPC completed no lap")

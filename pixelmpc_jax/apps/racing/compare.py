@@ -1,10 +1,14 @@
 """The main job: one race flown by PixelMPC and by nominal MPPI at the same target, seeds and MPPI settings, printed
 side by side and drawn in one trajectory plot and one visibility strip chart.
 
+Nominal MPPI flies the faster lap at the same target, so beside the table the job shows what nominal MPPI loses at
+PixelMPC's lap time on the committed speed frontier (:mod:`~pixelmpc_jax.apps.racing.nominal_frontier`), where the
+race is one the frontier speaks for.
+
 The two controllers fly alternately, a batch of laps each, and after every batch ``metrics.json`` (the preset,
-every setting the race resolved to, each controller's laps) and ``ticks_<controller>.npz`` (the per-tick record,
-:mod:`~pixelmpc_jax.sim.ticks`) are rewritten: a stopped comparison (Ctrl-C, or SIGTERM under the ``pixelmpc``
-command) keeps matching laps of both.
+every setting the race resolved to, each controller's laps and ``nominal_frontier``, :func:`frontier_entry`) and
+``ticks_<controller>.npz`` (the per-tick record, :mod:`~pixelmpc_jax.sim.ticks`) are rewritten: a stopped comparison
+(Ctrl-C, or SIGTERM under the ``pixelmpc`` command) keeps matching laps of both.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixelmpc_jax.apps.racing import race
+from pixelmpc_jax.apps.racing import nominal_frontier, race
 from pixelmpc_jax.apps.racing.presets import nominal_of
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.sim import ticks as ticks_lib
@@ -36,8 +40,9 @@ def run_compare(spec: RaceSpec, controllers=("pixelmpc", "mppi"), out: Path | No
                 batch_size: int = 1, progress: bool = True, video: bool = False, dof_params=None) -> dict:
     """Fly ``spec`` with each of ``controllers`` (the same race otherwise; each controller's race recorded under its
     name, :func:`controller_race`), a batch of laps each in turn, and return ``{"preset", "race", "controllers":
-    {name: results}, "interrupted", "flown": {name: run_laps' results}}``; with ``out``, write ``metrics.json``
-    and ``ticks_<controller>.npz`` after every batch, then ``trajectories.png`` and ``visibility.png``."""
+    {name: results}, "interrupted", "nominal_frontier": frontier_entry(record), "flown": {name: run_laps'
+    results}}``; with ``out``, write ``metrics.json`` and ``ticks_<controller>.npz`` after every batch, then
+    ``trajectories.png`` and ``visibility.png``."""
     races = {}
     for name in controllers:
         flight = controller_race(spec, name)
@@ -49,6 +54,7 @@ def run_compare(spec: RaceSpec, controllers=("pixelmpc", "mppi"), out: Path | No
 
     def save() -> None:
         record["controllers"] = {name: book.results for name, book in books.items() if book.results["laps"]}
+        record["nominal_frontier"] = frontier_entry(record)
         if out is not None:
             write_json_atomic(Path(out) / "metrics.json", record)
             for book in books.values():
@@ -100,9 +106,16 @@ def _mean(results: dict, key: str) -> float | None:
     return entry.get("mean")
 
 
+def frontier_entry(record: dict) -> dict:
+    """What nominal MPPI loses at PixelMPC's lap time on the committed frontier, for a comparison's ``record``
+    (:func:`~pixelmpc_jax.apps.racing.nominal_frontier.held_against` of its race and PixelMPC's laps)."""
+    return nominal_frontier.held_against(record["race"], record["controllers"].get("pixelmpc"))
+
+
 def side_by_side(record: dict) -> str:
     """A terminal table: one column per controller, rows of the laps finished and their tail, lap time, low
-    visibility, its causes and the view."""
+    visibility, its causes and the view; below it, nominal MPPI at PixelMPC's lap time on the committed frontier
+    (:func:`frontier_entry`), or why that is not shown."""
     names = list(record["controllers"])
     results = [record["controllers"][n] for n in names]
     tails = [tail_columns(lap_tail(r["laps"])) for r in results]
@@ -122,7 +135,7 @@ def side_by_side(record: dict) -> str:
     width = max(len(label) for label, _ in rows)
     lines = [f"{'':{width}}  " + "  ".join(f"{LABELS.get(n, n):>14}" for n in names)]
     lines += [f"{label:{width}}  " + "  ".join(f"{value:>14}" for value in values) for label, values in rows]
-    return "\n".join(lines)
+    return "\n".join([*lines, "", nominal_frontier.describe(frontier_entry(record))])
 
 
 def _percent(share: float | None) -> float | None:
