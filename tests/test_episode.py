@@ -239,13 +239,15 @@ def test_the_tail_is_the_worst_lap_against_the_median_and_the_share_far_over_it(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("speed", [14.0, 16.0])
-def test_nominal_mppi_completes_alphapilot_laps(speed):
+@pytest.mark.parametrize(("speed", "least"), [(14.0, 0.9), (16.0, 0.5)])
+def test_nominal_mppi_completes_alphapilot_laps(speed, least):
+    """Nominal MPPI on the true state finishes nearly every lap at the 14 m/s label, and at the 16 m/s label at least
+    as many as the paper's (Table IV: 52 %; here 7 of seeds 0-9, 2026-11-27, a 2-core AMD EPYC)."""
     from pixelmpc_jax.apps.racing.race import run_laps
     from pixelmpc_jax.apps.racing.spec import RaceSpec
 
     results = run_laps(RaceSpec("mppi", speed=speed, laps=10, seed=0), progress=False)
-    assert results["aggregate"]["success_rate"] >= 0.9
+    assert results["aggregate"]["success_rate"] >= least
 
 
 def test_particle_filter_in_the_loop_tracks_the_true_state(straight):
