@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS, preset
-from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, RaceSpec
+from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
 from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
 from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
@@ -23,7 +23,7 @@ from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
-from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
+from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS, GATE_SWITCHES
 from pixelmpc_jax.sim.faults import FAULT_LEVELS
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
@@ -37,8 +37,10 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "command input; flown: the flown-rate weights; turned: trained with turned rows) or a weights file from "
               "`pixelmpc train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
               "(default: the preset's)", {"metavar": "|".join(PACKAGED_VARIANTS) + "|vdof|FILE"}),
-    FieldFlag("--detector", "detector", "target detection: geometry, the projection of the true gate, or image, "
-              "OpenCV on rendered frames (default: the preset's, geometry)", {"choices": DETECTORS}),
+    FieldFlag("--detector", "detector", "target detection: clipped, the projection of the true gate cut at the image "
+              "border as a camera's detector reports it (the corners in view, a centre from the visible outline); "
+              "ideal, the projection reported whole, in the image or not; or image, OpenCV on rendered frames "
+              "(default: the preset's, clipped)", {"choices": DETECTORS}),
     FieldFlag("--course", "course", "alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a "
               "course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
               "(default: the preset's, alphapilot)", {"type": arg.course, "metavar": "|".join(COURSES) + "|FILE"}),
@@ -92,6 +94,13 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               {"type": arg.positive_int, "default": 1}),
     FieldFlag("--perturb", "perturb", "perturb the gates per lap within the AlphaPilot bounds",
               {"action": "store_true"}),
+    FieldFlag("--map", "map", "with --perturb, what the controller and the filter read: surveyed, the nominal course, "
+              "while the world flies the perturbed gates; known, the perturbed course itself (as perturbed races flew "
+              "before) (default: surveyed)", {"choices": MAPS}),
+    FieldFlag("--gate-switch", "gate_switch", "with --estimator pf or eskf, when the controller's target moves to the "
+              "next gate: estimate, when the estimate crosses the map's gate (a lap whose target then parts from the "
+              "world's ends as target_mismatch); truth, when the true position passes the true gate (as races on a "
+              "filter flew before) (default: estimate)", {"choices": GATE_SWITCHES}),
     FieldFlag("--camera-tilt", "camera_tilt_deg", "the onboard camera tilted up on its mount by DEG degrees, in "
               f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
               "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection",
