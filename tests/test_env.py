@@ -315,6 +315,27 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, policy_state.racing_constants, constants))
 
 
+def test_vdofs_size_cue_takes_the_corners_out_of_view_from_the_map(world):
+    """A detection that reports two corners (the others out of view, zeros as a camera's detector gives them): vdof's
+    box size comes from the corners in view and the map's projection of the others, as with all four in view; the
+    zeros would make it another (here nearly twice as large, the quad stretched to the image's origin)."""
+    from pixelmpc_jax.dynamics import vdof as vdof_lib
+
+    learned = world.replace(dof=vdof_lib.load_packaged_vdof())
+    env = env_lib.make_env(CONFIG)
+    _, whole = env.observe(learned, env.reset(learned, jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    assert bool(jnp.all(whole.detection.corners_visible))
+    in_view = jnp.asarray([False, True, True, False])
+    half = whole._replace(detection=whole.detection.replace(
+        corners=jnp.where(in_view[:, None], whole.detection.corners, 0.0), corners_visible=in_view))
+    policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(
+        mppi=pixelmpc_lib.paper_mppi_config(num_samples=16, horizon=4), pixel_model="vdof"))
+    act, state = jax.jit(policy.act), jax.jit(policy.init)(jax.random.PRNGKey(2), learned)
+    size = {name: float(act(state, obs, learned)[2][0, 12]) for name, obs in (("whole", whole), ("half", half))}
+    assert size["half"] == pytest.approx(size["whole"], rel=1e-5)
+    assert float(vdof_lib.box_size(half.detection.corners)) > 1.5 * size["whole"]
+
+
 def test_the_kept_pixel_charges_a_lost_target_with_the_pixel_its_model_predicted(world):
     """``target_prior="kept"``: once the target has been seen, a tick without a detection is planned from the pixel
     the controller's pixel model predicted for it at the last tick, and charged; a new target not yet seen is not,
