@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
-from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS, preset
+from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, LOOPS, PRESETS, preset, with_loop
 from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
 from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
@@ -157,6 +157,11 @@ def add_race(sub) -> None:
     start.add_argument("--config", type=Path, default=None, metavar="FILE",
                        help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
                             "tune` writes its best.json; every other flag overrides one field of it")
+    p.add_argument("--loop", choices=tuple(LOOPS), default=None,
+                   help="the loop the race flies, set on the race it starts from before every other flag: onboard, "
+                        "only what the drone has (--detector image, --estimator eskf, --gate-switch estimate, "
+                        "--map surveyed); truth, the controller on the true state (--detector clipped, --estimator "
+                        "truth) (default: the starting race's, the presets' truth)")
     for flag in RACE_FLAGS:
         flag.add_to(p, _help(flag))
     p.set_defaults(func=_cmd_race, validate=arg.seed_range, precheck=_check_race)
@@ -193,10 +198,13 @@ def race_spec(args):
     """The race the arguments ask for, and the learned pixel model's weights when a weights file names them (None for
     packaged weights, which the spec names by name).
 
-    The race is the preset (or the saved race of ``--config``) with the field of each flag given set, all at once
+    The race is the preset (or the saved race of ``--config``), on the loop of ``--loop`` if given
+    (:func:`~pixelmpc_jax.apps.racing.presets.with_loop`), with the field of each flag given set, all at once
     (:meth:`~pixelmpc_jax.apps.racing.spec.RaceSpec.with_fields`; a ValueError names a setting the library refuses); a
     weights file enters the spec as its fingerprint."""
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
+    if args.loop:
+        base = with_loop(base, args.loop)
     fields = _fields_given(args)
     spec = base.with_fields(fields)
     kalman = [flag.flag for flag in RACE_FLAGS if flag.field in fields and flag.field.startswith("eskf.")]
@@ -249,7 +257,8 @@ def _cmd_race(args) -> int:
         host.use_compilation_cache()
     spec, dof_params = race_spec(args)
     controllers = _controllers(args)
-    source = f"config {args.config}" if args.config else f"preset {args.preset}"
+    source = (f"config {args.config}" if args.config else f"preset {args.preset}") + \
+        (f" on the {args.loop} loop" if args.loop else "")
     print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course_title(spec.course)} at "
           f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
           f"output {args.out}")
