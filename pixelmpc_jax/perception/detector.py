@@ -192,15 +192,9 @@ def _frame_box(gate, x_robot: jax.Array, camera: camera_lib.Camera) -> tuple[jax
 
 
 @jax.jit
-def detect_in_view(
-    gate,
-    x_robot: jax.Array,
-    camera: camera_lib.Camera,
-    key: jax.Array | None = None,
-    pixel_noise_px: float | jax.Array = 0.0,
-    dropout: float | jax.Array = 0.0,
-    gate_id: int | jax.Array = -1,
-) -> Detection:
+def detect_in_view(gate, x_robot: jax.Array, camera: camera_lib.Camera, key: jax.Array | None = None,
+                   pixel_noise_px: float | jax.Array = 0.0, dropout: float | jax.Array = 0.0,
+                   gate_id: int | jax.Array = -1) -> Detection:
     """What a camera's detector reports of ``gate`` from ``x_robot``: the projection cut at the image border, as
     :func:`detect_from_image` sees the rendered gate (noise and dropout as :func:`detect_from_geometry`'s).
 

@@ -162,12 +162,9 @@ class EnvConfig:
     target_mismatch_s: float = 0.5
 
     def __post_init__(self):
-        if self.detector not in DETECTORS:
-            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
-        if self.gate_switch not in GATE_SWITCHES:
-            raise ValueError(f"gate_switch must be one of {GATE_SWITCHES}, got {self.gate_switch!r}")
+        for name, choices in (("detector", DETECTORS), ("estimator", ESTIMATORS), ("gate_switch", GATE_SWITCHES)):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
         if not self.target_mismatch_s > 0:
             raise ValueError(f"target_mismatch_s must be positive, got {self.target_mismatch_s!r}")
         if not self.max_time_s > 0:
