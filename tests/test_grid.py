@@ -137,7 +137,7 @@ def test_the_apps_cells_find_their_committed_results():
         results = grid.load_results(RESULTS / folder)
         found = [c.name for c in cells if grid.flies_race(results.get(c.name), c.race(laps, seed, None))]
         stale = [c.name for c in cells if (folder.startswith("reproduce/") and c.name.startswith("best_"))
-                 or c.race(laps, seed, None).detector == "clipped"]
+                 or c.race(laps, seed, None).controller == "pixelmpc"]
         assert any(c.race(laps, seed, None).controller == "mppi" for c in cells if c.name not in stale), folder
         assert sorted(found) == sorted(c.name for c in cells if c.name not in stale), folder
         assert all(name in results for name in stale), folder  # flown, with the former preset
@@ -226,11 +226,14 @@ def test_races_recorded_before_the_onboard_loop_read_back_as_they_flew_with_thei
     assert (perturbed.detector, perturbed.map, perturbed.gate_switch) == ("clipped", "surveyed", "estimate")
     assert perturbed.record()["map"] == "surveyed" and perturbed.record()["gate_switch"] == "estimate"
     # where a setting flies nothing it keeps its default, out of the record: the map without a perturbation, the
-    # switch on the true state, the detector for nominal MPPI on the true state (no detection reaches it)
+    # switch on the true state; nominal MPPI on the true state uses no detection: one key for both geometric ones
     plain = RaceSpec("pixelmpc", map="known", gate_switch="truth")
     assert (plain.map, plain.gate_switch) == ("surveyed", "estimate") and "map" not in plain.record()
-    assert RaceSpec("mppi").detector == RaceSpec("mppi", detector="clipped").detector == "ideal"
-    assert RaceSpec("mppi", detector="image").detector == "image"
+    nominal = RaceSpec("mppi")
+    assert nominal.detector == "clipped" and nominal.key() == nominal.replace(detector="ideal").key()
+    assert nominal.replace(detector="image").key() != nominal.key()
+    on_filter = nominal.replace(estimator="pf")
+    assert on_filter.detector == "clipped" and on_filter.key() != on_filter.replace(detector="ideal").key()
     for bad in ({"detector": "geometry"}, {"map": "atlas"}, {"gate_switch": "gps"}):
         with pytest.raises(ValueError, match="must be one of"):
             RaceSpec("pixelmpc", **bad)

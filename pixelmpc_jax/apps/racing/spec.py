@@ -83,7 +83,7 @@ class RaceSpec:
             (:func:`~pixelmpc_jax.world.course.make_course`); a file enters the key by its contents.
         detector: "clipped" (the projection cut at the image border, as a camera's detector reports it), "ideal"
             (the projection, in the image or not) or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`); nominal
-            MPPI on the true state uses no detection, and its race is recorded with the ideal projection.
+            MPPI on the true state uses no detection, and its key is one for both geometric detectors.
         estimator: "truth", "pf" (the particle filter) or "eskf" (the error-state Kalman filter).
         max_time_s: timeout per lap, s.
         dof_weights: the DOF weights flown: the name of weights shipped in the package
@@ -165,8 +165,6 @@ class RaceSpec:
         for name in EARLIER_VALUES:  # the map flies nothing on an unperturbed course, the switch on the true state
             if not self.flies(name):
                 object.__setattr__(self, name, RaceSpec.__dataclass_fields__[name].default)
-        if self.controller == "mppi" and self.estimator == "truth" and self.detector == "clipped":
-            object.__setattr__(self, "detector", "ideal")  # no detection reaches it: the laps are the same
         if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
                                                        or self.dof_weights in dof.PACKAGED_VARIANTS):
             raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
@@ -274,9 +272,11 @@ class RaceSpec:
     def key(self) -> str:
         """The cache key: 16 hex digits of the sha256 of :meth:`record` as canonical JSON (every number as a
         float), with the DOF weights as flown (None resolved to the packaged weights' fingerprint). Equal for the
-        same race however it was written; any other setting, seed, number of laps or DOF weights gives another
-        key."""
+        same race however it was written, and for the two geometric detectors under nominal MPPI on the true state,
+        which uses no detection; any other setting, seed, number of laps or DOF weights gives another key."""
         record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
+        if self.controller == "mppi" and self.estimator == "truth" and self.detector == "clipped":
+            record["detector"] = "ideal"  # no detection reaches nominal MPPI on the true state: the same laps
         for name, renamed in RENAMED_VALUES.items():  # a renamed value hashed under its old spelling
             old = {new: spelling for spelling, new in renamed.items()}
             record[name] = old.get(record[name], record[name])
