@@ -142,6 +142,22 @@ def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_
     assert presets.preset("best").config.pixel_cost == "border" and presets.preset("best").speed == 8.5
 
 
+def test_the_onboard_loop_sets_its_settings_and_a_flag_still_overrides_one(monkeypatch, tmp_path):
+    from pixelmpc_jax.apps.racing import compare, presets
+
+    seen = {}
+    monkeypatch.setattr(compare, "run_compare", lambda spec, controllers, **kwargs: seen.update(
+        spec=spec, **kwargs) or {"controllers": {}, "interrupted": False})
+    cli.main(["race", "--out", str(tmp_path), "--loop", "onboard", "--perturb"])
+    onboard = presets.preset("best").replace(detector="image", estimator="eskf", perturb=True)
+    assert seen["spec"] == onboard and (onboard.gate_switch, onboard.map) == ("estimate", "surveyed")
+    cli.main(["race", "--out", str(tmp_path), "--loop", "onboard", "--perturb", "--map", "known", "--detector",
+              "clipped", "--gate-switch", "truth"])
+    assert seen["spec"] == onboard.replace(detector="clipped", map="known", gate_switch="truth")
+    cli.main(["race", "--out", str(tmp_path), "--preset", "paper", "--loop", "truth"])
+    assert seen["spec"] == presets.preset("paper")
+
+
 def test_each_race_flag_names_one_field_of_the_race():
     from pixelmpc_jax.commands.race import RACE_FLAGS
 

@@ -128,11 +128,13 @@ def test_the_presets():
     assert paper.dof_weights is None  # the paper's own DOF weights
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
     assert best.config.pixel_model == "vdof" and best.key() != paper.key()
-    # best flies the tuned trial it names (the search's best feasible trial), exactly as the search recorded it
+    # best flies the tuned trial it names (the search's best feasible trial), exactly as the search recorded it, but
+    # for the detector: the search flew the ideal projection, the preset the projection cut at the image border
     results = Path(__file__).resolve().parent.parent / "experiments" / "results"
     record = results / "tune_look_ahead" / "best.json"
     trial = RaceSpec.from_record(json.loads(record.read_text())).replace(laps=1, seed=0)
-    assert trial.key() == best.key()
+    assert trial.detector == "ideal" and best.detector == "clipped"
+    assert trial.replace(detector="clipped").key() == best.key()
     assert best.config.racing.vehicle_radius == presets.BEST_VEHICLE_RADIUS_M == 0.3
     assert best.config.target_prior == "kept" and best.config.look_ahead_model == "projection"
     # the preset before it, the search without the projection look-ahead, as that search recorded it

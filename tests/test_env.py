@@ -118,6 +118,83 @@ def test_the_time_limit_ends_the_episode_as_a_timeout(env, world):
     assert bool(ended.done) and int(ended.tick) == 400 and int(ended.end_cause) == env_lib.CRASH_TIMEOUT
 
 
+def test_an_estimate_lagging_the_truth_by_half_a_metre_switches_later_by_the_time_the_lag_takes(env, world):
+    """The vehicle flies through gate 0 from 10 m/s (the plant, hover thrust, drag slowing it); the world's switch is
+    the tick its true position crosses the gate. An estimate 0.5 m behind the truth along the flight crosses the map's
+    gate 0.5 m / v later: the estimated switch comes that many ticks later (to the tick)."""
+    state = placed(env, world, (9.0, 0.0, 3.0), (10.0, 0.0, 0.0), progress_s=9.0)
+    positions, world_switch = [np.asarray(state.plant.x[:3])], None
+    for i in range(30):
+        state = env.step(world, state, HOVER, jax.random.PRNGKey(i))
+        positions.append(np.asarray(state.plant.x[:3]))
+        if world_switch is None and int(state.target) == 1:
+            world_switch = i + 1
+    positions = np.asarray(positions)
+    speed = float(np.linalg.norm(positions[world_switch] - positions[world_switch - 1])) / env_lib.CONTROL_DT
+    gate = world.track.gate(0)
+    switches = {}
+    for lag in (0.0, 0.5):
+        estimate = jnp.asarray(positions - np.asarray([lag, 0.0, 0.0]), jnp.float32)
+        crossed = [bool(env_lib.estimated_switch(gate, estimate[k - 1], estimate[k])) for k in range(1, 31)]
+        switches[lag] = crossed.index(True) + 1
+    assert switches[0.0] == world_switch  # an exact estimate switches with the world
+    lag_ticks = 0.5 / speed / env_lib.CONTROL_DT  # 2.7 ticks: drag slows the vehicle to 7.3 m/s there
+    assert 2.0 < lag_ticks < 3.5
+    assert np.floor(lag_ticks) <= switches[0.5] - world_switch <= np.ceil(lag_ticks)
+
+
+def test_a_controller_steering_for_a_gate_already_passed_ends_the_lap_as_a_target_mismatch(world):
+    """The vehicle passes gate 0 while the Kalman filter's estimate stays near the start: with the estimated switch the
+    controller keeps steering for gate 0 (the world's next is gate 1), and after ``target_mismatch_s`` the lap ends as
+    ``target_mismatch``; with the world's switch the controller's target follows the world's."""
+    ends = {}
+    for switch in ("estimate", "truth"):
+        config = env_lib.EnvConfig(max_time_s=10.0, estimator="eskf", gate_switch=switch)
+        raw = env_lib.make_env(config)
+        env = env_lib.Env(reset=jax.jit(raw.reset), observe=jax.jit(raw.observe), step=jax.jit(raw.step),
+                          config=config)
+        state = placed(env, world, (11.5, 0.0, 3.0), (8.0, 0.0, 0.0), progress_s=11.5)
+        targets = []
+        for i in range(40):
+            state, obs = env.observe(world, state, jax.random.PRNGKey(i))
+            targets.append((int(obs.target_gate), int(state.target)))
+            state = env.step(world, state, HOVER, jax.random.PRNGKey(i))
+            if bool(state.done):
+                break
+        ends[switch] = (int(state.tick), int(state.end_cause), targets)
+    tick, cause, targets = ends["estimate"]
+    limit = round(0.5 / env_lib.CONTROL_DT)
+    assert env_lib.END_NAMES[cause] == "target_mismatch"
+    passed = targets.index((0, 1))  # the first tick the world is past gate 0 and the controller is not
+    assert all(target == (0, 1) for target in targets[passed:]) and tick == passed + limit
+    tick, cause, targets = ends["truth"]
+    assert cause == 0 and tick == 40 and targets[-1] == (1, 1)
+
+
+def test_the_world_flies_its_course_while_the_controller_and_the_filter_read_the_map(world):
+    """A world whose gate 0 stands 3 m to the side of where the map puts it: passage and the detector follow the
+    course; the map (``World.track``, all the controller and the filter read) stays as it was."""
+    course = world.track.replace(gates=world.track.gates.replace(
+        centre=world.track.gates.centre.at[0, 1].add(3.0)))
+    moved = world.replace(course=course)
+    env = env_lib.make_env(CONFIG)
+    step, observe = jax.jit(env.step), jax.jit(env.observe)
+    through_map = step(moved, placed_in(env, moved, (11.9, 0.0, 3.0)), HOVER, jax.random.PRNGKey(1))
+    through_course = step(moved, placed_in(env, moved, (11.9, 3.0, 3.0)), HOVER, jax.random.PRNGKey(1))
+    assert int(through_map.target) == 0 and int(through_course.target) == 1
+    ahead = placed_in(env, moved, (4.0, 0.0, 3.0), velocity=(0.0, 0.0, 0.0))
+    _, seen = observe(moved, ahead, jax.random.PRNGKey(1))
+    _, on_map = observe(world, ahead, jax.random.PRNGKey(1))
+    assert float(seen.detection.centre[0]) < float(on_map.detection.centre[0]) - 0.1  # the gate seen to the left
+    np.testing.assert_array_equal(moved.track.gates.centre, world.track.gates.centre)
+    with pytest.raises(ValueError, match="same gates"):
+        env_lib.make_world(world.track, course=course_lib.straight_course(num_gates=2))
+
+
+def placed_in(env, world, position, velocity=(10.0, 0.0, 0.0)):
+    return placed(env, world, position, velocity, progress_s=float(position[0]))
+
+
 def test_observe_sees_the_target_gate_and_the_truth_or_the_filter(world):
     noisy = world.replace(detector_noise_px=jnp.asarray(3.0, jnp.float32))
     truth = env_lib.make_env(CONFIG)
@@ -236,6 +313,27 @@ def test_a_policy_acts_within_the_control_bounds(world, kind):
     progress = np.asarray(policy_state.step_progress)
     assert progress.shape == (20,) and np.all(np.isfinite(progress)) and np.all(np.diff(progress) >= -1e-3)
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, policy_state.racing_constants, constants))
+
+
+def test_vdofs_size_cue_takes_the_corners_out_of_view_from_the_map(world):
+    """A detection that reports two corners (the others out of view, zeros as a camera's detector gives them): vdof's
+    box size comes from the corners in view and the map's projection of the others, as with all four in view; the
+    zeros would make it another (here nearly twice as large, the quad stretched to the image's origin)."""
+    from pixelmpc_jax.dynamics import vdof as vdof_lib
+
+    learned = world.replace(dof=vdof_lib.load_packaged_vdof())
+    env = env_lib.make_env(CONFIG)
+    _, whole = env.observe(learned, env.reset(learned, jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    assert bool(jnp.all(whole.detection.corners_visible))
+    in_view = jnp.asarray([False, True, True, False])
+    half = whole._replace(detection=whole.detection.replace(
+        corners=jnp.where(in_view[:, None], whole.detection.corners, 0.0), corners_visible=in_view))
+    policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(
+        mppi=pixelmpc_lib.paper_mppi_config(num_samples=16, horizon=4), pixel_model="vdof"))
+    act, state = jax.jit(policy.act), jax.jit(policy.init)(jax.random.PRNGKey(2), learned)
+    size = {name: float(act(state, obs, learned)[2][0, 12]) for name, obs in (("whole", whole), ("half", half))}
+    assert size["half"] == pytest.approx(size["whole"], rel=1e-5)
+    assert float(vdof_lib.box_size(half.detection.corners)) > 1.5 * size["whole"]
 
 
 def test_the_kept_pixel_charges_a_lost_target_with_the_pixel_its_model_predicted(world):

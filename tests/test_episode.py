@@ -20,13 +20,15 @@ from pixelmpc_jax.world import course as course_lib
 SMALL = paper_mppi_config(num_samples=128, horizon=40, temperature=200.0)
 GOLDEN = Path(__file__).parent / "data" / "seeded_laps.json"
 GOLDEN_TICKS = 40  # the ticks compared tightly (short horizon: float differences between CPUs stay small)
+RECORDED_LOOP = {"detector": "ideal", "gate_switch": "truth"}  # the loop the golden laps were recorded on
 
 
 def _seeded_lap(name: str) -> dict:
     """Fly one of the golden laps: 4 s on the straight course at 8 m/s, seed 7, 128 samples, T = 40.
 
     "mppi_pf": nominal MPPI acting on the particle filter fed by a noisy geometric detector (2 px, 20%
-    dropout); "pixelmpc": PixelMPC with the projection pixel model on the true state.
+    dropout); "pixelmpc": PixelMPC with the projection pixel model on the true state. Both on the loop they were
+    recorded on: the ideal projection as the detector and the world's gate switch (:data:`RECORDED_LOOP`).
     """
     from pixelmpc_jax.control import pixelmpc as pixelmpc_lib
     from pixelmpc_jax.perception.particle_filter import PFConfig
@@ -34,11 +36,11 @@ def _seeded_lap(name: str) -> dict:
     course = course_lib.straight_course(num_gates=3, spacing=15.0, first_gate_x=12.0)
     if name == "mppi_pf":
         policy = policies.nominal_mppi_policy(SMALL)
-        config = E.EpisodeConfig(max_time_s=4.0, estimator="pf", pf=PFConfig(num_particles=256))
+        config = E.EpisodeConfig(max_time_s=4.0, estimator="pf", pf=PFConfig(num_particles=256), **RECORDED_LOOP)
         world = env_lib.make_world(course, target_speed=8.0, detector_noise_px=2.0, detector_dropout=0.2)
     else:
         policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(mppi=SMALL, pixel_model="projection"))
-        config = E.EpisodeConfig(max_time_s=4.0)
+        config = E.EpisodeConfig(max_time_s=4.0, **RECORDED_LOOP)
         world = env_lib.make_world(course, target_speed=8.0)
     log = jax.device_get(E.make_runner(policy, config).single(world, jax.random.PRNGKey(7)))
     n, k = int(log.num_ticks), GOLDEN_TICKS

@@ -22,6 +22,9 @@ from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
 RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
+# RaceSpec keys computed before the clipped detector, the surveyed map and the estimated switch (commit eeb8c41)
+OLD_KEYS = {"pixelmpc": "3757ddf45236d8a1", "pixelmpc_pf_perturbed": "16554683d6690a65",
+            "mppi_eskf": "8931cd2060fc6670"}
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
          grid.Cell("projection", RaceSpec("pixelmpc", ControllerConfig(pixel_model="projection")))]
 
@@ -123,8 +126,9 @@ def test_the_committed_results_stay_valid_for_a_default_run(folder):
 def test_the_apps_cells_find_their_committed_results():
     """The cells the reproduce parts and the frontier define now are the ones their committed results answer, so a
     resumed `pixelmpc reproduce all --out experiments/results/reproduce` keeps them; all but the `best` preset's,
-    which the reproduction flew with the preset before trial 34 of the levers search, so a resumed run flies them
-    again with the preset of now."""
+    which the reproduction flew with the preset before trial 34 of the levers search, and every PixelMPC cell, flown
+    with the ideal projection before the detector's report was cut at the image border: a resumed run flies them
+    again as they are now (nominal MPPI on the true state uses no detection, and keeps its cells)."""
     from pixelmpc_jax.apps.experiments import frontier, paper, reproduce
     from pixelmpc_jax.apps.racing import presets
 
@@ -136,7 +140,9 @@ def test_the_apps_cells_find_their_committed_results():
     for folder, (cells, laps, seed) in runs.items():
         results = grid.load_results(RESULTS / folder)
         found = [c.name for c in cells if grid.flies_race(results.get(c.name), c.race(laps, seed, None))]
-        stale = [c.name for c in cells if folder.startswith("reproduce/") and c.name.startswith("best_")]
+        stale = [c.name for c in cells if (folder.startswith("reproduce/") and c.name.startswith("best_"))
+                 or c.race(laps, seed, None).controller == "pixelmpc"]
+        assert any(c.race(laps, seed, None).controller == "mppi" for c in cells if c.name not in stale), folder
         assert sorted(found) == sorted(c.name for c in cells if c.name not in stale), folder
         assert all(name in results for name in stale), folder  # flown, with the former preset
 
@@ -195,6 +201,67 @@ def test_a_race_recorded_with_a_retired_setting_reads_back_with_the_key_it_was_f
     recorded["config"]["mppi"]["sample_devices"] = 2
     with pytest.raises(ValueError, match="unknown setting config.mppi.sample_devices"):
         RaceSpec.from_record(recorded)
+
+
+def test_races_recorded_before_the_onboard_loop_read_back_as_they_flew_with_their_keys():
+    """Before the clipped detector, the surveyed map and the estimated switch, every race flew the ideal projection
+    (recorded as "geometry"), a perturbed course known to the controller, and on a filter the world's switch. Their
+    records read back as those races, under the keys they were flown with; the new defaults are other races."""
+    old_keys = {  # keys of records written before the settings
+        "pixelmpc": (RaceSpec("pixelmpc", detector="ideal"), OLD_KEYS["pixelmpc"]),
+        "pixelmpc_pf_perturbed": (RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal", map="known",
+                                           gate_switch="truth"), OLD_KEYS["pixelmpc_pf_perturbed"]),
+        "mppi_eskf": (RaceSpec("mppi", estimator="eskf", detector="ideal", gate_switch="truth"),
+                      OLD_KEYS["mppi_eskf"]),
+    }
+    for name, (spec, key) in old_keys.items():
+        old = json.loads(json.dumps(spec.record()))
+        assert "map" not in old and "gate_switch" not in old, name
+        old["detector"] = "geometry"
+        flown = RaceSpec.from_record(old)
+        assert flown == spec and flown.key() == spec.key() == key, name
+        assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))) == spec
+    # the new defaults: other races, recorded as such
+    for spec in (RaceSpec("pixelmpc"), RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal"),
+                 RaceSpec("mppi", estimator="eskf", detector="ideal")):
+        assert spec.key() not in {key for _, key in old_keys.values()}
+        assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))) == spec
+    perturbed = RaceSpec("pixelmpc", estimator="pf", perturb=True)
+    assert (perturbed.detector, perturbed.map, perturbed.gate_switch) == ("clipped", "surveyed", "estimate")
+    assert perturbed.record()["map"] == "surveyed" and perturbed.record()["gate_switch"] == "estimate"
+    # where a setting flies nothing it keeps its default, out of the record: the map without a perturbation, the
+    # switch on the true state; nominal MPPI on the true state uses no detection: one key for both geometric ones
+    plain = RaceSpec("pixelmpc", map="known", gate_switch="truth")
+    assert (plain.map, plain.gate_switch) == ("surveyed", "estimate") and "map" not in plain.record()
+    nominal = RaceSpec("mppi")
+    assert nominal.detector == "clipped" and nominal.key() == nominal.replace(detector="ideal").key()
+    assert nominal.replace(detector="image").key() != nominal.key()
+    on_filter = nominal.replace(estimator="pf")
+    assert on_filter.detector == "clipped" and on_filter.key() != on_filter.replace(detector="ideal").key()
+    for bad in ({"detector": "geometry"}, {"map": "atlas"}, {"gate_switch": "gps"}):
+        with pytest.raises(ValueError, match="must be one of"):
+            RaceSpec("pixelmpc", **bad)
+
+
+def test_a_perturbed_race_keeps_the_nominal_map_in_the_controller_and_the_filter():
+    """On the surveyed map (the default) each lap's world flies its perturbed gates while the map, all the controller
+    and the filter read (``World.track``), stays the nominal course; on the known map the map is the perturbed
+    course. Without a perturbation the map is the course."""
+    from pixelmpc_jax.sim import env as env_lib
+    from pixelmpc_jax.world import course as course_lib
+
+    nominal = course_lib.load_course()
+    base = env_lib.make_world(nominal)
+    seeds = [0, 1]
+    surveyed = race.lap_worlds(base, seeds, perturb=True)
+    known = race.lap_worlds(base, seeds, perturb=True, map="known")
+    for lane in range(len(seeds)):
+        np.testing.assert_array_equal(surveyed.track.gates.centre[lane], nominal.gates.centre)
+        np.testing.assert_array_equal(surveyed.track.path_points[lane], nominal.path_points)
+        np.testing.assert_array_equal(surveyed.course.gates.centre[lane], known.track.gates.centre[lane])
+        assert np.abs(np.asarray(surveyed.course.gates.centre[lane] - nominal.gates.centre)).max() > 0.05
+    assert known.course is None and race.lap_worlds(base, seeds, perturb=False).course is None
+    assert RaceSpec("pixelmpc", perturb=True).episode_config().gate_switch == "estimate"
 
 
 def test_a_nominal_race_has_no_pixel_settings():
@@ -268,14 +335,15 @@ def test_a_record_reads_back_as_the_race_it_was_flown_as(tmp_path, flown):
 
 
 def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
-    """results.json written before the spec held the controller's configuration: settings flat, options dotted."""
+    """results.json written before the spec held the controller's configuration: settings flat, options dotted; the
+    detector was not recorded, and every race flew the ideal projection."""
     flat = {"name": "c", "controller": "pixelmpc", "speed": 8.0, "t_f": 1.0, "c_pixel": 3e7, "pixel_model": "dof",
             "temperature": None, "num_samples": 512, "max_time_s": 60.0,
             "options": {"pixel_cost": "border", "mppi.noise_exponent": 1.0}}
     config = ControllerConfig(c_pixel=3e7, pixel_cost="border",
                             mppi=dataclasses.replace(paper_mppi_config(), noise_exponent=1.0))
     flown = grid.recorded_race({"config": flat, "laps": [{}] * 2, "seed": 3})
-    assert flown.key() == RaceSpec("pixelmpc", config, speed=8.0, laps=2, seed=3).key()
+    assert flown.key() == RaceSpec("pixelmpc", config, speed=8.0, laps=2, seed=3, detector="ideal").key()
 
 
 def test_a_vdof_race_names_the_packaged_vdof_weights_and_drops_the_dofs_names():

@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
-from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, PRESETS, preset
-from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, RaceSpec
+from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, LOOPS, PRESETS, preset, with_loop
+from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
 from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
 from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
@@ -23,7 +23,7 @@ from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
-from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS
+from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS, GATE_SWITCHES
 from pixelmpc_jax.sim.faults import FAULT_LEVELS
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
@@ -37,8 +37,10 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "command input; flown: the flown-rate weights; turned: trained with turned rows) or a weights file from "
               "`pixelmpc train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
               "(default: the preset's)", {"metavar": "|".join(PACKAGED_VARIANTS) + "|vdof|FILE"}),
-    FieldFlag("--detector", "detector", "target detection: geometry, the projection of the true gate, or image, "
-              "OpenCV on rendered frames (default: the preset's, geometry)", {"choices": DETECTORS}),
+    FieldFlag("--detector", "detector", "target detection: clipped, the projection of the true gate cut at the image "
+              "border as a camera's detector reports it (the corners in view, a centre from the visible outline); "
+              "ideal, the projection reported whole, in the image or not; or image, OpenCV on rendered frames "
+              "(default: the preset's, clipped)", {"choices": DETECTORS}),
     FieldFlag("--course", "course", "alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a "
               "course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
               "(default: the preset's, alphapilot)", {"type": arg.course, "metavar": "|".join(COURSES) + "|FILE"}),
@@ -92,6 +94,13 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               {"type": arg.positive_int, "default": 1}),
     FieldFlag("--perturb", "perturb", "perturb the gates per lap within the AlphaPilot bounds",
               {"action": "store_true"}),
+    FieldFlag("--map", "map", "with --perturb, what the controller and the filter read: surveyed, the nominal course, "
+              "while the world flies the perturbed gates; known, the perturbed course itself (as perturbed races flew "
+              "before) (default: surveyed)", {"choices": MAPS}),
+    FieldFlag("--gate-switch", "gate_switch", "with --estimator pf or eskf, when the controller's target moves to the "
+              "next gate: estimate, when the estimate crosses the map's gate (a lap whose target then parts from the "
+              "world's ends as target_mismatch); truth, when the true position passes the true gate (as races on a "
+              "filter flew before) (default: estimate)", {"choices": GATE_SWITCHES}),
     FieldFlag("--camera-tilt", "camera_tilt_deg", "the onboard camera tilted up on its mount by DEG degrees, in "
               f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
               "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection",
@@ -148,6 +157,11 @@ def add_race(sub) -> None:
     start.add_argument("--config", type=Path, default=None, metavar="FILE",
                        help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
                             "tune` writes its best.json; every other flag overrides one field of it")
+    p.add_argument("--loop", choices=tuple(LOOPS), default=None,
+                   help="the loop the race flies, set on the race it starts from before every other flag: onboard, "
+                        "only what the drone has (--detector image, --estimator eskf, --gate-switch estimate, "
+                        "--map surveyed); truth, the controller on the true state (--detector clipped, --estimator "
+                        "truth) (default: the starting race's, the presets' truth)")
     for flag in RACE_FLAGS:
         flag.add_to(p, _help(flag))
     p.set_defaults(func=_cmd_race, validate=arg.seed_range, precheck=_check_race)
@@ -184,10 +198,13 @@ def race_spec(args):
     """The race the arguments ask for, and the learned pixel model's weights when a weights file names them (None for
     packaged weights, which the spec names by name).
 
-    The race is the preset (or the saved race of ``--config``) with the field of each flag given set, all at once
+    The race is the preset (or the saved race of ``--config``), on the loop of ``--loop`` if given
+    (:func:`~pixelmpc_jax.apps.racing.presets.with_loop`), with the field of each flag given set, all at once
     (:meth:`~pixelmpc_jax.apps.racing.spec.RaceSpec.with_fields`; a ValueError names a setting the library refuses); a
     weights file enters the spec as its fingerprint."""
     base = RaceSpec.from_record(json.loads(args.config.read_text())) if args.config else preset(args.preset)
+    if args.loop:
+        base = with_loop(base, args.loop)
     fields = _fields_given(args)
     spec = base.with_fields(fields)
     kalman = [flag.flag for flag in RACE_FLAGS if flag.field in fields and flag.field.startswith("eskf.")]
@@ -240,7 +257,8 @@ def _cmd_race(args) -> int:
         host.use_compilation_cache()
     spec, dof_params = race_spec(args)
     controllers = _controllers(args)
-    source = f"config {args.config}" if args.config else f"preset {args.preset}"
+    source = (f"config {args.config}" if args.config else f"preset {args.preset}") + \
+        (f" on the {args.loop} loop" if args.loop else "")
     print(f"{source}: {' and '.join(compare.LABELS[c] for c in controllers)} racing {course_title(spec.course)} at "
           f"{spec.speed:g} m/s, {spec.laps} lap(s) each, seeds {spec.seed}..{spec.seed + spec.laps - 1}, "
           f"output {args.out}")

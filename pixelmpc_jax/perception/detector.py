@@ -1,9 +1,14 @@
 """Gate detectors: colour segmentation of rendered images (OpenCV) and projection of the true gate (JAX).
 
-Both return a :class:`Detection` in normalised image coordinates (``uv = px / (W, H)``, README "Conventions"). The
+All return a :class:`Detection` in normalised image coordinates (``uv = px / (W, H)``, README "Conventions"). The
 target pixel the controller tracks is ``Detection.centre``, the image of the gate's 3-D centre. From an
 image it is the intersection of the diagonals of the four inner-opening corners: a perspective map keeps
 lines and incidences, so the diagonals' crossing is exactly the image of the rectangle's centre.
+
+From geometry there are two: :func:`detect_from_geometry`, the ideal projection (every corner and the centre,
+in the image or not), and :func:`detect_in_view`, what a camera's detector reports of the same gate (the corners
+inside the image, and with a corner out of view a centre from what is visible, as :func:`detect_from_image` takes
+it: a YOLO box is clipped at the image border too).
 """
 
 from __future__ import annotations
@@ -68,6 +73,17 @@ def _quad_overlaps_unit_square(quad: jax.Array) -> jax.Array:
     return ~jnp.any(separated)
 
 
+def _sensor_noise(key: jax.Array, pixel_noise_px, dropout, uv: jax.Array, centre: jax.Array, camera):
+    """The detector's noise: independent Gaussian noise of ``pixel_noise_px`` pixels (std, per axis) on the corners
+    ``uv`` (4, 2) and the centre (2,), and whether the detection is kept (dropped with probability ``dropout``).
+    -> (uv, centre, kept)."""
+    key_corners, key_centre, key_dropout = jax.random.split(key, 3)
+    sigma = jnp.asarray(pixel_noise_px, uv.dtype) / jnp.asarray([camera.width, camera.height], uv.dtype)
+    uv = uv + sigma * jax.random.normal(key_corners, uv.shape, uv.dtype)
+    centre = centre + sigma * jax.random.normal(key_centre, centre.shape, uv.dtype)
+    return uv, centre, jax.random.uniform(key_dropout, (), uv.dtype) >= dropout
+
+
 @jax.jit
 def detect_from_geometry(
     gate,
@@ -80,7 +96,7 @@ def detect_from_geometry(
 ) -> Detection:
     """The detection an ideal detector makes of ``gate`` (a single ``Gate``) from robot state ``x_robot``.
 
-    Corners and centre are projected; with a ``key``, each gets independent Gaussian noise of
+    Corners and centre are projected, in the image or not; with a ``key``, each gets independent Gaussian noise of
     ``pixel_noise_px`` pixels (std, per axis) and the whole detection is dropped with probability
     ``dropout``. ``found`` requires every outer frame corner in front of the camera and the projected
     frame to overlap the image (partly in view); occlusion is not modelled. Pure: jit- and vmap-able.
@@ -90,14 +106,10 @@ def detect_from_geometry(
     uv, _, in_front = camera_lib.project(corners_w, x_robot, camera)  # (4, 2)
     uv_out, _, out_front = camera_lib.project(outer_w, x_robot, camera)
     centre, _, centre_front = camera_lib.project(gate.centre, x_robot, camera)
-    scale = jnp.asarray([camera.width, camera.height], uv.dtype)
     found = jnp.all(out_front) & jnp.all(in_front) & centre_front & _quad_overlaps_unit_square(uv_out)
     if key is not None:
-        key_corners, key_centre, key_dropout = jax.random.split(key, 3)
-        sigma = jnp.asarray(pixel_noise_px, uv.dtype) / scale
-        uv = uv + sigma * jax.random.normal(key_corners, uv.shape, uv.dtype)
-        centre = centre + sigma * jax.random.normal(key_centre, centre.shape, uv.dtype)
-        found = found & (jax.random.uniform(key_dropout, (), uv.dtype) >= dropout)
+        uv, centre, kept = _sensor_noise(key, pixel_noise_px, dropout, uv, centre, camera)
+        found = found & kept
     bbox = jnp.concatenate([jnp.clip(uv_out.min(0), 0.0, 1.0), jnp.clip(uv_out.max(0), 0.0, 1.0)])
     visible = in_front & camera_lib.in_image(uv) & found
     return Detection(
@@ -105,6 +117,120 @@ def detect_from_geometry(
         centre=centre,
         bbox=bbox,
         corners=uv,
+        corners_visible=visible,
+        gate_id=jnp.asarray(gate_id, jnp.int32),
+    )
+
+
+NEAR_CUT_M = 0.01  # m: the frame's outline is cut this far in front of the camera before it is projected
+MIN_SIDE_PX = 2.0  # px: the visible frame's box is at least this wide and high to be found (a few pixels of paint)
+CORNER_MARGIN_PX = 2.0  # px: a corner is reported this far inside the image or more (as detect_from_image's)
+
+
+def _clipped_box(polygon: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(box, overlaps)``: the box ``[u_min, v_min, u_max, v_max]`` (4,) of the convex polygon ``polygon`` (N, 2),
+    its vertices in order (a vertex may repeat), cut to the image [0, 1]^2, and whether they overlap (the box is
+    zeros where not).
+
+    The cut is a convex polygon whose vertices are among the polygon's vertices inside the image, the image's corners
+    inside the polygon, and the crossings of the polygon's edges with the image's borders: its box is theirs."""
+    square = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], polygon.dtype)
+    vertex_inside = jnp.all((polygon >= 0.0) & (polygon <= 1.0), axis=-1)  # (N,)
+    start, edge = polygon, jnp.roll(polygon, -1, axis=0) - polygon  # (N, 2) each
+    side = edge[None, :, 0] * (square[:, None, 1] - start[None, :, 1]) \
+        - edge[None, :, 1] * (square[:, None, 0] - start[None, :, 0])  # (4 image corners, N edges)
+    square_inside = jnp.all(side >= 0.0, axis=1) | jnp.all(side <= 0.0, axis=1)
+    crossings, crossing_inside = [], []
+    for axis in (0, 1):  # the borders u = 0, u = 1 (axis 0) and v = 0, v = 1 (axis 1)
+        for border in (0.0, 1.0):
+            run = edge[:, axis]
+            safe = jnp.where(run != 0.0, run, 1.0)
+            t = (border - start[:, axis]) / safe  # (N,) along each edge
+            point = start + t[:, None] * edge  # (N, 2)
+            other = point[:, 1 - axis]
+            crossings.append(point.at[:, axis].set(border))
+            crossing_inside.append((run != 0.0) & (t >= 0.0) & (t <= 1.0) & (other >= 0.0) & (other <= 1.0))
+    points = jnp.concatenate([polygon, square, *crossings])  # (5 N + 4, 2)
+    valid = jnp.concatenate([vertex_inside, square_inside, *crossing_inside])
+    overlaps = jnp.any(valid)
+    low = jnp.min(jnp.where(valid[:, None], points, jnp.inf), axis=0)
+    high = jnp.max(jnp.where(valid[:, None], points, -jnp.inf), axis=0)
+    return jnp.where(overlaps, jnp.concatenate([low, high]), 0.0), overlaps
+
+
+def _in_front(outer: jax.Array, x_robot: jax.Array, camera: camera_lib.Camera) -> tuple[jax.Array, jax.Array]:
+    """A planar convex quadrilateral ``outer`` (4, 3) (world) cut at :data:`NEAR_CUT_M` in front of the camera and
+    projected: ``(polygon, any)``, the polygon (8, 2) normalised with its vertices in order (a vertex cut away
+    repeats the last kept one) and whether any of it lies in front."""
+    _, depth, _ = camera_lib.project(outer, x_robot, camera)
+    following, depth_next = jnp.roll(outer, -1, axis=0), jnp.roll(depth, -1)
+    front, front_next = depth > NEAR_CUT_M, depth_next > NEAR_CUT_M
+    t = (NEAR_CUT_M - depth) / jnp.where(front != front_next, depth_next - depth, 1.0)
+    cut = outer + t[:, None] * (following - outer)  # (4, 3) where each edge meets the cut
+    points = jnp.stack([outer, cut], axis=1).reshape(8, 3)  # each corner, then its edge's cut
+    kept = jnp.stack([front, front != front_next], axis=1).reshape(8)
+    uv, _, _ = camera_lib.project(points, x_robot, camera)
+    last_kept = jax.lax.cummax(jnp.where(kept, jnp.arange(8), -1))
+    last_kept = jnp.where(last_kept >= 0, last_kept, jnp.max(last_kept))  # before the first kept: the cyclic last
+    return uv[jnp.maximum(last_kept, 0)], jnp.any(kept)
+
+
+def _frame_box(gate, x_robot: jax.Array, camera: camera_lib.Camera) -> tuple[jax.Array, jax.Array]:
+    """``(box, seen)``: the box (4,) of the frame's visible part (the front and back faces of its four bars, each cut
+    in front of the camera and to the image) and whether any of it is in view (the box is zeros where not). Through
+    the opening, close by, only the bars in view count."""
+    outer, inner = gate.outer_corners(), gate.corners()  # (4, 3) each, TL, TR, BR, BL
+    bars = jnp.stack([outer, jnp.roll(outer, -1, axis=0), jnp.roll(inner, -1, axis=0), inner], axis=1)  # (4, 4, 3)
+    half_depth = 0.5 * gate.depth * gate.normal
+    faces = jnp.concatenate([bars - half_depth, bars + half_depth])  # (8, 4, 3)
+    polygons, in_front = jax.vmap(_in_front, in_axes=(0, None, None))(faces, x_robot, camera)
+    boxes, overlaps = jax.vmap(_clipped_box)(polygons)  # (8, 4), (8,)
+    seen = in_front & overlaps
+    low = jnp.min(jnp.where(seen[:, None], boxes[:, :2], jnp.inf), axis=0)
+    high = jnp.max(jnp.where(seen[:, None], boxes[:, 2:], -jnp.inf), axis=0)
+    return jnp.where(jnp.any(seen), jnp.concatenate([low, high]), 0.0), jnp.any(seen)
+
+
+@jax.jit
+def detect_in_view(gate, x_robot: jax.Array, camera: camera_lib.Camera, key: jax.Array | None = None,
+                   pixel_noise_px: float | jax.Array = 0.0, dropout: float | jax.Array = 0.0,
+                   gate_id: int | jax.Array = -1) -> Detection:
+    """What a camera's detector reports of ``gate`` from ``x_robot``: the projection cut at the image border, as
+    :func:`detect_from_image` sees the rendered gate (noise and dropout as :func:`detect_from_geometry`'s).
+
+    - found: the frame's visible part (its bars in front of the camera, cut to the image) spans at least
+      :data:`MIN_SIDE_PX` both ways, a frame passed close by included;
+    - corners: those in front of the camera and :data:`CORNER_MARGIN_PX` or more inside the image; a corner out of
+      view is zeros and not visible;
+    - centre: with every corner in view the gate centre's image; else a diagonal's two ends in view -> its midpoint;
+      else the centre of the box of the frame's visible part (as a YOLO box is cut at the border);
+    - bbox: the box of the frame's visible part;
+    - not found: centre (0.5, 0.5), no corners, no box (nothing of the gate reaches the report).
+
+    Where the whole gate is in view, its corners that margin inside, the report is the ideal projection's but for the
+    box, which holds the frame's depth. Pure: jit- and vmap-able.
+    """
+    uv, _, in_front = camera_lib.project(gate.corners(), x_robot, camera)  # (4, 2)
+    centre, _, _ = camera_lib.project(gate.centre, x_robot, camera)
+    box, seen = _frame_box(gate, x_robot, camera)
+    scale = jnp.asarray([camera.width, camera.height], uv.dtype)
+    found = seen & jnp.all((box[2:] - box[:2]) * scale >= MIN_SIDE_PX)
+    if key is not None:
+        uv, centre, kept = _sensor_noise(key, pixel_noise_px, dropout, uv, centre, camera)
+        found = found & kept
+    pixels = uv * scale
+    inside = jnp.all((pixels >= CORNER_MARGIN_PX) & (pixels <= scale - CORNER_MARGIN_PX), axis=-1)
+    visible = in_front & inside & found
+    corners = jnp.where(visible[:, None], uv, 0.0)
+    centre = jnp.where(jnp.all(visible), centre,
+                       jnp.where(visible[0] & visible[2], 0.5 * (corners[0] + corners[2]),
+                                 jnp.where(visible[1] & visible[3], 0.5 * (corners[1] + corners[3]),
+                                           0.5 * (box[:2] + box[2:]))))
+    return Detection(
+        found=found,
+        centre=jnp.where(found, centre, 0.5).astype(uv.dtype),
+        bbox=jnp.where(found, box, 0.0).astype(uv.dtype),
+        corners=corners,
         corners_visible=visible,
         gate_id=jnp.asarray(gate_id, jnp.int32),
     )
@@ -339,3 +465,32 @@ def _is_true_corner(point, reference, mask, width, height, margin: float = 2.0, 
     if not (0 <= px < width and 0 <= py < height):
         return False
     return bool(mask[py, px])
+
+
+# --------------------------------------------------------------------------------------------------
+# The geometric detector against the image detector.
+# --------------------------------------------------------------------------------------------------
+
+
+def image_agreement(track, states, targets, camera: camera_lib.Camera | None = None) -> dict:
+    """:func:`detect_in_view` against :func:`detect_from_image` on the frames rendered at ``states`` (S, 10) as the
+    loop renders them (one sample per pixel), each looking for gate ``targets[s]``.
+
+    Returns per frame: ``found_geometry`` and ``found_image`` (S,) bool, ``partial`` (S,) bool (the geometric report
+    misses a corner: the gate partly out of view) and ``centre_error_px`` (S,), the distance between the two centres
+    in pixels (NaN unless both found)."""
+    camera = camera or camera_lib.default_camera()
+    states = jnp.asarray(states, jnp.float32)
+    targets = np.asarray(targets, np.int32)
+    gates = jax.tree_util.tree_map(lambda leaf: leaf[targets], track.gates)
+    geometric = jax.device_get(jax.vmap(detect_in_view, in_axes=(0, 0, None))(gates, states, camera))
+    frames = np.asarray(render_lib.render_batch(track, states, camera, supersample=1).rgb)
+    seen = [detect_from_image(frame, int(gate), camera) for frame, gate in zip(frames, targets)]
+    found_image = np.asarray([bool(det.found) for det in seen])
+    scale = np.asarray([camera.width, camera.height])
+    centres = np.stack([np.asarray(det.centre) for det in seen])
+    both = np.asarray(geometric.found) & found_image
+    error = np.linalg.norm((centres - np.asarray(geometric.centre)) * scale, axis=1)
+    return {"found_geometry": np.asarray(geometric.found), "found_image": found_image,
+            "partial": np.asarray(geometric.found) & ~np.all(geometric.corners_visible, axis=1),
+            "centre_error_px": np.where(both, error, np.nan)}

@@ -4,12 +4,20 @@ Three pure functions over a :class:`SimState` pytree, built for a frozen :class:
 :func:`make_env` (brax-like; the driver is :mod:`pixelmpc_jax.sim.episode`):
 
 - ``reset(world, key) -> SimState``: the vehicle at rest at the course's start.
-- ``observe(world, state, key) -> (SimState, Observation)``: the target gate's detection from the true pose
-  (geometric, or the rendered frame through OpenCV) and the estimate (the truth, the particle filter of
-  Section V-D, or the error-state Kalman filter of :mod:`pixelmpc_jax.perception.eskf`, updated with the last
-  tick's IMU and this detection): what a policy acts on.
+- ``observe(world, state, key) -> (SimState, Observation)``: the detection of the gate the controller steers for,
+  from the true pose (the projection cut to the image, the ideal projection, or the rendered frame through OpenCV),
+  the estimate (the truth, the particle filter of Section V-D, or the error-state Kalman filter of
+  :mod:`pixelmpc_jax.perception.eskf`, updated with the last tick's IMU and this detection) and, on a filter, the
+  controller's gate switch from that estimate: what a policy acts on.
 - ``step(world, state, u, key) -> SimState``: one 1/40 s control tick, 24 plant substeps at 960 Hz, then
   gate passage and collisions on the flown segment, progress along the desired path, and the episode's end.
+
+Two courses: the map (``World.track``), which the controller and the filter read, and the course the world flies
+(``World.course`` where it differs from the map, moved further by the map-error fault): the world judges passage,
+misses and crashes on it, from the true state. On the true state the controller's target is the world's; on a
+filter (``EnvConfig.gate_switch="estimate"``) it advances when the estimate crosses the map's gate, and a lap whose
+two targets part for longer than ``EnvConfig.target_mismatch_s`` (or that misses a gate while they differ) ends as
+``target_mismatch``.
 """
 
 from __future__ import annotations
@@ -37,12 +45,15 @@ from pixelmpc_jax.world import track as track_lib
 # Episode end causes beyond the track's crash causes.
 CRASH_MISSED_GATE = 4
 CRASH_TIMEOUT = 5
-END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TIMEOUT: "timeout"}
+CRASH_TARGET_MISMATCH = 6  # the controller steered for another gate than the world's next (passed or skipped)
+END_NAMES = {**track_lib.CRASH_NAMES, CRASH_MISSED_GATE: "missed_gate", CRASH_TIMEOUT: "timeout",
+             CRASH_TARGET_MISMATCH: "target_mismatch"}
 
 CONTROL_DT = timing.CONTROL_DT  # s, one control tick (pixelmpc_jax.timing)
 SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
-DETECTORS = ("geometry", "image")
+DETECTORS = ("clipped", "ideal", "image")
 ESTIMATORS = ("truth", "pf", "eskf")
+GATE_SWITCHES = ("estimate", "truth")
 _PAD_STREAM = 2901  # folded into the reset key: the IMU's noise on the pad (ESKFConfig.align_s)
 
 
@@ -51,13 +62,15 @@ class World:
     """Everything dynamic an episode runs in (a pytree: new values never recompile).
 
     Attributes:
-        track: the course.
+        track: the map: the course as the controller and the filter know it.
         target_speed: () m/s.
         plant_params: the vehicle.
         camera: the onboard camera.
         dof: DOF network weights for PixelMPC (None for controllers without a pixel model).
         detector_noise_px: () std of the geometric detector's pixel noise.
         detector_dropout: () probability that a detection is missed.
+        course: the course as it stands where it differs from the map (the perturbed gates of a race on a surveyed
+            map; the same gates in number and order); None: the map is the course.
     """
 
     track: track_lib.Track
@@ -67,16 +80,21 @@ class World:
     dof: Any = None
     detector_noise_px: jax.Array = 0.0
     detector_dropout: jax.Array = 0.0
+    course: track_lib.Track | None = None
 
 
 def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                plant_params: plant_lib.PlantParams | None = None,
                camera: camera_lib.Camera | None = None, dof=None, detector_noise_px: float = 0.0,
-               detector_dropout: float = 0.0) -> World:
-    """A World with defaults: the AlphaPilot course, the reference vehicle, the paper's camera."""
+               detector_dropout: float = 0.0, course: track_lib.Track | None = None) -> World:
+    """A World with defaults: the AlphaPilot course as the map and the course flown (``course``: the course flown
+    where it differs from the map ``track``), the reference vehicle, the paper's camera."""
     if not (isinstance(target_speed, (int, float)) and target_speed > 0):
         raise ValueError(f"target_speed must be a positive number of m/s, got {target_speed!r}")
     track = track if track is not None else course_lib.load_course()
+    if course is not None and course.num_gates != track.num_gates:
+        raise ValueError(f"the course flown has {course.num_gates} gates, the map {track.num_gates}: a map names the "
+                         "same gates in the same order")
     plant_params = plant_params if plant_params is not None else plant_lib.PlantParams()
     camera = camera if camera is not None else camera_lib.default_camera()
     leaves = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32)
@@ -84,7 +102,7 @@ def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                                     (plant_params, camera))
     return World(track=track, target_speed=jnp.asarray(target_speed, jnp.float32), plant_params=leaves[0],
                  camera=leaves[1], dof=dof, detector_noise_px=jnp.asarray(detector_noise_px, jnp.float32),
-                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32))
+                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32), course=course)
 
 
 def stack_worlds(worlds: list[World]) -> World:
@@ -102,9 +120,12 @@ class EnvConfig:
             the desired path (the path may pass near itself elsewhere).
         missed_gate_margin_m: the episode ends as ``missed_gate`` when the robot's progress is this far
             past the target gate without having passed it.
-        detector: "geometry" (projection of the true gate, with the World's noise and dropout; fast and
-            batched) or "image" (each tick renders the onboard frame in JAX and runs the OpenCV colour
-            detector on the host through ``jax.pure_callback``; slower, one frame per tick).
+        detector: "clipped" (the projection of the true gate cut at the image border, as a camera's detector
+            reports it: :func:`~pixelmpc_jax.perception.detector.detect_in_view`; with the World's noise and dropout;
+            fast and batched), "ideal" (the projection, corners and centre reported in the image or not:
+            :func:`~pixelmpc_jax.perception.detector.detect_from_geometry`) or "image" (each tick renders the onboard
+            frame in JAX and runs the OpenCV colour detector on the host through ``jax.pure_callback``; slower, one
+            frame per tick).
         estimator: "truth" (the controller sees the true state) or "pf" (the particle filter of Section
             V-D, fed each tick with the previous tick's 24 IMU samples, preintegrated, and the target
             gate's detection; the controller sees its mean) or "eskf" (the error-state Kalman filter, fed
@@ -118,24 +139,34 @@ class EnvConfig:
         guards: the particle filter's guards against a lying detector and its own divergence
             (:mod:`pixelmpc_jax.perception.filter_guards`; off by default).
         faults: what the world does beyond the nominal model (:mod:`pixelmpc_jax.sim.faults`; none by default).
+        gate_switch: with a filter, when the controller's target moves to the next gate: "estimate" (the estimated
+            position crosses the map's gate plane within its opening, :func:`estimated_switch`: what the drone can
+            know) or "truth" (when the world's does: the true position crosses the true gate). The true state has
+            the world's switch.
+        target_mismatch_s: with the estimated switch, a lap whose controller steers for another gate than the
+            world's next one (a gate already passed, or one skipped) for longer than this ends as
+            ``target_mismatch``; so does a lap that misses a gate while the two differ.
     """
 
     max_time_s: float = timing.LAP_TIME_LIMIT_S
     progress_window_m: float = 30.0
     missed_gate_margin_m: float = 6.0
-    detector: str = "geometry"
+    detector: str = "clipped"
     estimator: str = "truth"
     pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
     pf_initial_spread: tuple = (0.3, 0.03, 0.2)
     eskf: eskf_lib.ESKFConfig = dataclasses.field(default_factory=eskf_lib.ESKFConfig)
     guards: guards_lib.GuardConfig = dataclasses.field(default_factory=guards_lib.GuardConfig)
     faults: faults_lib.Faults = dataclasses.field(default_factory=faults_lib.Faults)
+    gate_switch: str = "estimate"
+    target_mismatch_s: float = 0.5
 
     def __post_init__(self):
-        if self.detector not in DETECTORS:
-            raise ValueError(f"detector must be one of {DETECTORS}, got {self.detector!r}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        for name, choices in (("detector", DETECTORS), ("estimator", ESTIMATORS), ("gate_switch", GATE_SWITCHES)):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
+        if not self.target_mismatch_s > 0:
+            raise ValueError(f"target_mismatch_s must be positive, got {self.target_mismatch_s!r}")
         if not self.max_time_s > 0:
             raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
         delay = self.faults.detection_delay_ticks
@@ -149,17 +180,23 @@ class EnvConfig:
     def max_ticks(self) -> int:
         return int(round(self.max_time_s / CONTROL_DT))
 
+    @property
+    def switches_on_estimate(self) -> bool:
+        """The controller's target advances on the estimate (a filter with the estimated switch)."""
+        return self.estimator != "truth" and self.gate_switch == "estimate"
+
 
 class Observation(NamedTuple):
     """What a policy sees at a tick.
 
     Attributes:
         x_est: (10,) the estimated state (the true state with the "truth" estimator).
-        target_gate: () int32 index of the gate to pass next.
+        target_gate: () int32 index of the gate the controller steers for (the world's next gate, or with the
+            estimated switch the gate after the last the estimate crossed; at most the last gate).
         progress_s: () m, the estimate's progress along the desired path.
         target_visibility: () fraction of the target gate's outline in view from the true pose (what the
             metrics count, not what a controller could know).
-        detection: the detector's view of the target gate from the true pose.
+        detection: the detector's view of ``target_gate`` from the true pose.
         position_cov_trace: () m^2, trace of the estimator's position covariance (0 for the truth).
     """
 
@@ -177,7 +214,12 @@ class SimState(NamedTuple):
     Attributes:
         tick: () int32 ticks flown.
         plant: the vehicle (true rigid-body state, body rates, motors).
-        target: () int32 index of the gate to pass next; the number of gates once every gate is passed.
+        target: () int32 index of the gate to pass next; the number of gates once every gate is passed (the world's:
+            the true position through the course flown).
+        target_est: () int32 the gate the controller steers for: ``target``, or with the estimated switch the gate
+            after the last the estimate crossed on the map.
+        position_est: (3,) the position the estimate held at the last switch check (the start before the first).
+        mismatch_ticks: () int32 ticks in a row that ``target_est`` has differed from ``target``.
         progress_s: () m, the true position's progress along the desired path.
         progress_est_s: () m, the estimate's progress (follows ``progress_s`` with the "truth" estimator).
         filter: the filter's state with the "pf" or "eskf" estimator, else a () placeholder.
@@ -191,6 +233,9 @@ class SimState(NamedTuple):
     tick: jax.Array
     plant: plant_lib.PlantState
     target: jax.Array
+    target_est: jax.Array
+    position_est: jax.Array
+    mismatch_ticks: jax.Array
     progress_s: jax.Array
     progress_est_s: jax.Array
     filter: Any
@@ -209,9 +254,47 @@ class Env(NamedTuple):
     config: EnvConfig
 
 
+def _course(world: World) -> track_lib.Track:
+    """The course as it stands before the faults: ``world.course``, or the map where None."""
+    return world.track if world.course is None else world.course
+
+
+def flown_track(world: World, fault_state: faults_lib.FaultState) -> track_lib.Track:
+    """The course the world flies: :func:`_course` with the gates where the map-error fault moved them."""
+    return faults_lib.true_track(_course(world), fault_state)
+
+
+def _steered_gate(config: EnvConfig, state: SimState, num_gates: int) -> jax.Array:
+    """() int32 the gate the controller steers for (the detector looks for): the world's target, or with the
+    estimated switch the controller's own (at most the last gate)."""
+    if config.switches_on_estimate:
+        return jnp.minimum(state.target_est, num_gates - 1)
+    return state.target
+
+
+def _switch_on_estimate(world: World, state: SimState, x_est: jax.Array, detection: detector_lib.Detection):
+    """The controller's gate switch from the estimate ``x_est`` (10,): its target moves on when the estimate
+    crossed the map's target gate since the last check (:func:`estimated_switch`). The tick's detection was of the
+    gate just left behind: the controller gets none for its new target this tick. -> (state, detection)."""
+    num_gates = world.track.num_gates
+    position = x_est[quadrotor.POS].astype(state.position_est.dtype)
+    gate = world.track.gate(jnp.minimum(state.target_est, num_gates - 1))
+    switched = (state.target_est < num_gates) & estimated_switch(gate, state.position_est, position)
+    detection = detection.replace(found=detection.found & ~switched,
+                                  corners_visible=detection.corners_visible & ~switched)
+    return state._replace(target_est=state.target_est + switched.astype(jnp.int32), position_est=position), detection
+
+
+def estimated_switch(gate: track_lib.Gate, position_before: jax.Array, position: jax.Array) -> jax.Array:
+    """() bool, the controller's target moves past ``gate`` (the map's): the estimated position went from
+    ``position_before`` (3,) to ``position`` (3,) through the gate's plane, forwards, inside its opening
+    (:func:`~pixelmpc_jax.world.track.gate_passed` on the estimate)."""
+    return track_lib.gate_passed(gate, position_before, position)
+
+
 def target_visibility(world: World, state: SimState) -> jax.Array:
     """() fraction of the target gate's outline in view from the true pose; 1 once every gate is passed."""
-    track = faults_lib.true_track(world.track, state.faults)
+    track = flown_track(world, state.faults)
     num_gates = track.num_gates
     visibility = camera_lib.gate_visibility(track.gate(jnp.minimum(state.target, num_gates - 1)),
                                             state.plant.x, world.camera)
@@ -259,7 +342,7 @@ def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, s
     image, from ``track``, the true course) and its delay. -> (detection, the faults' state)."""
     faults, fault_state = config.faults, state.faults
     if faults.has_detector_noise:
-        other = track.gate((state.target + 1) % track.num_gates)
+        other = track.gate((_steered_gate(config, state, track.num_gates) + 1) % track.num_gates)
         wrong_gate = detector_lib.detect_from_geometry(other, state.plant.x, world.camera)
         detection = faults_lib.corrupt_detection(detection, wrong_gate, faults, key, world.camera)
     if faults.detection_delay_ticks:
@@ -349,32 +432,38 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         return SimState(
             tick=jnp.asarray(0, jnp.int32),
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
-            target=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
+            target=jnp.asarray(0, jnp.int32), target_est=jnp.asarray(0, jnp.int32), position_est=x0[quadrotor.POS],
+            mismatch_ticks=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
             filter=_init_filter(config, key, x0, faults_lib.plant_params(world.plant_params, faults)),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
-            faults=faults_lib.init_fault_state(faults, key, world.track.gates, hover),
+            faults=faults_lib.init_fault_state(faults, key, _course(world).gates, hover),
         )
 
     def observe(world: World, state: SimState, key: jax.Array) -> tuple[SimState, Observation]:
-        """Detect the target gate from the true pose (``key``: the geometric detector's noise and dropout, and
-        the detector's faults) and update the estimator with the last tick's IMU and the detection."""
-        track, x = faults_lib.true_track(world.track, state.faults), state.plant.x
+        """Detect the gate the controller steers for from the true pose (``key``: the geometric detector's noise
+        and dropout, and the detector's faults), update the estimator with the last tick's IMU and the detection,
+        and with the estimated switch move the controller's target on from the estimate."""
+        track, x = flown_track(world, state.faults), state.plant.x
+        steered = _steered_gate(config, state, track.num_gates)
         if config.detector == "image":
-            detection = _image_detection(track, x, world.camera, state.target)
+            detection = _image_detection(track, x, world.camera, steered)
         else:
-            detection = detector_lib.detect_from_geometry(
-                track.gate(state.target), x, world.camera, key, world.detector_noise_px, world.detector_dropout,
-                state.target)
+            detect = detector_lib.detect_in_view if config.detector == "clipped" else detector_lib.detect_from_geometry
+            detection = detect(track.gate(steered), x, world.camera, key, world.detector_noise_px,
+                               world.detector_dropout, steered)
         detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
         filter_state, x_est, cov_trace, progress_est, detection = _estimate(config, world, state, detection)
+        visibility = target_visibility(world, state)
+        state = state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state)
+        if config.switches_on_estimate:
+            state, detection = _switch_on_estimate(world, state, x_est, detection)
         observation = Observation(
-            x_est=x_est, target_gate=state.target, progress_s=progress_est,
-            target_visibility=target_visibility(world, state), detection=detection,
-            position_cov_trace=cov_trace.astype(jnp.float32),
+            x_est=x_est, target_gate=_steered_gate(config, state, track.num_gates), progress_s=progress_est,
+            target_visibility=visibility, detection=detection, position_cov_trace=cov_trace.astype(jnp.float32),
         )
-        return state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state), observation
+        return state, observation
 
     def fly(world: World, state: SimState, u: jax.Array, key: jax.Array):
         """The plant over one tick under the configured latency, model error and wind, and the IMU the filter
@@ -392,9 +481,10 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
 
     def step(world: World, state: SimState, u: jax.Array, key: jax.Array) -> SimState:
         """Fly command ``u`` (4,) for one tick (``key``: the plant's noise), then check the flown segment for
-        gate passage and collisions, track the progress, and end the episode on a finish, a crash, a gate
-        missed by more than ``missed_gate_margin_m``, or the time limit."""
-        track = faults_lib.true_track(world.track, state.faults)
+        gate passage and collisions, track the progress, and end the episode on a finish, a crash, the
+        controller's target parted from the world's (:func:`_mismatch`), a gate missed by more than
+        ``missed_gate_margin_m``, or the time limit."""
+        track = flown_track(world, state.faults)
         num_gates = track.num_gates
         plant_state, imu, fault_state = fly(world, state, u, key)
         p0, p1 = state.plant.x[quadrotor.POS], plant_state.x[quadrotor.POS]
@@ -407,10 +497,25 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
                                 + config.missed_gate_margin_m)
         tick = state.tick + 1
         timeout = tick >= config.max_ticks
-        end_cause = jnp.where(hit, cause, jnp.where(missed, CRASH_MISSED_GATE,
-                                                    jnp.where(timeout & ~finished, CRASH_TIMEOUT, 0)))
+        end_cause = jnp.where(missed, CRASH_MISSED_GATE, jnp.where(timeout & ~finished, CRASH_TIMEOUT, 0))
+        done = finished | hit | missed | timeout
+        if config.switches_on_estimate:
+            mismatch, mismatch_ticks = _mismatch(state, target, finished, missed)
+            end_cause, done = jnp.where(mismatch, CRASH_TARGET_MISMATCH, end_cause), done | mismatch
+            state = state._replace(mismatch_ticks=mismatch_ticks)
+        else:  # the controller's target is the world's
+            state = state._replace(target_est=target)
+        end_cause = jnp.where(hit, cause, end_cause)
         return state._replace(tick=tick, plant=plant_state, target=target, progress_s=progress, imu=imu,
-                              end_cause=end_cause.astype(jnp.int32), done=finished | hit | missed | timeout,
-                              faults=fault_state)
+                              end_cause=end_cause.astype(jnp.int32), done=done, faults=fault_state)
+
+    def _mismatch(state: SimState, target: jax.Array, finished: jax.Array, missed: jax.Array):
+        """Whether the lap ends as ``target_mismatch``: the controller's target has differed from the world's
+        ``target`` for longer than ``config.target_mismatch_s``, or the world's gate was missed while they
+        differ. -> (ends, ticks in a row they have differed)."""
+        differ = (state.target_est != target) & ~finished
+        ticks = jnp.where(differ, state.mismatch_ticks + 1, 0).astype(jnp.int32)
+        limit = int(round(config.target_mismatch_s / CONTROL_DT))
+        return differ & ((ticks > limit) | missed), ticks
 
     return Env(reset=reset, observe=observe, step=step, config=config)

@@ -186,7 +186,8 @@ def nominal_mppi_policy(mppi_config: MPPIConfig | None = None,
 def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
                     quad_params: quadrotor.QuadParams | None = None, execution: Execution | None = None) -> Policy:
     """PixelMPC in the loop: the target pixel is the detector's (with the "vdof" pixel model also the apparent
-    size of its corners), the pixel cost is active while it detects the target, or always with the map-aided prior
+    size of its corners, a corner the detector does not report in view projected from the map and the estimate),
+    the pixel cost is active while it detects the target, or always with the map-aided prior
     (``config.target_prior``: an undetected target's pixel from the map and the estimate), or since it was first
     seen with the kept-alive one (the pixel the controller's pixel model predicted for this tick, from the last), or
     always with the seeded one (kept alive once seen, from the map and the estimate before it is first seen); with
@@ -199,17 +200,17 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
     def build(obs, world, racing, disturbance, kept):
         detection = obs.detection
         prior = config.target_prior
-        if prior in ("map", "seeded"):  # the target's pixel from the map and the estimate
+        if prior in ("map", "seeded") or config.pixel_model == "vdof":  # the target's pixel from the map and estimate
             mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
                                                                   world.camera)
         if prior == "map":  # an undetected target's pixel from the map and the estimate
             uv0 = jnp.where(detection.found, detection.centre, mapped)
-            corners = jnp.where(detection.found, detection.corners, mapped_corners)
             active = jnp.asarray(True)
         else:  # the paper's: not costed while the target is not detected, whatever the pixel holds
             uv0 = jnp.where(detection.found, detection.centre, jnp.asarray(pixelmpc_lib.IMAGE_CENTRE, jnp.float32))
-            corners, active = detection.corners, detection.found
-        if config.pixel_model == "vdof":
+            active = detection.found
+        if config.pixel_model == "vdof":  # the size from the corners in view (none when undetected), the rest mapped
+            corners = jnp.where(detection.corners_visible[:, None], detection.corners, mapped_corners)
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
         if prior in ("kept", "seeded"):  # an undetected target's pixel as the pixel model moved it since it was seen
             alive = ~detection.found & kept.valid & (kept.gate == obs.target_gate)

@@ -62,8 +62,7 @@ def loop_row(spec: RaceSpec, repeats: int = 3, runner: str = "single", dof_param
     if sample_devices > 1 and runner != "single":
         raise ValueError("sample_devices > 1 needs runner 'single' (a batch spreads its laps over the devices)")
     policy = spec.policy(sample_devices=sample_devices)
-    config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector, estimator=spec.estimator)
-    runners = episode_lib.make_runner(policy, config)
+    runners = episode_lib.make_runner(policy, spec.episode_config())
     if spec.uses_dof and dof_params is None:
         dof_params = bench_dof_params()
     world = env_lib.make_world(track=make_course(spec.course), target_speed=spec.speed,

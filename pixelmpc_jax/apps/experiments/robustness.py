@@ -112,7 +112,7 @@ LEVER_SETS["model-adapt"] = "the model and adapt sets at once"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop
 LABELS = {"mppi": "nominal MPPI", "pixelmpc": "PixelMPC (best)"}
 CAUSES = {"gate": "gate frame", "ground": "ground", "wall": "wall", "missed_gate": "missed gate", "timeout": "timeout",
-          "flip": "flip", "estimate_diverged": "estimate diverged"}
+          "target_mismatch": "target mismatch", "flip": "flip", "estimate_diverged": "estimate diverged"}
 
 
 class RobustCell(NamedTuple):

@@ -109,7 +109,8 @@ def run(experiment: Experiment, out: Path, laps: int | None, seed: int = 0, prog
 
 
 def episode_end(lap: dict) -> str | None:
-    """How a lap's episode ended: its ``crash`` (gate, ground, wall, missed_gate, timeout; None while flying)."""
+    """How a lap's episode ended: its ``crash`` (gate, ground, wall, missed_gate, timeout, target_mismatch; None while
+    flying)."""
     return lap.get("crash")
 
 

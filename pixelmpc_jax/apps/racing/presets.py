@@ -80,6 +80,23 @@ LEVERS_BEST = ControllerConfig(
     t_f=0.9640303263524299, target_prior="kept", look_ahead=1.0)
 
 
+# The loops a race flies, each the race settings it sets. "truth": the controller on the true state, the detector's
+# report cut at the image border (the presets' loop). "onboard": only what the drone itself has: the rendered frame
+# through the image detector, the error-state Kalman filter's estimate, the gate switch from that estimate and, on a
+# perturbed course, the nominal map (RaceSpec.map "surveyed").
+LOOPS = {
+    "truth": {"detector": "clipped", "estimator": "truth"},
+    "onboard": {"detector": "image", "estimator": "eskf", "gate_switch": "estimate", "map": "surveyed"},
+}
+
+
+def with_loop(spec: RaceSpec, name: str) -> RaceSpec:
+    """``spec`` flown on the loop ``name`` of :data:`LOOPS` (its settings set at once)."""
+    if name not in LOOPS:
+        raise ValueError(f"unknown loop {name!r}; choose one of {', '.join(LOOPS)}")
+    return spec.with_fields(LOOPS[name])
+
+
 def preset(name: str) -> RaceSpec:
     """The race ``name`` ("paper" or "best"), PixelMPC; :func:`nominal_of` gives its nominal MPPI baseline."""
     if name == "paper":

@@ -26,14 +26,17 @@ from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
 
-def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool) -> env_lib.World:
-    """One World per lap, stacked; with ``perturb`` each lap's course is perturbed with its own seed."""
+def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool, map: str = "surveyed") -> env_lib.World:
+    """One World per lap, stacked; with ``perturb`` each lap's course is perturbed with its own seed, and the world
+    flies it while the map stays the nominal course (``map`` "surveyed") or the map is the perturbed course too
+    ("known")."""
     worlds = []
     for seed in seeds:
-        track = base.track
+        world = base
         if perturb:
-            track = course_lib.perturb_course(track, jax.random.PRNGKey(10_000 + seed))
-        worlds.append(base.replace(track=track))
+            course = course_lib.perturb_course(base.track, jax.random.PRNGKey(10_000 + seed))
+            world = base.replace(course=course) if map == "surveyed" else base.replace(track=course)
+        worlds.append(world)
     return env_lib.stack_worlds(worlds)
 
 
@@ -53,9 +56,7 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
     if batch_size == 1 and jax.process_count() == 1:
         sample_devices = usable_sample_devices(spec.config.mppi.num_samples)
     policy = spec.policy(sample_devices=sample_devices)
-    episode_config = episode_lib.EpisodeConfig(max_time_s=spec.max_time_s, detector=spec.detector,
-                                               estimator=spec.estimator, guards=spec.guards, eskf=spec.eskf,
-                                               faults=spec.faults)
+    episode_config = spec.episode_config()
     if dof_params is None:
         dof_params = spec.packaged_dof()
     camera = camera_lib.default_camera(tilt=math.radians(spec.camera_tilt_deg))
@@ -65,20 +66,21 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
 
 
 def fly_batch(race: Race, seeds: list[int]) -> list[tuple]:
-    """Fly the laps of ``seeds`` (at most the race's batch size) in one call; ``[(log, the lap's track)]``, host
-    arrays.
+    """Fly the laps of ``seeds`` (at most the race's batch size) in one call; ``[(log, the course the lap flew)]``,
+    host arrays.
 
     The seeds are padded to a whole batch (the last repeated, the copies dropped), so every batch has one
     shape and the vmapped episode compiles once."""
     flight = race.flight
     padded = seeds + seeds[-1:] * (race.batch_size - len(seeds))
-    worlds = lap_worlds(flight.base, padded, race.spec.perturb)
+    worlds = lap_worlds(flight.base, padded, race.spec.perturb, race.spec.map)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
     if flight.sample_devices > 1:  # one lap, its samples over the devices
         logs = metrics_lib.unbatch(flight.runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
     else:
         logs = metrics_lib.unbatch(flight.runner.batch(worlds, keys))[:len(seeds)]
-    return [(log, jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], worlds.track)) for lane, log in enumerate(logs)]
+    flown = worlds.track if worlds.course is None else worlds.course
+    return [(log, jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], flown)) for lane, log in enumerate(logs)]
 
 
 def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -> dict:

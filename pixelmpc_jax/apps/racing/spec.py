@@ -31,6 +31,8 @@ from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.controllers import CONTROLLERS
+from pixelmpc_jax.sim.env import DETECTORS, GATE_SWITCHES
+from pixelmpc_jax.sim.episode import EpisodeConfig
 from pixelmpc_jax.sim.faults import Faults
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
@@ -45,6 +47,18 @@ LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
 # at that value reads back without it, and the key hashes it at that value, so every race flown before keeps its
 # record and its key.
 RETIRED_SETTINGS = ((("config", "mppi", "sample_devices"), 1), (("config", "mppi", "cpu_matmul"), "auto"))
+# Settings added with a default that differs from what every race before them flew, with that earlier value: where
+# the setting flies something (:meth:`RaceSpec.flies`), a record leaves it out at the earlier value and a record
+# without it reads back at the earlier value, so every race flown before keeps its record and its key; where it flies
+# nothing it keeps its default and stays out of the record.
+EARLIER_VALUES = {"map": "known", "gate_switch": "truth"}
+# Values renamed after races were recorded: a record's old spelling reads back as the new name, and the key hashes the
+# new name as the old spelling, so every race flown before keeps its key. "geometry" was the ideal projection until
+# the clipped detector became the default.
+RENAMED_VALUES = {"detector": {"geometry": "ideal"}}
+# Settings every record holds, with the value the races of versions that recorded fewer settings flew.
+UNRECORDED_BEFORE = {"detector": "ideal"}
+MAPS = ("surveyed", "known")
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
 
@@ -67,7 +81,9 @@ class RaceSpec:
         perturb: each lap's gates perturbed within the AlphaPilot bounds (with the lap's seed).
         course: "alphapilot", "straight" or the path of a course file in the AlphaPilot file's format
             (:func:`~pixelmpc_jax.world.course.make_course`); a file enters the key by its contents.
-        detector: "geometry" or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`).
+        detector: "clipped" (the projection cut at the image border, as a camera's detector reports it), "ideal"
+            (the projection, in the image or not) or "image" (see :class:`~pixelmpc_jax.sim.env.EnvConfig`); nominal
+            MPPI on the true state uses no detection, and its key is one for both geometric detectors.
         estimator: "truth", "pf" (the particle filter) or "eskf" (the error-state Kalman filter).
         max_time_s: timeout per lap, s.
         dof_weights: the DOF weights flown: the name of weights shipped in the package
@@ -84,6 +100,13 @@ class RaceSpec:
             [0, :data:`CAMERA_TILT_MAX_DEG`]; the detector, the controller and the visibility measure all see through
             it. The packaged learned pixel models were trained for the untilted camera, so a tilted race flies the
             projection pixel model, nominal MPPI, or weights trained for the tilt.
+        map: with ``perturb``, what the controller and the filter read: "surveyed", the nominal course, while the
+            world flies the perturbed gates; or "known", the perturbed course itself (a perturbed course perfectly
+            known, as every perturbed race flew before the setting). Without ``perturb`` the map is the course:
+            "surveyed".
+        gate_switch: on a filter, when the controller's target moves on (:class:`~pixelmpc_jax.sim.env.EnvConfig`):
+            "estimate", when the estimate crosses the map's gate, or "truth", the world's switch (as every race on a
+            filter flew before the setting). On the true state: "estimate" (the two are one).
     """
 
     controller: str = "mppi"
@@ -93,7 +116,7 @@ class RaceSpec:
     seed: int = 0
     perturb: bool = False
     course: str = "alphapilot"
-    detector: str = "geometry"
+    detector: str = "clipped"
     estimator: str = "truth"
     max_time_s: float = LAP_TIME_LIMIT_S
     dof_weights: str | None = None
@@ -101,6 +124,8 @@ class RaceSpec:
     eskf: ESKFConfig = dataclasses.field(default_factory=ESKFConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)
     camera_tilt_deg: float = 0.0
+    map: str = "surveyed"
+    gate_switch: str = "estimate"
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -113,6 +138,9 @@ class RaceSpec:
             raise ValueError(f"speed must be a positive finite number of m/s, got {self.speed!r}")
         if not (isinstance(self.laps, int) and self.laps > 0):
             raise ValueError(f"laps must be a positive integer, got {self.laps!r}")
+        for name, choices in (("detector", DETECTORS), ("map", MAPS), ("gate_switch", GATE_SWITCHES)):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
         # one spelling per race: floats as floats, no settings that fly nothing, no runtime-only settings
         object.__setattr__(self, "speed", float(self.speed))
         object.__setattr__(self, "max_time_s", float(self.max_time_s))
@@ -134,6 +162,9 @@ class RaceSpec:
             object.__setattr__(self, "guards", GuardConfig())
         if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
             object.__setattr__(self, "eskf", ESKFConfig())
+        for name in EARLIER_VALUES:  # the map flies nothing on an unperturbed course, the switch on the true state
+            if not self.flies(name):
+                object.__setattr__(self, name, RaceSpec.__dataclass_fields__[name].default)
         if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
                                                        or self.dof_weights in dof.PACKAGED_VARIANTS):
             raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
@@ -142,6 +173,16 @@ class RaceSpec:
         packaged_dof_name = self.dof_weights in dof.PACKAGED_VARIANTS
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
+
+    def flies(self, name: str) -> bool:
+        """Whether the setting ``name`` of :data:`EARLIER_VALUES` changes a lap: the map with ``perturb``, the gate
+        switch on a filter."""
+        return self.perturb if name == "map" else self.estimator != "truth"
+
+    def episode_config(self) -> EpisodeConfig:
+        """The environment and driver the race's laps fly in (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`)."""
+        return EpisodeConfig(max_time_s=self.max_time_s, detector=self.detector, estimator=self.estimator,
+                             guards=self.guards, eskf=self.eskf, faults=self.faults, gate_switch=self.gate_switch)
 
     @property
     def uses_dof(self) -> bool:
@@ -154,8 +195,12 @@ class RaceSpec:
 
     def record(self) -> dict:
         """The spec in JSON types: its fields, the configuration nested as its dataclasses (tuples as lists once
-        written), less the :data:`LATER_SETTINGS` at their defaults. :meth:`from_record` reads it back."""
+        written), less the :data:`LATER_SETTINGS` at their defaults and the :data:`EARLIER_VALUES` where they fly
+        nothing or hold their earlier value. :meth:`from_record` reads it back."""
         record = dataclasses.asdict(self)
+        for name, earlier in EARLIER_VALUES.items():
+            if not self.flies(name) or record[name] == earlier:
+                del record[name]
         default = dataclasses.asdict(RaceSpec())
         for *parents, name in LATER_SETTINGS:
             node, default_node = record, default
@@ -183,8 +228,18 @@ class RaceSpec:
     def from_record(cls, record: dict) -> RaceSpec:
         """The spec a :meth:`record` describes (read back from JSON). A setting the record lacks takes its
         default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``; a
-        :data:`RETIRED_SETTINGS` at its one value is dropped."""
-        return _from_record(cls(), _without_retired(record), "")
+        :data:`RETIRED_SETTINGS` at its one value is dropped, a :data:`RENAMED_VALUES` spelling reads as its new name,
+        a record of a version that recorded fewer settings flew :data:`UNRECORDED_BEFORE`, and an
+        :data:`EARLIER_VALUES` setting the record lacks reads back at its earlier value where it flies."""
+        record = _without_retired(record)
+        if isinstance(record, dict):
+            record = {**UNRECORDED_BEFORE, **record}
+            for name, renamed in RENAMED_VALUES.items():
+                if isinstance(record[name], str) and record[name] in renamed:
+                    record[name] = renamed[record[name]]
+        spec = _from_record(cls(), record, "")
+        earlier = {name: value for name, value in EARLIER_VALUES.items() if name not in record and spec.flies(name)}
+        return spec.replace(**earlier) if earlier else spec
 
     def changed_settings(self) -> dict:
         """The controller settings that differ from the defaults, as ``{dotted name: value}`` (for reports)."""
@@ -217,9 +272,14 @@ class RaceSpec:
     def key(self) -> str:
         """The cache key: 16 hex digits of the sha256 of :meth:`record` as canonical JSON (every number as a
         float), with the DOF weights as flown (None resolved to the packaged weights' fingerprint). Equal for the
-        same race however it was written; any other setting, seed, number of laps or DOF weights gives another
-        key."""
+        same race however it was written, and for the two geometric detectors under nominal MPPI on the true state,
+        which uses no detection; any other setting, seed, number of laps or DOF weights gives another key."""
         record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
+        if self.controller == "mppi" and self.estimator == "truth" and self.detector == "clipped":
+            record["detector"] = "ideal"  # no detection reaches nominal MPPI on the true state: the same laps
+        for name, renamed in RENAMED_VALUES.items():  # a renamed value hashed under its old spelling
+            old = {new: spelling for spelling, new in renamed.items()}
+            record[name] = old.get(record[name], record[name])
         for (*parents, name), value in RETIRED_SETTINGS:  # hashed as every race before their retirement was
             node = record
             for parent in parents:
