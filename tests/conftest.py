@@ -1,5 +1,7 @@
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 
 import pytest
@@ -7,11 +9,40 @@ import pytest
 _CACHE_HOME = {}
 # Compilations shorter than this are not written to the shared cache: loading one costs about as much as making it.
 _MIN_CACHED_COMPILE_S = 0.2
+# XLA's CPU compiler at its cheapest: no fusion emitters and no LLVM optimisation. Compilation is most of the suite's
+# time and the tests' episodes are short, so the suite runs about three times faster (tests/test_env.py and
+# tests/test_pixelmpc.py: 56 s against 160 s on one core). What a step computes is the same; its float rounding is
+# not, so a test that compares with figures recorded as a user's run compiles (the golden laps bit for bit, the
+# pinned weights) is marked ``compiled_as_shipped`` and runs in a process of its own with the flags the run began
+# with. The slow checks (``--runslow``) fly long laps, where a program's speed counts more than its compilation:
+# they compile as a user's run does, as does ``--optimized-xla``.
+FAST_COMPILE_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+# Set in the tests' environment when the fast flags are on: the XLA flags the run was started with.
+USER_XLA_FLAGS = "PIXELMPC_TESTS_USER_XLA_FLAGS"
+# Set by the run's first process for every other (xdist workers, the tests' own subprocesses): the run's cache.
+RUN_CACHE = "PIXELMPC_TESTS_RUN_CACHE"
 
 
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False,
                      help="also run experiment-scale checks marked slow")
+    parser.addoption("--optimized-xla", action="store_true", default=False,
+                     help="compile as a user's run does (XLA's default optimisation; slower to compile). Without it "
+                          "(and without --runslow) the tests compile at XLA's cheapest, the golden laps apart")
+
+
+def _fast_compilation() -> bool:
+    return USER_XLA_FLAGS in os.environ
+
+
+def _use_fast_compilation(config) -> None:
+    """Append :data:`FAST_COMPILE_XLA_FLAGS` to ``XLA_FLAGS`` before anything compiles (the xdist workers and the
+    commands' subprocesses inherit it), remembering the flags the run began with."""
+    if config.getoption("--runslow") or config.getoption("--optimized-xla"):
+        return
+    user = os.environ.get("XLA_FLAGS", "")
+    os.environ[USER_XLA_FLAGS] = user
+    os.environ["XLA_FLAGS"] = f"{user} {FAST_COMPILE_XLA_FLAGS}".strip()
 
 
 def pytest_configure(config):
@@ -22,19 +53,65 @@ def pytest_configure(config):
     only process without ``-n``) points it at a fresh folder, so a run neither writes into the user's cache nor
     starts warm from an earlier run's. The xdist workers and the commands' subprocesses inherit it. Every test
     process keeps its own compilations there too (JAX's persistent cache), so a step that two test files or a
-    test and a subprocess compile is compiled once per run."""
-    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+    test and a subprocess compile is compiled once per run. (:data:`RUN_CACHE` tells the run's other processes,
+    pytest's own among them, that they belong to it.)"""
+    if RUN_CACHE not in os.environ:  # the run's first process
+        _use_fast_compilation(config)
         _CACHE_HOME["old"] = os.environ.get("XDG_CACHE_HOME")
         _CACHE_HOME["new"] = tempfile.mkdtemp(prefix="pixelmpc-tests-cache-")
-        os.environ["XDG_CACHE_HOME"] = _CACHE_HOME["new"]
+        os.environ["XDG_CACHE_HOME"] = os.environ[RUN_CACHE] = _CACHE_HOME["new"]
     from pixelmpc_jax.host import use_compilation_cache
 
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
 
 
+_SHIPPED_OUTCOMES: dict[str, str] = {}  # nodeid -> outcome of the compiled_as_shipped tests run apart
+_SHIPPED_REPORTS: dict[str, str] = {}  # test file -> the report of its process
+
+
+def _run_as_shipped(item) -> None:
+    """Run every ``compiled_as_shipped`` test of ``item``'s file that this run selected in one pytest process with the
+    XLA flags the run began with; record each one's outcome from the process's summary (``-rA``)."""
+    selected = [other.nodeid for other in item.session.items
+                if other.path == item.path and other.get_closest_marker("compiled_as_shipped") is not None]
+    env = {**os.environ, "XLA_FLAGS": os.environ[USER_XLA_FLAGS]}
+    for name in (USER_XLA_FLAGS, "PYTEST_XDIST_WORKER", "PYTEST_XDIST_WORKER_COUNT"):
+        env.pop(name, None)  # the run's compilation cache stays: a program compiled with other flags has another key
+    # --runslow: a slow test among them was selected by the run (the run skips it before it gets here otherwise)
+    command = [sys.executable, "-m", "pytest", *selected, "--optimized-xla", "-q", "-rA", "-p", "no:cacheprovider",
+               "-o", "addopts=", "--runslow"]
+    done = subprocess.run(command, cwd=item.config.rootpath, env=env, capture_output=True, text=True)
+    _SHIPPED_REPORTS[str(item.path)] = done.stdout[-8000:] + done.stderr[-2000:]
+    for line in done.stdout.splitlines():
+        outcome, _, rest = line.partition(" ")
+        nodeid = rest.split(" - ", 1)[0]
+        if outcome in ("PASSED", "FAILED", "ERROR", "SKIPPED") and nodeid in selected:
+            _SHIPPED_OUTCOMES[nodeid] = outcome
+
+
+def pytest_pyfunc_call(pyfuncitem):
+    """A ``compiled_as_shipped`` test, where the run compiles at XLA's cheapest: run with the others of its file in a
+    pytest process with the XLA flags the run began with (``--optimized-xla``, :func:`_run_as_shipped`), and fail
+    with that process's report if it did not pass there."""
+    if not _fast_compilation() or pyfuncitem.get_closest_marker("compiled_as_shipped") is None:
+        return None
+    if pyfuncitem.nodeid not in _SHIPPED_OUTCOMES:
+        _run_as_shipped(pyfuncitem)
+    outcome = _SHIPPED_OUTCOMES.get(pyfuncitem.nodeid, "not reported")
+    if outcome != "PASSED":
+        pytest.fail(f"run with XLA's default flags it was {outcome}:\n{_SHIPPED_REPORTS[str(pyfuncitem.path)]}",
+                    pytrace=False)
+    return True
+
+
 def pytest_unconfigure(config):
-    if "new" not in _CACHE_HOME:  # a worker: the folder is the controller's
+    if "new" not in _CACHE_HOME:  # a worker: the folder is the first process's
         return
+    os.environ.pop(RUN_CACHE, None)
+    if USER_XLA_FLAGS in os.environ:
+        os.environ["XLA_FLAGS"] = os.environ.pop(USER_XLA_FLAGS)
+        if not os.environ["XLA_FLAGS"]:
+            os.environ.pop("XLA_FLAGS")
     if _CACHE_HOME.get("old") is None:
         os.environ.pop("XDG_CACHE_HOME", None)
     else:

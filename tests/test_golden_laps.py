@@ -3,7 +3,8 @@ true state and on the particle filter, against recorded states.
 
 ``tests/data/golden_laps.npz`` was recorded before the house moved (AMD EPYC family 25 model 1, AVX2);
 ``tests/data/golden_laps_*.npz`` hold the same laps recorded later on other processors, which pin every later change
-there. ``python tests/test_golden_laps.py`` records this processor's laps into a file named for it.
+there. ``python tests/test_golden_laps.py`` records this processor's laps into a file named for it (with
+``XLA_FLAGS`` set to tests/conftest.py's ``FAST_COMPILE_XLA_FLAGS``, the test run's compilation's).
 
 A lap is chaotic in its float rounding, so any change to what a step computes (the order of a sum, a fused
 kernel) shows here. XLA's CPU kernels differ between processors, so the states are compared bit for bit against a
@@ -17,13 +18,20 @@ part quickly: on an AVX-512 EPYC (family 25 model 17) the states stayed within 4
 The laps were recorded on the loop as it was: the ideal projection as the detector (corners and centre reported in
 the image or not) and, on the filter, the world's gate switch. Their races name both (``detector="ideal"``,
 ``gate_switch="truth"``), so the defaults that came later (the detector's report cut at the image border, the switch
-from the estimate) leave them as recorded."""
+from the estimate) leave them as recorded.
 
+A recording names the compilation it was flown under too: XLA's default flags (a user's run, and the test run with
+``--runslow`` or ``--optimized-xla``), or the test run's cheapest (tests/conftest.py), whose kernels round otherwise.
+The laps are compared bit for bit with this processor's recording at the compilation the test process runs; the
+first recording was made under XLA's default flags."""
+
+import os
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import FAST_COMPILE_XLA_FLAGS
 
 from pixelmpc_jax.apps.racing import race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
@@ -50,12 +58,22 @@ def _recording(path: Path) -> dict:
         return dict(npz)
 
 
+def compilation() -> str:
+    """How this process compiles: "cheapest" (the test run's XLA flags, tests/conftest.py) or "default"."""
+    return "cheapest" if FAST_COMPILE_XLA_FLAGS in os.environ.get("XLA_FLAGS", "") else "default"
+
+
+def _compilation_of(recording: dict) -> str:
+    return str(recording["compilation"]) if "compilation" in recording else "default"  # the first ones name none
+
+
 def _this_processors_recording() -> dict | None:
     import jax
 
     for path in sorted(DATA.glob("golden_laps*.npz")):
         recording = _recording(path)
-        if str(recording["cpu"]) == cpu_signature() and str(recording["jax"]) == jax.__version__:
+        if (str(recording["cpu"]) == cpu_signature() and str(recording["jax"]) == jax.__version__
+                and _compilation_of(recording) == compilation()):
             return recording
     return None
 
@@ -86,9 +104,11 @@ def test_a_lap_flies_the_recorded_states(name):
         np.testing.assert_allclose(estimates[:ticks], recorded_estimates[:ticks], atol=2e-2 if on_filter else 1e-3)
 
 
-def recording_path(signature: str) -> Path:
-    """Where this processor's laps are recorded: ``golden_laps_<signature>.npz``."""
-    return DATA / f"golden_laps_{re.sub(r'[^a-z0-9]+', '_', signature.lower()).strip('_')}.npz"
+def recording_path(signature: str, compiled: str = "default") -> Path:
+    """Where this processor's laps are recorded: ``golden_laps_<signature>.npz``, ``..._cheapest.npz`` for the test
+    run's compilation."""
+    name = re.sub(r"[^a-z0-9]+", "_", signature.lower()).strip("_")
+    return DATA / f"golden_laps_{name}{'' if compiled == 'default' else '_' + compiled}.npz"
 
 
 def record() -> Path:
@@ -96,10 +116,11 @@ def record() -> Path:
     :func:`recording_path` (the first recording is never overwritten)."""
     import jax
 
-    arrays = {"cpu": np.asarray(cpu_signature()), "jax": np.asarray(jax.__version__)}
+    arrays = {"cpu": np.asarray(cpu_signature()), "jax": np.asarray(jax.__version__),
+              "compilation": np.asarray(compilation())}
     for name in RACES:
         arrays[f"{name}/states"], arrays[f"{name}/estimates"] = _fly(name, round(SECONDS * 40))
-    path = recording_path(cpu_signature())
+    path = recording_path(cpu_signature(), compilation())
     np.savez(path, **arrays)
     return path
 

@@ -60,10 +60,16 @@ print(json.dumps(out))
 """
 
 
+def without_device_count(flags: str) -> str:
+    """The run's XLA flags (tests/conftest.py's compilation among them) without a CPU device count, which would win
+    over the command's own split."""
+    return " ".join(flag for flag in flags.split() if "xla_force_host_platform_device_count" not in flag)
+
+
 @functools.cache
 def two_devices() -> dict:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    env["XLA_FLAGS"] = without_device_count(os.environ.get("XLA_FLAGS", ""))
     out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -115,7 +121,7 @@ def test_split_host_cpu_after_jax_started_changes_nothing():
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    env["XLA_FLAGS"] = without_device_count(os.environ.get("XLA_FLAGS", ""))
     return subprocess.run([sys.executable, "-m", "pixelmpc_jax.cli", *args], env=env, capture_output=True,
                           text=True, timeout=300)
 

@@ -374,6 +374,7 @@ def assert_pinned(weights, name: str) -> None:
         np.testing.assert_allclose(value, expected, rtol=1e-4, atol=1e-4 * expected[1], err_msg=f"{name}/{path}")
 
 
+@pytest.mark.compiled_as_shipped
 @pytest.mark.parametrize("name, variant", [
     ("dof", {}),
     ("dof_turned", dict(loss="endpoint", input="flown", rotation_augment=1.0, rotation_augment_fraction=0.5)),

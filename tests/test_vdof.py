@@ -327,6 +327,7 @@ def test_resume_across_the_stages_equals_an_uninterrupted_run(hand_made_data, tm
     chex.assert_trees_all_equal(full, resumed)
 
 
+@pytest.mark.compiled_as_shipped
 def test_the_pipeline_trains_vdof_as_the_trainer_it_replaced(hand_made_data):
     """60 one-step and 40 rollout steps on the hand-made lap give the weights the trainer the pipeline replaced
     (learn/vdof_train.py of commit bf10cee: ``VDOFTrainConfig(hidden_sizes=(16, 16), steps=60, batch_size=32,
