@@ -113,8 +113,12 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     monkeypatch.setattr(paper, "visibility_experiment", visibility_experiment)
     out = tmp_path / "tables"
     assert cli.main(["experiment", "table2", "--out", str(out), "--laps", "3", "--pixel-model", "projection"]) == 0
-    assert seen["table2"] == {"laps": 3, "pixel_model": "projection", "quick": False, "seed": 200}
+    assert seen["table2"] == {"laps": 3, "pixel_model": "projection", "quick": False, "seed": 200, "main": False,
+                              "frontier_speeds": ()}
     assert "# the tables" in capsys.readouterr().out
+    speeds = ["--frontier-speeds", "9", "7:8:0.5", "8"]
+    assert cli.main(["experiment", "table2", "--out", str(out), "--main", *speeds]) == 0
+    assert seen["table2"]["main"] and seen["table2"]["frontier_speeds"] == (7.0, 7.5, 8.0, 9.0)
 
     def run_frontier(speeds, cells, out, laps, seed, course=None, reuse=()):
         seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course, reuse)

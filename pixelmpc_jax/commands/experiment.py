@@ -42,13 +42,21 @@ def _add_table2(jobs) -> None:
     p.add_argument("--pixel-model", choices=("dof", "projection"), default="dof",
                    help="the grid's pixel model: dof (the paper's) or projection (PAMPC-style; default dof)")
     p.add_argument("--quick", action="store_true", help="nominal MPPI and the presets at the pace only")
+    p.add_argument("--main", action="store_true",
+                   help="the paper's main cell only (t_f 1 s, c_pixel 9e6: the paper preset) beside nominal MPPI and "
+                        "the best preset, at both operating points, instead of the whole t_f x c_pixel grid")
+    p.add_argument("--frontier-speeds", type=arg.target_speeds, nargs="*", default=(), metavar="M_S|LO:HI:STEP",
+                   help="also fly nominal MPPI at these target speeds (each a speed or a range, as the frontier's "
+                        "--speeds) into the same folder, same laps and seeds, and report each PixelMPC cell's "
+                        "frontier gain against them (default: none, no gains)")
     p.set_defaults(func=_cmd_table2)
 
 
 def _cmd_table2(args) -> int:
     from pixelmpc_jax.apps.experiments.paper import visibility_experiment
 
-    visibility_experiment(args.out, laps=args.laps, pixel_model=args.pixel_model, quick=args.quick, seed=args.seed)
+    visibility_experiment(args.out, laps=args.laps, pixel_model=args.pixel_model, quick=args.quick, seed=args.seed,
+                          main=args.main, frontier_speeds=tuple(sorted({v for vs in args.frontier_speeds for v in vs})))
     _print_report(args.out)
     return 0
 

@@ -208,7 +208,8 @@ def markdown_report(rows: list[dict], title: str, device: str, notes: str = "") 
 
 
 def plot_visibility(rows: list[dict], path: Path, title: str) -> None:
-    """Tables II/III as bars, ours beside the paper's, one group per operating point."""
+    """Tables II/III as bars, one group per operating point: the time below 50 % and at 0 % under this measure
+    (from the target) and under the paper's rule (after first seen) beside the paper's, and the lap time."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -218,22 +219,25 @@ def plot_visibility(rows: list[dict], path: Path, title: str) -> None:
     labels = [f"{_name(r).strip('*')}\n{r['speed']:g} m/s" if r["preset"] or r["c_pixel"] == 0 else
               f"tf={r['t_f']:g} c={r['c_pixel']:.0e}\n{r['speed']:g} m/s" for r in rows]
     x = np.arange(len(rows))
-    for ax, key, paper, name in zip(axes, ("time_vis_below_50_after_seen_s", "time_vis_zero_after_seen_s",
-                                           "lap_time_s"),
-                                    (PAPER_VIS_BELOW_50, PAPER_VIS_ZERO, PAPER_LAP_TIME),
-                                    ("time with visibility < 50 % [s], paper's rule",
-                                     "time with visibility = 0 % [s], paper's rule",
-                                     "lap time [s]")):
-        ours = [r[key]["mean"] or 0.0 for r in rows]
-        err = [r[key]["two_sigma"] or 0.0 for r in rows]
+    panels = ((("time_vis_below_50_s", "time_vis_below_50_after_seen_s"), PAPER_VIS_BELOW_50,
+               "time with visibility < 50 % [s]"),
+              (("time_vis_zero_s", "time_vis_zero_after_seen_s"), PAPER_VIS_ZERO, "time with visibility = 0 % [s]"),
+              (("lap_time_s",), PAPER_LAP_TIME, "lap time [s]"))
+    for ax, (keys, paper, name) in zip(axes, panels):
+        width = 0.8 / (len(keys) + 1)
+        for k, (key, label) in enumerate(zip(keys, ("ours, from the target", "ours, the paper's rule"))):
+            ours = [r[key]["mean"] or 0.0 for r in rows]
+            err = [r[key]["two_sigma"] or 0.0 for r in rows]
+            ax.bar(x - 0.4 + (k + 0.5) * width, ours, width, yerr=err, capsize=3,
+                   label=label if len(keys) > 1 else "ours")
         theirs = [(paper.get((r["t_f"], r["c_pixel"])) if r["preset"] != "best" else None) or (np.nan, 0.0)
                   for r in rows]
-        ax.bar(x - 0.2, ours, 0.4, yerr=err, label="ours", capsize=3)
-        ax.bar(x + 0.2, [t[0] for t in theirs], 0.4, yerr=[t[1] for t in theirs], label="paper (14 m/s)", capsize=3,
-               alpha=0.6)
+        ax.bar(x + 0.4 - 0.5 * width, [t[0] for t in theirs], width, yerr=[t[1] for t in theirs],
+               label="paper (14 m/s, its rule)" if len(keys) > 1 else "paper (14 m/s)", capsize=3, alpha=0.6,
+               color="tab:green")
         ax.set_xticks(x, labels, fontsize=6, rotation=90)
         ax.set_title(name, fontsize=10)
-    axes[0].legend()
+        ax.legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -264,12 +268,18 @@ def plot_smoothness(rows: list[dict], path: Path, title: str = "Fig. 6: total va
     plt.close(fig)
 
 
-def table_cells(pixel_model: str = "dof", quick: bool = False) -> list[Cell]:
-    """The cells of Tables II/III at both operating points (``quick``: nominal, ``paper`` and ``best`` at the pace)."""
+# The paper's main cell (its best: t_f 1 s, c_pixel 9e6, the ``paper`` preset) as the one point of the grid.
+MAIN_T_F, MAIN_C_PIXEL = (1.0,), (9e6,)
+
+
+def table_cells(pixel_model: str = "dof", quick: bool = False, main: bool = False) -> list[Cell]:
+    """The cells of Tables II/III at both operating points (``main``: nominal, ``paper`` and ``best`` only;
+    ``quick``: those at the pace only)."""
     if quick:
         pace = OPERATING_POINTS["pace"]
-        return visibility_cells(pixel_model, pace, t_f_values=(1.0,), c_pixel_values=(9e6,))
-    return [cell for speed in OPERATING_POINTS.values() for cell in visibility_cells(pixel_model, speed)]
+        return visibility_cells(pixel_model, pace, t_f_values=MAIN_T_F, c_pixel_values=MAIN_C_PIXEL)
+    grid_point = {"t_f_values": MAIN_T_F, "c_pixel_values": MAIN_C_PIXEL} if main else {}
+    return [cell for speed in OPERATING_POINTS.values() for cell in visibility_cells(pixel_model, speed, **grid_point)]
 
 
 def _title(pixel_model: str) -> str:
@@ -293,28 +303,36 @@ def tables_figures(rows: list[dict], out: Path, pixel_model: str = "dof") -> str
     return "\n![visibility and lap time](visibility.png)\n\n![Fig. 6](smoothness.png)\n"
 
 
-def tables_experiment(cells: list[Cell], pixel_model: str = "dof", gains=None) -> Experiment:
+def tables_experiment(cells: list[Cell], pixel_model: str = "dof", gains=None, also_flown=()) -> Experiment:
     """Tables II/III and Fig. 6 over ``cells`` as an experiment: one row per finished cell (:func:`summarise`, with
     the frontier gains ``gains(results)`` returns, None without them) in ``summary.json``, ``REPORT.md`` and
-    ``visibility.png``, ``smoothness.png``."""
+    ``visibility.png``, ``smoothness.png``. The cells ``also_flown`` (the frontier's nominal points) are flown into
+    the same folder but make no row."""
     return Experiment(
-        tuple(cells), summarise=lambda results: summarise(results, cells, gains(results) if gains else None),
+        tuple(cells) + tuple(also_flown),
+        summarise=lambda results: summarise(results, cells, gains(results) if gains else None),
         report=lambda rows, missing: tables_report(rows, missing, pixel_model),
         plot=lambda rows, out: tables_figures(rows, out, pixel_model), record=lambda rows: rows)
 
 
 def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", quick: bool = False,
                           progress: bool = True, dof_params=None, run: bool = True, seed: int = 0, reuse=(),
-                          frontier_dir: Path | None = None, frontier_speeds=()) -> list[dict]:
+                          frontier_dir: Path | None = None, frontier_speeds=(), main: bool = False) -> list[dict]:
     """Tables II/III and Fig. 6 at the paper's label and its pace (``pixel_model="projection"`` for the PAMPC-style
-    comparison), laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`.
-    Cells a folder in ``reuse`` already holds are copied, not flown. The frontier gains are read against nominal
-    MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with the same laps and seed; none without it). With
-    ``run=False`` only the report of the cells already finished in ``out`` is written."""
-    cells = table_cells(pixel_model, quick)
+    comparison; ``main``: the paper's main cell only, :func:`table_cells`), laps from ``seed``, flown and written by
+    :func:`~pixelmpc_jax.apps.experiments.skeleton.run`. Cells a folder in ``reuse`` already holds are copied, not
+    flown. The frontier gains are read against nominal MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with
+    the same laps and seed); with ``frontier_speeds`` and no ``frontier_dir``, those points are flown into ``out``
+    itself; no gains without either. With ``run=False`` only the report of the cells already finished in ``out`` is
+    written."""
+    cells = table_cells(pixel_model, quick, main)
+    names = {cell.name for cell in cells}
+    also_flown = () if frontier_dir else tuple(nominal_cell(v) for v in frontier_speeds
+                                               if nominal_cell(v).name not in names)
+    gains_dir = frontier_dir if frontier_dir else (out if frontier_speeds else None)
 
     def gains(results: dict) -> dict:
-        return gains_against(results, cells, frontier_dir, frontier_speeds, laps, seed)
+        return gains_against(results, cells, gains_dir, frontier_speeds, laps, seed)
 
-    experiment = tables_experiment(cells, pixel_model, gains if frontier_dir else None)
+    experiment = tables_experiment(cells, pixel_model, gains if gains_dir else None, also_flown)
     return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run)
