@@ -1,3 +1,4 @@
+import fcntl
 import os
 import shutil
 import subprocess
@@ -65,6 +66,23 @@ def pytest_configure(config):
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
 
 
+def made_once_per_run(name: str, make) -> "os.PathLike":
+    """The folder ``name`` that ``make(folder)`` fills, made once per test run and shared by its processes (the xdist
+    workers wait for the first to finish it): what several test files build alike, a collected dataset. Read it, or
+    copy it before changing it."""
+    from pathlib import Path
+
+    root = Path(os.environ[RUN_CACHE]) / "made_once" / name
+    root.parent.mkdir(parents=True, exist_ok=True)
+    with open(root.parent / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (root.parent / f"{name}.done").exists():
+            shutil.rmtree(root, ignore_errors=True)
+            make(root)
+            (root.parent / f"{name}.done").touch()
+    return root
+
+
 _SHIPPED_OUTCOMES: dict[str, str] = {}  # nodeid -> outcome of the compiled_as_shipped tests run apart
 _SHIPPED_REPORTS: dict[str, str] = {}  # test file -> the report of its process
 
@@ -122,9 +140,10 @@ def pytest_unconfigure(config):
 # The files that compile the most (closed-loop episodes, subprocesses), heaviest first, as ``--durations`` measured
 # them. They are handed out first: with one file to a worker (``--dist loadfile``), a run that hands out its longest
 # files last ends on one worker while the other waits.
-HEAVIEST_FIRST = ("test_episode.py", "test_pixelmpc.py", "test_collect.py", "test_compare.py", "test_golden_laps.py",
-                  "test_env.py", "test_particle_filter.py", "test_evaluate.py", "test_sharding.py", "test_frontier.py",
-                  "test_sample_devices.py", "test_eskf.py", "test_quadrotor.py", "test_vdof.py", "test_cli.py")
+HEAVIEST_FIRST = ("test_collect.py", "test_golden_laps.py", "test_episode.py", "test_detector.py", "test_train.py",
+                  "test_particle_filter.py", "test_pixelmpc.py", "test_compare.py", "test_eskf.py", "test_vdof.py",
+                  "test_flow.py", "test_env.py", "test_evaluate.py", "test_sharding.py", "test_sample_devices.py",
+                  "test_mppi.py", "test_frontier.py", "test_cli.py", "test_faults.py")
 
 
 def _heaviest_first(items) -> None:

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import zipfile
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import made_once_per_run
 
 from pixelmpc_jax.learn import collect as C
 from pixelmpc_jax.learn import dataset as D
@@ -26,11 +28,15 @@ TINY = C.CollectConfig(laps=2, max_lap_time_s=1.0, num_samples=64, test_laps=(1,
 FRAMES = 40
 
 
+def collect_tiny(root) -> None:
+    """The tiny dataset, as tests/test_evaluate.py collects it too (made once per run: conftest.made_once_per_run)."""
+    assert C.collect(root, TINY, progress=False)["complete"]
+
+
 @pytest.fixture(scope="module")
 def tiny_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("dof_data")
-    manifest = C.collect(root, TINY, progress=False)
-    assert manifest["complete"]
+    root = tmp_path_factory.mktemp("tiny") / "dof_data"
+    shutil.copytree(made_once_per_run("tiny_collection", collect_tiny), root)  # the tests below change it
     return root
 
 

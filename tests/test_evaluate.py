@@ -5,28 +5,32 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import made_once_per_run
 from flax import serialization
+from test_collect import TINY, collect_tiny  # the dataset tests/test_collect.py collects
 
 from pixelmpc_jax.dynamics import dof, network_weights, vdof
 from pixelmpc_jax.learn import aee
-from pixelmpc_jax.learn import collect as C
 from pixelmpc_jax.learn import dataset as D
 from pixelmpc_jax.learn import evaluate as E
 
-TINY = C.CollectConfig(laps=2, max_lap_time_s=1.0, num_samples=64, test_laps=(1,), render_batch=16)
 HORIZON = 12
 REQUIRED = ("num_parameters", "aee_px", "aee_exact_px", "baseline_zero_aee_px", "baseline_mean_aee_px")
 
 
 @pytest.fixture(scope="module")
 def tiny_dir(tmp_path_factory):
-    # Through the no-dataset path: the held-out collection into a cache directory.
-    return E.heldout_dataset(tmp_path_factory.mktemp("heldout"), TINY, progress=False)
+    # Through the no-dataset path: the held-out collection into a cache directory, there already (tests/test_collect.py
+    # collects the same dataset once per run), so the collection finds its laps and keeps them.
+    root = tmp_path_factory.mktemp("heldout") / "cache"
+    shutil.copytree(made_once_per_run("tiny_collection", collect_tiny), root)
+    return E.heldout_dataset(root, TINY, progress=False)
 
 
 @pytest.fixture(scope="module")
