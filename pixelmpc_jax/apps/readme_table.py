@@ -113,8 +113,20 @@ def _seeds(first: int, laps: int) -> str:
     return f"seeds {first}-{first + laps - 1}"
 
 
-def _loop(estimator: str) -> str:
-    return {"truth": "true state", "pf": "particle filter", "eskf": "ESKF"}.get(estimator, estimator)
+DETECTOR_WORDS = {"clipped": "detector clipped at the image border", "ideal": "ideal detector (the earlier loop)",
+                  "geometry": "ideal detector (the earlier loop)", "image": "image detector"}
+
+
+def _loop(estimator: str, config: dict | None = None) -> str:
+    """The loop a race flew, in words: the estimator and, from its recorded ``config``, the detector and, on a
+    filter, where the gate switch came from."""
+    words = [{"truth": "true state", "pf": "particle filter", "eskf": "ESKF"}.get(estimator, estimator)]
+    if config is not None:
+        words.append(DETECTOR_WORDS.get(config.get("detector", "ideal"), config.get("detector", "ideal")))
+        if estimator != "truth":
+            words.append("gate switch from the estimate" if config.get("gate_switch", "truth") == "estimate"
+                         else "the truth's gate switch")
+    return ", ".join(words)
 
 
 def _share(count: int, total: int) -> str:
@@ -201,7 +213,8 @@ def _frontier_loop(root: Path, folder: Path, record: dict, row: dict) -> str:
     course = results["config"]["course"]
     course = "AlphaPilot" if course == "alphapilot" else f"course {Path(course).stem}"
     seeds = record["measured"]["seeds"]
-    return f"{_loop(row['estimator'])}, {course}, {record['measured']['laps']} laps, seeds {seeds[0]}-{seeds[1]}"
+    return (f"{_loop(row['estimator'], results['config'])}, {course}, {record['measured']['laps']} laps, "
+            f"seeds {seeds[0]}-{seeds[1]}")
 
 
 def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
@@ -281,7 +294,8 @@ def nominal_lap(root: Path) -> Row:
     return Row(f"Nominal MPPI flies the course at the paper's {LABEL_SPEED:g} m/s target: lap time (mean ± 2σ)",
                f"{lap_time['mean']:.1f} ± {lap_time['two_sigma']:.1f} s, {_share(len(done), len(laps))} laps",
                f"slowest lap {max(done):.1f} s", f"{paper_mean:.1f} ± {paper_sigma:.1f} s",
-               f"{_loop('truth')}, AlphaPilot, {len(laps)} laps, {_seeds(results[row['cell']]['seed'], len(laps))}",
+               f"{_loop('truth', results[row['cell']]['config'])}, AlphaPilot, {len(laps)} laps, "
+               f"{_seeds(results[row['cell']]['seed'], len(laps))}",
                _tables_measured(root, path), path, per_tick(root / path))
 
 
@@ -305,7 +319,8 @@ def paper_main_cell(root: Path) -> Row:
     return Row("Tables II-III, the paper's main cell (the `paper` preset: L1 pixel cost, its DOF, t_f 1 s, c_pixel "
                "9e6) against nominal MPPI at the same target: time a lap under 50 % in view",
                "; ".join(parts), f"worst lap {worst:.1f} s", f"{paper_nominal:g} -> {paper_best:g} s (14 m/s)",
-               f"{_loop('truth')}, AlphaPilot, {laps} laps a cell, {_seeds(seed, laps)}",
+               f"{_loop('truth', results[paper['cell']]['config'])}, AlphaPilot, {laps} laps a cell, "
+               f"{_seeds(seed, laps)}",
                _tables_measured(root, path), path, per_tick(root / path))
 
 
@@ -332,7 +347,8 @@ def table_iv_filter(root: Path) -> Row:
                f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
                f"nominal's failures: {failures or 'none'}",
                f"{PAPER['nominal_success_16']:.0%} -> {PAPER['pixelmpc_success_16']:.0%}",
-               f"{_loop('pf')}, AlphaPilot, {best['speed']:g} m/s, {best['num_laps']} laps a cell, "
+               f"{_loop('pf', results[best['cell']]['config'])}, AlphaPilot, {best['speed']:g} m/s, "
+               f"{best['num_laps']} laps a cell, "
                f"{_seeds(seed, best['num_laps'])}",
                f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
                per_tick(root / path))
@@ -350,7 +366,8 @@ def table_iv_eskf(root: Path) -> Row:
                f"{nominal['rms_position_error_m']:.3f} -> **{best['rms_position_error_m']:.3f}** m (particle filter "
                f"{nominal_pf['rms_position_error_m']:.3f} -> {best_pf['rms_position_error_m']:.3f} m)",
                f"`best`'s worst lap {worst:.3f} m", "not measured (particle filter only)",
-               f"{_loop('eskf')}, AlphaPilot, {best['speed']:g} m/s, {best['num_laps']} laps a cell, "
+               f"{_loop('eskf', results[best['cell']]['config'])}, AlphaPilot, {best['speed']:g} m/s, "
+               f"{best['num_laps']} laps a cell, "
                f"{_seeds(seed, best['num_laps'])}",
                f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
                per_tick(root / path))

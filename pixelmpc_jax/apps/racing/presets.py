@@ -35,9 +35,9 @@ WHY = {
             "the target's plane, that gate's pixel projected from the map along the horizon; its settings found by "
             "`pixelmpc tune` (58 trials on seeds 0-3; experiments/results/tune_look_ahead/), with a 0.3 m clearance "
             "to the frames in its racing cost (the vehicle's 0.1 m plus the filter's error). On held-out seeds "
-            "700-709, 10/10 laps: frontier gain 6.15 (90 % interval 5.12-7.08) at +10.8 % lap time on AlphaPilot, "
-            "6.16 (5.22-7.16) at +11.2 % on a course generated after the choice (NVIDIA H200, 2026-11-26; "
-            "experiments/results/best_heldout_700/)",
+            "700-709, 10/10 laps, the detector clipped at the image border: frontier gain 4.46 (90 % interval "
+            "3.57-5.44) at +9.9 % lap time on AlphaPilot, 4.26 (3.62-5.00) at +9.3 % on a course generated after the "
+            "choice (2-core AMD EPYC, 2026-11-28; experiments/results/best_heldout_700/)",
 }
 
 # best's clearance to the gate frames, floor and walls in its racing cost (the vehicle's 0.1 m elsewhere; the world's
