@@ -23,7 +23,8 @@ from the estimate) leave them as recorded.
 A recording names the compilation it was flown under too: XLA's default flags (a user's run, and the test run with
 ``--runslow`` or ``--optimized-xla``), or the test run's cheapest (tests/conftest.py), whose kernels round otherwise.
 The laps are compared bit for bit with this processor's recording at the compilation the test process runs; the
-first recording was made under XLA's default flags."""
+first recording was made under XLA's default flags. At the cheapest, XLA's kernels split a product over the cores the
+process may use and round as they split it, so that recording holds for its number of cores too."""
 
 import os
 import re
@@ -67,13 +68,18 @@ def _compilation_of(recording: dict) -> str:
     return str(recording["compilation"]) if "compilation" in recording else "default"  # the first ones name none
 
 
+def _cores() -> int:
+    return len(os.sched_getaffinity(0))
+
+
 def _this_processors_recording() -> dict | None:
     import jax
 
     for path in sorted(DATA.glob("golden_laps*.npz")):
         recording = _recording(path)
         if (str(recording["cpu"]) == cpu_signature() and str(recording["jax"]) == jax.__version__
-                and _compilation_of(recording) == compilation()):
+                and _compilation_of(recording) == compilation()
+                and ("cores" not in recording or int(recording["cores"]) == _cores())):
             return recording
     return None
 
@@ -105,10 +111,10 @@ def test_a_lap_flies_the_recorded_states(name):
 
 
 def recording_path(signature: str, compiled: str = "default") -> Path:
-    """Where this processor's laps are recorded: ``golden_laps_<signature>.npz``, ``..._cheapest.npz`` for the test
-    run's compilation."""
+    """Where this processor's laps are recorded: ``golden_laps_<signature>.npz``, ``..._cheapest_<n>_cores.npz`` for
+    the test run's compilation on n cores."""
     name = re.sub(r"[^a-z0-9]+", "_", signature.lower()).strip("_")
-    return DATA / f"golden_laps_{name}{'' if compiled == 'default' else '_' + compiled}.npz"
+    return DATA / f"golden_laps_{name}{'' if compiled == 'default' else f'_{compiled}_{_cores()}_cores'}.npz"
 
 
 def record() -> Path:
@@ -118,6 +124,8 @@ def record() -> Path:
 
     arrays = {"cpu": np.asarray(cpu_signature()), "jax": np.asarray(jax.__version__),
               "compilation": np.asarray(compilation())}
+    if compilation() == "cheapest":
+        arrays["cores"] = np.asarray(_cores())
     for name in RACES:
         arrays[f"{name}/states"], arrays[f"{name}/estimates"] = _fly(name, round(SECONDS * 40))
     path = recording_path(cpu_signature(), compilation())
