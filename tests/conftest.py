@@ -4,6 +4,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -36,6 +37,15 @@ def _fast_compilation() -> bool:
     return USER_XLA_FLAGS in os.environ
 
 
+def xla_flags_for(device_count: int | None = None) -> str:
+    """The run's XLA flags (its compilation among them) for a subprocess: with ``device_count`` CPU devices, or with
+    none forced (a forced count wins over a command's own split of the host's cores)."""
+    kept = [flag for flag in os.environ.get("XLA_FLAGS", "").split()
+            if "xla_force_host_platform_device_count" not in flag]
+    forced = [] if device_count is None else [f"--xla_force_host_platform_device_count={device_count}"]
+    return " ".join(kept + forced)
+
+
 def _use_fast_compilation(config) -> None:
     """Append :data:`FAST_COMPILE_XLA_FLAGS` to ``XLA_FLAGS`` before anything compiles (the xdist workers and the
     commands' subprocesses inherit it), remembering the flags the run began with."""
@@ -66,12 +76,10 @@ def pytest_configure(config):
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
 
 
-def made_once_per_run(name: str, make) -> "os.PathLike":
+def made_once_per_run(name: str, make) -> Path:
     """The folder ``name`` that ``make(folder)`` fills, made once per test run and shared by its processes (the xdist
     workers wait for the first to finish it): what several test files build alike, a collected dataset. Read it, or
     copy it before changing it."""
-    from pathlib import Path
-
     root = Path(os.environ[RUN_CACHE]) / "made_once" / name
     root.parent.mkdir(parents=True, exist_ok=True)
     with open(root.parent / f"{name}.lock", "w") as lock:

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import xla_flags_for
 
 from pixelmpc_jax import devices, host
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
@@ -60,16 +61,10 @@ print(json.dumps(out))
 """
 
 
-def without_device_count(flags: str) -> str:
-    """The run's XLA flags (tests/conftest.py's compilation among them) without a CPU device count, which would win
-    over the command's own split."""
-    return " ".join(flag for flag in flags.split() if "xla_force_host_platform_device_count" not in flag)
-
-
 @functools.cache
 def two_devices() -> dict:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env["XLA_FLAGS"] = without_device_count(os.environ.get("XLA_FLAGS", ""))
+    env["XLA_FLAGS"] = xla_flags_for()
     out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -121,7 +116,7 @@ def test_split_host_cpu_after_jax_started_changes_nothing():
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env["XLA_FLAGS"] = without_device_count(os.environ.get("XLA_FLAGS", ""))
+    env["XLA_FLAGS"] = xla_flags_for()
     return subprocess.run([sys.executable, "-m", "pixelmpc_jax.cli", *args], env=env, capture_output=True,
                           text=True, timeout=300)
 

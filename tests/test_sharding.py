@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import xla_flags_for
 
 SCRIPT = r"""
 import json, sys
@@ -27,17 +28,10 @@ print(json.dumps({"devices": jax.device_count(), "states": np.asarray(logs.state
 """
 
 
-def xla_flags(device_count: int) -> str:
-    """The run's XLA flags (tests/conftest.py's compilation among them) with ``device_count`` CPU devices."""
-    kept = [flag for flag in os.environ.get("XLA_FLAGS", "").split()
-            if "xla_force_host_platform_device_count" not in flag]
-    return " ".join([*kept, f"--xla_force_host_platform_device_count={device_count}"])
-
-
 @functools.cache
 def run(device_count: int) -> dict:
     env = dict(os.environ)
-    env["XLA_FLAGS"] = xla_flags(device_count)
+    env["XLA_FLAGS"] = xla_flags_for(device_count)
     env["JAX_PLATFORMS"] = "cpu"
     out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -55,7 +49,7 @@ def run_two_processes(devices_per_process: int = 2) -> list[dict]:
     for pid in range(2):
         env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"localhost:{port}",
                    JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(pid),
-                   XLA_FLAGS=xla_flags(devices_per_process))
+                   XLA_FLAGS=xla_flags_for(devices_per_process))
         procs.append(subprocess.Popen([sys.executable, "-c", init + SCRIPT], env=env, stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True))
     outs = []
@@ -105,7 +99,7 @@ print(json.dumps({"devices": jax.device_count(), "split": T.data_parallel_device
 def test_dof_training_split_over_four_devices_equals_one_device():
     def train_on(device_count):
         env = dict(os.environ)
-        env["XLA_FLAGS"] = xla_flags(device_count)
+        env["XLA_FLAGS"] = xla_flags_for(device_count)
         env["JAX_PLATFORMS"] = "cpu"
         out = subprocess.run([sys.executable, "-c", TRAIN_SCRIPT], env=env, capture_output=True, text=True,
                              check=True)
