@@ -5,35 +5,54 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import xla_flags_for
 
-SCRIPT = r"""
-import json, sys
-import jax, jax.numpy as jnp, numpy as np
-from pixelmpc_jax.control.pixelmpc import paper_mppi_config
-from pixelmpc_jax.sim import env as env_lib
-from pixelmpc_jax.sim import episode as E
-from pixelmpc_jax.sim import policies
-from pixelmpc_jax.world import course as C
-course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
-policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=32, horizon=10))
-runner = E.make_runner(policy, E.EpisodeConfig(max_time_s=0.5))
-worlds = env_lib.stack_worlds([env_lib.make_world(course, target_speed=6.0 + i) for i in range(6)])
-logs = runner.batch(worlds, jax.vmap(jax.random.PRNGKey)(jnp.arange(6)))
-print(json.dumps({"devices": jax.device_count(), "states": np.asarray(logs.states).tolist(),
-                  "ticks": np.asarray(logs.num_ticks).tolist()}))
-"""
+
+def episodes() -> dict:
+    """Six short nominal MPPI episodes as one batch, on the devices this process has: its device count, states and
+    ticks."""
+    import jax
+    import jax.numpy as jnp
+
+    from pixelmpc_jax.control.pixelmpc import paper_mppi_config
+    from pixelmpc_jax.sim import env as env_lib
+    from pixelmpc_jax.sim import episode as E
+    from pixelmpc_jax.sim import policies
+    from pixelmpc_jax.world import course as C
+
+    course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
+    policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=32, horizon=10))
+    runner = E.make_runner(policy, E.EpisodeConfig(max_time_s=0.5))
+    worlds = env_lib.stack_worlds([env_lib.make_world(course, target_speed=6.0 + i) for i in range(6)])
+    logs = runner.batch(worlds, jax.vmap(jax.random.PRNGKey)(jnp.arange(6)))
+    return {"devices": jax.device_count(), "states": np.asarray(logs.states).tolist(),
+            "ticks": np.asarray(logs.num_ticks).tolist()}
+
+
+def script(function: str) -> str:
+    """Python that prints this file's ``function()`` as JSON, for a process of its own (its devices set before JAX
+    starts)."""
+    return (f"import json, sys\nsys.path.insert(0, {str(Path(__file__).resolve().parent)!r})\n"
+            f"from test_sharding import {function}\nprint(json.dumps({function}()))\n")
 
 
 @functools.cache
 def run(device_count: int) -> dict:
+    """:func:`episodes` on ``device_count`` CPU devices: in this process where it has them (one, as a test process
+    starts), else in a process of its own."""
+    import jax
+
+    if jax.device_count() == device_count:
+        return episodes()
     env = dict(os.environ)
     env["XLA_FLAGS"] = xla_flags_for(device_count)
     env["JAX_PLATFORMS"] = "cpu"
-    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", script("episodes")], env=env, capture_output=True, text=True,
+                         check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -50,8 +69,8 @@ def run_two_processes(devices_per_process: int = 2) -> list[dict]:
         env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"localhost:{port}",
                    JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(pid),
                    XLA_FLAGS=xla_flags_for(devices_per_process))
-        procs.append(subprocess.Popen([sys.executable, "-c", init + SCRIPT], env=env, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, text=True))
+        procs.append(subprocess.Popen([sys.executable, "-c", init + script("episodes")], env=env,
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     outs = []
     for proc in procs:
         stdout, stderr = proc.communicate(timeout=600)
@@ -75,34 +94,41 @@ def test_two_processes_of_two_devices_equal_one_device_run():
         np.testing.assert_allclose(np.asarray(out["states"]), np.asarray(one["states"]), atol=1e-4)
 
 
-TRAIN_SCRIPT = r"""
-import json
-import jax, numpy as np
-from pixelmpc_jax.learn import train as T
-from pixelmpc_jax.learn.dataset import FlowData
-from pixelmpc_jax.learn.dof_spec import DOFConfig
-rng = np.random.default_rng(0)
-n, W, H = 16, 16, 12
-q = rng.normal(size=(n, 4)).astype(np.float32); q /= np.linalg.norm(q, axis=1, keepdims=True)
-u = rng.normal(size=(n, 4)).astype(np.float32)
-flow = rng.normal(size=(n, H, W, 2)).astype(np.float16)
-model = DOFConfig(steps=6, batch_size=256, learning_rate=1e-3, schedule="constant", width=W, height=H, dt=0.025,
-                  probe_size=64, eval_chunk_pixels=512)
-config = T.TrainConfig(model, log_every=1, checkpoint_every=0, progress=False)
-params, history = T.train(config, FlowData(q, u, flow))
-leaves = [np.asarray(x).ravel().tolist() for x in jax.tree_util.tree_leaves(params.weights)]
-print(json.dumps({"devices": jax.device_count(), "split": T.data_parallel_devices(256), "loss": history["loss"],
-                  "weights": leaves}))
-"""
+def training() -> dict:
+    """Six steps of DOF training on random flow, split over the devices this process has: its device count, the
+    split, the losses and the weights."""
+    import jax
+
+    from pixelmpc_jax.learn import train as T
+    from pixelmpc_jax.learn.dataset import FlowData
+    from pixelmpc_jax.learn.dof_spec import DOFConfig
+
+    rng = np.random.default_rng(0)
+    n, W, H = 16, 16, 12
+    q = rng.normal(size=(n, 4)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    u = rng.normal(size=(n, 4)).astype(np.float32)
+    flow = rng.normal(size=(n, H, W, 2)).astype(np.float16)
+    model = DOFConfig(steps=6, batch_size=256, learning_rate=1e-3, schedule="constant", width=W, height=H, dt=0.025,
+                      probe_size=64, eval_chunk_pixels=512)
+    config = T.TrainConfig(model, log_every=1, checkpoint_every=0, progress=False)
+    params, history = T.train(config, FlowData(q, u, flow))
+    leaves = [np.asarray(x).ravel().tolist() for x in jax.tree_util.tree_leaves(params.weights)]
+    return {"devices": jax.device_count(), "split": T.data_parallel_devices(256), "loss": history["loss"],
+            "weights": leaves}
 
 
 def test_dof_training_split_over_four_devices_equals_one_device():
     def train_on(device_count):
+        import jax
+
+        if jax.device_count() == device_count:
+            return training()
         env = dict(os.environ)
         env["XLA_FLAGS"] = xla_flags_for(device_count)
         env["JAX_PLATFORMS"] = "cpu"
-        out = subprocess.run([sys.executable, "-c", TRAIN_SCRIPT], env=env, capture_output=True, text=True,
-                             check=True)
+        out = subprocess.run([sys.executable, "-c", script("training")], env=env,
+                             capture_output=True, text=True, check=True)
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     one, four = train_on(1), train_on(4)
