@@ -120,8 +120,9 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert cli.main(["experiment", "table2", "--out", str(out), "--main", *speeds]) == 0
     assert seen["table2"]["main"] and seen["table2"]["frontier_speeds"] == (7.0, 7.5, 8.0, 9.0)
 
-    def run_frontier(speeds, cells, out, laps, seed, course=None, reuse=()):
+    def run_frontier(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
         seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course, reuse)
+        seen["frontier_loop"] = loop
         seen["frontier_cells"] = cells
         (out / "REPORT.md").write_text("frontier\n")
 
@@ -129,6 +130,13 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "border", "--speeds", "9",
                      "7", "9", "--course", "straight"]) == 0
     assert seen["frontier"] == ((7.0, 9.0), ["border", "border"], 10, 0, "straight", ())
+    assert seen["frontier_loop"] is None
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "border", "--loop",
+                     "onboard"]) == 0
+    assert seen["frontier_loop"] == "onboard"
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "none", "--speeds",
+                     "8:8.5:0.25"]) == 0
+    assert seen["frontier"][:2] == ((8.0, 8.25, 8.5), []) and seen["frontier_cells"] == ()
     # --cells preset: the best preset and the exact projection flying every other setting of it
     grid_folder = tmp_path / "validation"
     grid_folder.mkdir()

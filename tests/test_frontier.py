@@ -152,7 +152,7 @@ def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, c
 def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch, capsys):
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None, reuse=()):
+    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
         seen.update(speeds=speeds, cells=cells, laps=laps)
         raise KeyboardInterrupt
 
@@ -169,7 +169,7 @@ def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_p
     nominal_6.25 and so on (so a run resumed with other speeds keeps the points already flown)."""
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None, reuse=()):
+    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
         seen.update(speeds=speeds)
         raise KeyboardInterrupt
 
@@ -253,3 +253,18 @@ def test_the_gain_interval_resamples_the_laps_of_the_cell_and_of_every_nominal_p
     assert low < 5.0 < high and high - low > 1.0
     assert F.gain_interval(np.asarray([[50.0, 1.0]]), nominal) is None  # never bracketed
     assert F.gain_interval(cell, nominal[:1]) is None  # one nominal point is no frontier
+
+
+def test_a_frontier_on_the_onboard_loop_flies_every_cell_nominal_mppi_included_on_it():
+    """``loop``: nominal MPPI's points and every PixelMPC cell fly the onboard loop (so the gain compares laps of one
+    loop), with every other setting their own; without it, the cells' own loop (the true state)."""
+    from pixelmpc_jax.apps.racing.presets import LOOPS
+
+    onboard = F.frontier_experiment((7.5, 8.0), CELLS, 2, 0, loop="onboard")
+    truth = F.frontier_experiment((7.5, 8.0), CELLS, 2, 0)
+    assert [cell.name for cell in onboard.cells] == [cell.name for cell in truth.cells]
+    for cell, own in zip(onboard.cells, truth.cells):
+        assert own.spec.estimator == "truth"
+        for field, value in LOOPS["onboard"].items():
+            assert getattr(cell.spec, field) == value, (cell.name, field)
+        assert cell.spec.replace(**{field: getattr(own.spec, field) for field in LOOPS["onboard"]}) == own.spec

@@ -9,10 +9,12 @@ from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.experiments.reproduce import SEED
+from pixelmpc_jax.apps.racing.presets import LOOPS
 from pixelmpc_jax.arguments import SEED_MAX
 
-# frontier --cells: both pixel costs and models, the border cost alone, or the best preset beside the exact projection
-FRONTIER_CELLS = ("all", "border", "preset")
+# frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
+# or none (nominal MPPI's points alone, for another run's --reuse)
+FRONTIER_CELLS = ("all", "border", "preset", "none")
 
 
 def add_experiment(sub) -> None:
@@ -185,9 +187,10 @@ def _add_frontier(jobs) -> None:
     p.add_argument("--quick", action="store_true", help="4 nominal speeds and the 2 border-cost cells, 4 laps")
     p.add_argument("--cells", choices=FRONTIER_CELLS, default="all",
                    help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default), "
-                        "border (the border cost alone, at each model's weight of the 4-lap sweep) or preset (the "
+                        "border (the border cost alone, at each model's weight of the 4-lap sweep), preset (the "
                         "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
-                        "of knowing where the gate is)")
+                        "of knowing where the gate is); none flies nominal MPPI's points alone, to split a frontier "
+                        "over processes (a last run with the cells and --reuse of each folder joins them)")
     p.add_argument("--speeds", type=arg.target_speeds, nargs="+", default=None, metavar="M_S|LO:HI:STEP",
                    help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}], each a speed or a range "
                         "(6:9:0.25 flies 6, 6.25, ..., 9: a frontier without gaps for the paired gain; nominal "
@@ -196,6 +199,10 @@ def _add_frontier(jobs) -> None:
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
+    p.add_argument("--loop", choices=tuple(LOOPS), default=None,
+                   help="the loop every cell flies, nominal MPPI's too: onboard, only what the drone has (the image "
+                        "detector, the ESKF, the gate switch from the estimate, the surveyed map); truth, the "
+                        "controller on the true state (default: the cells' own, the true state)")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (another frontier's, a tune validation's) whose finished cells with the same "
                         "race, laps and seed are copied, not flown again")
@@ -232,13 +239,15 @@ def _cmd_frontier(args) -> int:
         from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
 
         changes["cells"] = frontier.ceiling_cells(PAPER_PACE_SPEED)
+    elif args.cells == "none":
+        changes["cells"] = ()
     if args.speeds:
         changes["nominal_speeds"] = _nominal_speeds(args)
     if args.laps is not None:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
     frontier.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps, seed=args.seed,
-                          course=args.course, reuse=tuple(args.reuse))
+                          course=args.course, reuse=tuple(args.reuse), loop=args.loop)
     _print_report(args.out)
     return 0
 

@@ -38,6 +38,7 @@ from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.gains import AVOIDABLE_FLOOR_S, BOOTSTRAP_DRAWS, BOOTSTRAP_LEVEL
 from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing.presets import with_loop
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES, lap_tail, tail_columns
@@ -306,17 +307,22 @@ def frontier_figure(frontier: dict, out: Path) -> str:
 
 
 def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s: float = LAP_TIME_LIMIT_S,
-                        course: str | None = None, camera_tilt_deg: float | None = None) -> Experiment:
+                        course: str | None = None, camera_tilt_deg: float | None = None,
+                        loop: str | None = None) -> Experiment:
     """Nominal MPPI at each of ``nominal_speeds`` (episodes of at most ``max_time_s``) and every PixelMPC cell as an
     experiment: the frontier (:func:`build`) in ``frontier.json``, ``REPORT.md`` and ``frontier.png``. ``course`` (a
     name or a course file) flies every cell on that course instead of the cells' own; ``camera_tilt_deg`` every
-    cell, nominal MPPI's too, with that camera (``RaceSpec.camera_tilt_deg``)."""
+    cell, nominal MPPI's too, with that camera (``RaceSpec.camera_tilt_deg``); ``loop`` (a name of
+    :data:`~pixelmpc_jax.apps.racing.presets.LOOPS`) every cell, nominal MPPI's too, on that loop (``"onboard"``:
+    the image detector, the ESKF, the gate switch from the estimate and the surveyed map)."""
     all_cells = [nominal_cell(speed, max_time_s) for speed in nominal_speeds] + list(cells)
     overrides = {name: value for name, value in (("course", course), ("camera_tilt_deg", camera_tilt_deg))
                  if value is not None}
     if overrides:
         all_cells = [dataclasses.replace(cell, spec=cell.spec.replace(**overrides)) for cell in all_cells]
-        cells = all_cells[len(nominal_speeds):]
+    if loop is not None:
+        all_cells = [dataclasses.replace(cell, spec=with_loop(cell.spec, loop)) for cell in all_cells]
+    cells = all_cells[len(nominal_speeds):]
     return Experiment(tuple(all_cells),
                       summarise=lambda results: build(results, nominal_speeds, cells, laps, seed, max_time_s),
                       report=lambda frontier, missing: report(frontier), plot=frontier_figure, record=json_safe,
@@ -325,14 +331,14 @@ def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s:
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
                  dof_params=None, max_time_s: float = LAP_TIME_LIMIT_S, course: str | None = None,
-                 camera_tilt_deg: float | None = None, reuse=()) -> dict:
+                 camera_tilt_deg: float | None = None, reuse=(), loop: str | None = None) -> dict:
     """Fly the frontier (:func:`frontier_experiment`) into ``out`` with
     :func:`~pixelmpc_jax.apps.experiments.skeleton.run` (resumable per cell) and write ``frontier.json``,
     ``REPORT.md`` and ``frontier.png``; returns the frontier. Only the cells of this run (settings, laps, seed,
     weights) count. Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
     KeyboardInterrupt is raised again. A cell whose race a finished cell of a grid folder in ``reuse`` already flew
     (the same settings, laps and seed, e.g. a tune validation's nominal points) is copied from there."""
-    experiment = frontier_experiment(nominal_speeds, cells, laps, seed, max_time_s, course, camera_tilt_deg)
+    experiment = frontier_experiment(nominal_speeds, cells, laps, seed, max_time_s, course, camera_tilt_deg, loop)
     return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse)
 
 
