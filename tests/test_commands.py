@@ -102,7 +102,7 @@ def test_bad_arguments_exit_2_with_one_line_before_anything_is_written(tmp_path,
 
 def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path, monkeypatch, capsys):
     from pixelmpc_jax.apps.bench import mppi_step, suite
-    from pixelmpc_jax.apps.experiments import frontier, paper, speed_probe
+    from pixelmpc_jax.apps.experiments import estimation, frontier, paper, speed_probe
 
     seen = {}
 
@@ -116,6 +116,19 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert seen["table2"] == {"laps": 3, "pixel_model": "projection", "quick": False, "seed": 200, "main": False,
                               "frontier_speeds": ()}
     assert "# the tables" in capsys.readouterr().out
+    def estimation_experiment(out, **kwargs):
+        seen["table4"] = kwargs
+        (out / "REPORT.md").write_text("# Table IV\n")
+
+    monkeypatch.setattr(estimation, "estimation_experiment", estimation_experiment)
+    joined = [tmp_path / name for name in ("pf", "eskf")]
+    for folder in joined:
+        folder.mkdir()
+        (folder / "results.json").write_text("{}")
+    assert cli.main(["experiment", "table4", "--out", str(tmp_path / "t4"), "--quick", "--no-straight", "--estimators",
+                     "eskf", "--reuse", *map(str, joined)]) == 0
+    assert seen["table4"] == {"laps": 25, "quick": True, "straight": False, "seed": 200, "estimators": ("eskf",),
+                              "reuse": tuple(joined)}
     speeds = ["--frontier-speeds", "9", "7:8:0.5", "8"]
     assert cli.main(["experiment", "table2", "--out", str(out), "--main", *speeds]) == 0
     assert seen["table2"]["main"] and seen["table2"]["frontier_speeds"] == (7.0, 7.5, 8.0, 9.0)

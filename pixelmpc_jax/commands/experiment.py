@@ -78,6 +78,9 @@ def _add_table4(jobs) -> None:
     p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=ESTIMATORS,
                    help="Table IV's filters: pf, the paper's particle filter, and eskf, the error-state Kalman filter "
                         "(default: both; the straight lane flies the particle filter)")
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
+                   help="grid folders (another Table IV run's) whose finished cells with the same race, laps and seed "
+                        "are copied, not flown again: a run split over processes (one filter each) joins here")
     p.set_defaults(func=_cmd_table4)
 
 
@@ -85,7 +88,7 @@ def _cmd_table4(args) -> int:
     from pixelmpc_jax.apps.experiments.estimation import estimation_experiment
 
     estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed,
-                          estimators=tuple(args.estimators))
+                          estimators=tuple(args.estimators), reuse=tuple(args.reuse))
     _print_report(args.out)
     return 0
 
