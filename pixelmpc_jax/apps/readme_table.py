@@ -325,9 +325,13 @@ def paper_main_cell(root: Path) -> Row:
 
 
 def _table_iv(root: Path, estimator: str) -> tuple[Path, dict, dict, dict]:
-    path = RESULTS / "table4_heldout"
+    """Table IV's 16 m/s pace on ``estimator``: the folder, nominal MPPI's and `best`'s rows of its summary and its
+    results, every lap checked against the per-tick record (:func:`check_compact_record`)."""
+    path = RESULTS / "table4_16ms_pace"
     cells = {c["cell"]: c for c in _json(root / path / "summary.json")["table_iv"]}
-    return path, cells[f"mppi_9.1ms_{estimator}"], cells[f"best_9.1ms_{estimator}"], _json(root / path / "results.json")
+    results = _json(root / path / "results.json")
+    check_compact_record(root / path, results)
+    return path, cells[f"mppi_9.1ms_{estimator}"], cells[f"best_9.1ms_{estimator}"], results
 
 
 def _successes(cell: dict) -> int:
@@ -350,8 +354,7 @@ def table_iv_filter(root: Path) -> Row:
                f"{_loop('pf', results[best['cell']]['config'])}, AlphaPilot, {best['speed']:g} m/s, "
                f"{best['num_laps']} laps a cell, "
                f"{_seeds(seed, best['num_laps'])}",
-               f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
-               per_tick(root / path))
+               _tables_measured(root, path), path, per_tick(root / path))
 
 
 def table_iv_eskf(root: Path) -> Row:
@@ -369,8 +372,7 @@ def table_iv_eskf(root: Path) -> Row:
                f"{_loop('eskf', results[best['cell']]['config'])}, AlphaPilot, {best['speed']:g} m/s, "
                f"{best['num_laps']} laps a cell, "
                f"{_seeds(seed, best['num_laps'])}",
-               f"{stated_device(root / path / 'REPORT.md')}, {stated_date(root / path / 'README.md')}", path,
-               per_tick(root / path))
+               _tables_measured(root, path), path, per_tick(root / path))
 
 
 def real_time(root: Path) -> Row:
