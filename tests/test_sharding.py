@@ -41,19 +41,24 @@ def script(function: str) -> str:
 
 
 @functools.cache
-def run(device_count: int) -> dict:
-    """:func:`episodes` on ``device_count`` CPU devices: in this process where it has them (one, as a test process
-    starts), else in a process of its own."""
+def on_devices(function: str, device_count: int) -> dict:
+    """This file's ``function()`` on ``device_count`` CPU devices: in this process where it has them (one, as a test
+    process starts), else in a process of its own."""
     import jax
 
     if jax.device_count() == device_count:
-        return episodes()
+        return globals()[function]()
     env = dict(os.environ)
     env["XLA_FLAGS"] = xla_flags_for(device_count)
     env["JAX_PLATFORMS"] = "cpu"
-    out = subprocess.run([sys.executable, "-c", script("episodes")], env=env, capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", script(function)], env=env, capture_output=True, text=True,
                          check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run(device_count: int) -> dict:
+    """:func:`episodes` on ``device_count`` CPU devices."""
+    return on_devices("episodes", device_count)
 
 
 def run_two_processes(devices_per_process: int = 2) -> list[dict]:
@@ -119,19 +124,7 @@ def training() -> dict:
 
 
 def test_dof_training_split_over_four_devices_equals_one_device():
-    def train_on(device_count):
-        import jax
-
-        if jax.device_count() == device_count:
-            return training()
-        env = dict(os.environ)
-        env["XLA_FLAGS"] = xla_flags_for(device_count)
-        env["JAX_PLATFORMS"] = "cpu"
-        out = subprocess.run([sys.executable, "-c", script("training")], env=env,
-                             capture_output=True, text=True, check=True)
-        return json.loads(out.stdout.strip().splitlines()[-1])
-
-    one, four = train_on(1), train_on(4)
+    one, four = on_devices("training", 1), on_devices("training", 4)
     assert (one["devices"], one["split"]) == (1, 1) and (four["devices"], four["split"]) == (4, 4)
     np.testing.assert_allclose(four["loss"], one["loss"], rtol=1e-4)
     for a, b in zip(four["weights"], one["weights"]):

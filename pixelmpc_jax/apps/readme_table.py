@@ -324,14 +324,14 @@ def paper_main_cell(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-def _table_iv(root: Path, estimator: str) -> tuple[Path, dict, dict, dict]:
-    """Table IV's 16 m/s pace on ``estimator``: the folder, nominal MPPI's and `best`'s rows of its summary and its
+def _table_iv(root: Path) -> tuple[Path, Callable[[str], tuple[dict, dict]], dict]:
+    """Table IV's 16 m/s pace: the folder, nominal MPPI's and `best`'s rows of its summary on an estimator, and its
     results, every lap checked against the per-tick record (:func:`check_compact_record`)."""
     path = RESULTS / "table4_16ms_pace"
     cells = {c["cell"]: c for c in _json(root / path / "summary.json")["table_iv"]}
     results = _json(root / path / "results.json")
     check_compact_record(root / path, results)
-    return path, cells[f"mppi_9.1ms_{estimator}"], cells[f"best_9.1ms_{estimator}"], results
+    return path, lambda estimator: (cells[f"mppi_9.1ms_{estimator}"], cells[f"best_9.1ms_{estimator}"]), results
 
 
 def _successes(cell: dict) -> int:
@@ -340,7 +340,8 @@ def _successes(cell: dict) -> int:
 
 def table_iv_filter(root: Path) -> Row:
     """Table IV: laps finished on the particle filter at the paper's 16 m/s pace, nominal MPPI -> `best`."""
-    path, nominal, best, results = _table_iv(root, "pf")
+    path, rows, results = _table_iv(root)
+    nominal, best = rows("pf")
     intervals = [wilson_interval(_successes(c), c["num_laps"]) for c in (nominal, best)]
     failures = ", ".join(f"{cause.replace('_', ' ')} {count}" for cause, count in sorted(nominal["failures"].items()))
     seed = results[best["cell"]]["seed"]
@@ -359,8 +360,8 @@ def table_iv_filter(root: Path) -> Row:
 
 def table_iv_eskf(root: Path) -> Row:
     """The same cells on the error-state Kalman filter: laps finished and the RMS position error."""
-    path, nominal, best, results = _table_iv(root, "eskf")
-    _, nominal_pf, best_pf, _ = _table_iv(root, "pf")
+    path, rows, results = _table_iv(root)
+    (nominal, best), (nominal_pf, best_pf) = rows("eskf"), rows("pf")
     worst = max(lap["rms_position_error_m"] for lap in results[best["cell"]]["laps"])
     seed = results[best["cell"]]["seed"]
     return Row("The same on the error-state Kalman filter (`--estimator eskf`): laps finished and RMS position error, "
