@@ -11,9 +11,12 @@ import pytest
 _CACHE_HOME = {}
 # Compilations shorter than this are not written to the shared cache: loading one costs about as much as making it.
 _MIN_CACHED_COMPILE_S = 0.2
-# XLA's CPU compiler at its cheapest: no fusion emitters and no LLVM optimisation. Compilation is most of the suite's
-# time and the tests' episodes are short, so the suite runs about three times faster (tests/test_env.py and
-# tests/test_pixelmpc.py: 56 s against 160 s on one core). What a step computes is the same; its float rounding is
+# XLA's CPU compiler at its cheapest: no fusion emitters, no LLVM optimisation, and each program's code generated as
+# one LLVM module rather than split into parts for parallel compilation (the cores are busy with the run's other
+# worker; unsplit, tests/test_env.py, test_pixelmpc.py and test_mppi.py took about a tenth less processor time, in two
+# rounds beside a busy core: 88 -> 82 s, 77 -> 67 s). Compilation is most of the suite's time and the tests' episodes
+# are short, so the suite runs about three times faster (tests/test_env.py and tests/test_pixelmpc.py: 56 s against
+# 160 s on one core, before the unsplit modules). What a step computes is the same; its float rounding is
 # not, so a test that compares with figures recorded as a user's run compiles (the pinned weights) is marked
 # ``compiled_as_shipped`` and runs in a process of its own with the flags the run began with, as is one whose
 # programs run long enough that their optimisation pays for itself (the particle filter's 6,400 particles over
@@ -21,7 +24,8 @@ _MIN_CACHED_COMPILE_S = 0.2
 # files run, compile optimised in the run itself (:func:`_render_batches_as_shipped`). The slow checks
 # (``--runslow``) fly long laps, where a program's speed counts more than its compilation: they compile as a user's
 # run does, as does ``--optimized-xla``.
-FAST_COMPILE_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+FAST_COMPILE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
+                          "--xla_cpu_parallel_codegen_split_count=1")
 # The two flags above set for an optimised program (fusion emitters on, LLVM at its highest level), for the programs
 # the tests compile so although the run compiles at its cheapest (:func:`_render_batches_as_shipped`). A batch
 # rendered so differed from a user's run in one colour value of eight frames: the tests that render compare within
