@@ -112,6 +112,20 @@ def test_a_row_follows_its_folder(tmp_path):
     assert row.measured_on == f"2-core Intel Xeon @ 2.80 GHz, jax 0.10.2, {data['created'][:10]}"
 
 
+def test_the_onboard_pace_row_counts_each_races_laps_and_refuses_a_record_that_disagrees(tmp_path):
+    """The row reads both races' laps from their metrics: a lap recorded lost there changes the count and the
+    failures; the per-tick record, which still shows it finished, then refuses the folder."""
+    folder = tmp_path / readme_table.ONBOARD_PACE
+    shutil.copytree(ROOT / readme_table.ONBOARD_PACE, folder)
+    row = readme_table.onboard_pace(tmp_path)
+    assert row.ours.startswith("37/40 -> **40/40**") and "target mismatch 2" in row.tail
+    metrics = json.loads((folder / "best" / "metrics.json").read_text())
+    metrics["controllers"]["pixelmpc"]["laps"][5].update(success=False, crash="wall")
+    (folder / "best" / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(ValueError, match=f"race 'best', seed {metrics['race']['seed'] + 5}"):
+        readme_table.onboard_pace(tmp_path)
+
+
 def _checkout(tmp_path, readme: str) -> Path:
     for name in ("experiments", "benchmarks"):
         (tmp_path / name).symlink_to(ROOT / name)

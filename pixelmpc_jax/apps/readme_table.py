@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import statistics
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -25,6 +26,7 @@ from pixelmpc_jax.apps.bench.table1 import PAPER as PAPER_TABLE_I
 from pixelmpc_jax.apps.experiments import frontier
 from pixelmpc_jax.apps.experiments.estimation import PAPER_TABLE_IV
 from pixelmpc_jax.apps.experiments.paper import LABEL_SPEED, PAPER_LAP_TIME, PAPER_VIS_BELOW_50
+from pixelmpc_jax.apps.experiments.skeleton import failure_counts
 from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEEDS
 from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
 from pixelmpc_jax.sim import ticks_compact
@@ -376,6 +378,39 @@ def table_iv_eskf(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
+ONBOARD_PACE = RESULTS / "onboard_16ms_pace"
+ONBOARD_PACE_RACES = {"nominal": "mppi", "best": "pixelmpc"}  # the folder's race -> the controller it flew
+
+
+def onboard_pace(root: Path) -> Row:
+    """Laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: one `pixelmpc
+    race --loop onboard` per controller (the metrics.json of a folder named for the race), every lap checked against
+    the per-tick record."""
+    path = ONBOARD_PACE
+    races = {name: _json(root / path / name / "metrics.json") for name in ONBOARD_PACE_RACES}
+    laps = {name: races[name]["controllers"][controller]["laps"] for name, controller in ONBOARD_PACE_RACES.items()}
+    check_compact_record(root / path, {name: {"laps": race_laps} for name, race_laps in laps.items()})
+    finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
+    intervals = [wilson_interval(finished[name], len(laps[name])) for name in ONBOARD_PACE_RACES]
+    failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
+                         for cause, count in sorted(failure_counts(laps["nominal"]).items(), key=str))
+    done = [lap["lap_time_s"] for lap in laps["best"] if lap["success"]]
+    race = races["best"]["race"]
+    speed = race["speed"]
+    label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
+    return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
+               "PixelMPC (`best`)",
+               f"{_share(finished['nominal'], len(laps['nominal']))} -> "
+               f"**{_share(finished['best'], len(laps['best']))}** "
+               f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
+               f"`best`'s worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
+               f"failures: {failures or 'none'}",
+               "not measured (particle filter only)",
+               f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, {len(laps['best'])} "
+               f"laps a race, {_seeds(race['seed'], len(laps['best']))}",
+               _tables_measured(root, path), path, per_tick(root / path))
+
+
 def real_time(root: Path) -> Row:
     """The PixelMPC step and the closed-loop tick on two CPU cores, beside the paper's Table I row on a GPU."""
     path = BENCHMARKS / "cpu-amd-epyc-2core"
@@ -405,6 +440,7 @@ ROWS = (
     paper_main_cell,
     table_iv_filter,
     table_iv_eskf,
+    onboard_pace,
     nominal_lap,
     dof_accuracy,
     real_time,
