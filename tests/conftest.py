@@ -26,8 +26,8 @@ _MIN_CACHED_COMPILE_S = 0.2
 # run does, as does ``--optimized-xla``.
 FAST_COMPILE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
                           "--xla_cpu_parallel_codegen_split_count=1")
-# The two flags above set for an optimised program (fusion emitters on, LLVM at its highest level), for the programs
-# the tests compile so although the run compiles at its cheapest (:func:`_render_batches_as_shipped`). A batch
+# The first two flags above set for an optimised program (fusion emitters on, LLVM at its highest level), for the
+# programs the tests compile so although the run compiles at its cheapest (:func:`_render_batches_as_shipped`). A batch
 # rendered so differed from a user's run in one colour value of eight frames: the tests that render compare within
 # a pixel's tolerance.
 SHIPPED_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3}
