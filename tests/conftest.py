@@ -16,20 +16,21 @@ _MIN_CACHED_COMPILE_S = 0.2
 # worker; unsplit, tests/test_env.py, test_pixelmpc.py and test_mppi.py took about a tenth less processor time, in two
 # rounds beside a busy core: 88 -> 82 s, 77 -> 67 s). Compilation is most of the suite's time and the tests' episodes
 # are short, so the suite runs about three times faster (tests/test_env.py and tests/test_pixelmpc.py: 56 s against
-# 160 s on one core, before the unsplit modules). What a step computes is the same; its float rounding is
-# not, so a test that compares with figures recorded as a user's run compiles (the pinned weights) is marked
-# ``compiled_as_shipped`` and runs in a process of its own with the flags the run began with, as is one whose
-# programs run long enough that their optimisation pays for itself (the particle filter's 6,400 particles over
-# 1,200 steps); the golden laps keep a recording per compilation. Rendered batches, the one long program several
-# files run, compile optimised in the run itself (:func:`_render_batches_as_shipped`). The slow checks
+# 160 s on one core, before the unsplit modules). What a step computes is the same; its float rounding is not: the
+# golden laps keep a recording per compilation, and the pinned DOF training fingerprints (tests/test_train.py) hold
+# within their tolerance at both. A test that compares with figures recorded as a user's run compiles and would not
+# hold so (the pinned VDOF weights: their rollout stage carries the rounding of the data it trains on) is marked
+# ``compiled_as_shipped`` and runs in a process of its own with the flags the run began with. A program that runs long
+# enough for its optimisation to pay for itself (a rendered batch, the particle filter's 6,400 particles over 1,200
+# steps) is jitted with XLA's default optimisation in the run itself (:func:`jit_as_shipped`). The slow checks
 # (``--runslow``) fly long laps, where a program's speed counts more than its compilation: they compile as a user's
 # run does, as does ``--optimized-xla``.
 FAST_COMPILE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
                           "--xla_cpu_parallel_codegen_split_count=1")
 # The first two flags above set for an optimised program (fusion emitters on, LLVM at its highest level), for the
-# programs the tests compile so although the run compiles at its cheapest (:func:`_render_batches_as_shipped`). A batch
-# rendered so differed from a user's run in one colour value of eight frames: the tests that render compare within
-# a pixel's tolerance.
+# programs the tests compile so although the run compiles at its cheapest (:func:`jit_as_shipped`). A batch rendered
+# so differed from a user's run in one colour value of eight frames: the tests that render compare within a pixel's
+# tolerance.
 SHIPPED_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3}
 # Set in the tests' environment when the fast flags are on: the XLA flags the run was started with.
 USER_XLA_FLAGS = "PIXELMPC_TESTS_USER_XLA_FLAGS"
@@ -42,7 +43,7 @@ def pytest_addoption(parser):
                      help="also run experiment-scale checks marked slow")
     parser.addoption("--optimized-xla", action="store_true", default=False,
                      help="compile as a user's run does (XLA's default optimisation; slower to compile). Without it "
-                          "(and without --runslow) the tests compile at XLA's cheapest, the golden laps apart")
+                          "(and without --runslow) the tests compile at XLA's cheapest, their long programs apart")
 
 
 def _fast_compilation() -> bool:
@@ -68,18 +69,26 @@ def _use_fast_compilation(config) -> None:
     os.environ["XLA_FLAGS"] = f"{user} {FAST_COMPILE_XLA_FLAGS}".strip()
 
 
-def _render_batches_as_shipped() -> None:
-    """Compile :func:`pixelmpc_jax.world.render.render_batch` with XLA's default optimisation although the run
-    compiles at its cheapest: a rendered frame is the one program of the tests that runs long (hundreds of thousands
-    of rays), and unoptimised it runs about ten times slower than it compiles faster (240 frames: 3.5 s against 25 s
-    on one core). The same function, jitted with ``compiler_options``; a batch rendered inside another program (none
-    today) would fail loudly (``compiler_options`` is for top-level programs only)."""
+def jit_as_shipped(jitted, **jit_kwargs):
+    """The jitted function ``jitted`` compiled with XLA's default optimisation (``compiler_options``) where the run
+    compiles at its cheapest, for a program that runs long: unoptimised it runs several times slower than its
+    optimisation costs (240 rendered frames: 3.5 s against 25 s on one core; 1,200 particle filter steps of 6,400
+    particles: 4 s against 19 s). ``jit_kwargs`` are ``jitted``'s own (its static arguments). Elsewhere ``jitted``
+    itself. Such a program may only be called at the top level: inside another jit it fails loudly
+    (``compiler_options`` is for top-level programs only)."""
+    if not _fast_compilation():
+        return jitted
     import jax
 
+    return jax.jit(jitted.__wrapped__, compiler_options=SHIPPED_COMPILER_OPTIONS, **jit_kwargs)
+
+
+def _render_batches_as_shipped() -> None:
+    """Compile :func:`pixelmpc_jax.world.render.render_batch` optimised (:func:`jit_as_shipped`): a rendered frame is
+    the one long program several test files run (hundreds of thousands of rays)."""
     from pixelmpc_jax.world import render
 
-    render.render_batch = jax.jit(render.render_batch.__wrapped__, static_argnames=("supersample", "chunk"),
-                                  compiler_options=SHIPPED_COMPILER_OPTIONS)
+    render.render_batch = jit_as_shipped(render.render_batch, static_argnames=("supersample", "chunk"))
 
 
 def pytest_configure(config):

@@ -365,7 +365,10 @@ def fingerprint(weights) -> dict[str, np.ndarray]:
 
 def assert_pinned(weights, name: str) -> None:
     """``weights`` match the fingerprints ``name`` in :data:`PINNED`, to float tolerance (relative 1e-4 of each
-    leaf's norm: rounding differs across CPUs and XLA versions; a changed computation moves them by order 1)."""
+    leaf's norm: rounding differs across CPUs, XLA versions and compilations; a changed computation moves them by
+    order 1). On a 2-core AMD EPYC (family 25 model 17), jax 0.10.2, the two DOF fingerprints came within 0.4 % and
+    0.3 % of that tolerance as a user's run compiles, and 0.4 % and 6.6 % at the test run's cheapest compilation
+    (tests/conftest.py)."""
     pinned = np.load(PINNED)
     prints = fingerprint(weights)
     assert sorted(prints) == sorted(k.split("/", 1)[1] for k in pinned.files if k.split("/", 1)[0] == name)
@@ -374,7 +377,6 @@ def assert_pinned(weights, name: str) -> None:
         np.testing.assert_allclose(value, expected, rtol=1e-4, atol=1e-4 * expected[1], err_msg=f"{name}/{path}")
 
 
-@pytest.mark.compiled_as_shipped
 @pytest.mark.parametrize("name, variant", [
     ("dof", {}),
     ("dof_turned", dict(loss="endpoint", input="flown", rotation_augment=1.0, rotation_augment_fraction=0.5)),

@@ -327,6 +327,8 @@ def test_resume_across_the_stages_equals_an_uninterrupted_run(hand_made_data, tm
     chex.assert_trees_all_equal(full, resumed)
 
 
+# at the test run's cheapest compilation its fingerprints came to 54 % of their tolerance (112 % with the LLVM
+# modules split), its training data rounded otherwise: it runs as a user's run compiles (tests/conftest.py)
 @pytest.mark.compiled_as_shipped
 def test_the_pipeline_trains_vdof_as_the_trainer_it_replaced(hand_made_data):
     """60 one-step and 40 rollout steps on the hand-made lap give the weights the trainer the pipeline replaced
