@@ -7,7 +7,7 @@ moderate level on the true state).
         [--levels moderate severe] [--controllers mppi pixelmpc] [--levers [NAME ...]] [--reuse FOLDER ...]
         [--report-only]
 
---levers: model, filter, gate, bias, robust, map, align, adapt, model-map, model-adapt (no name: all).
+--levers: model, filter, gate, bias, robust, exact, align, adapt, model-adapt (no name: all).
 
 Writes REPORT.md (success at a glance, every cell, the fault levels and their reasons), robustness.json,
 robustness.png and results.json. Interrupted runs resume: finished cells are kept.

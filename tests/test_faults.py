@@ -20,6 +20,7 @@ from pixelmpc_jax.dynamics import quadrotor as Q
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import faults as F
 from pixelmpc_jax.sim import plant as plant_lib
@@ -422,13 +423,17 @@ def test_the_fault_flags_make_the_race(tmp_path):
 
 def test_the_kalman_filter_flags_set_it_and_need_it(tmp_path, capsys):
     args = cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
-                                          "--eskf-map-sigma", "0.2", "--eskf-align", "2",
+                                          "--eskf-map-sigma", "0.5", "--eskf-align", "2",
                                           "--eskf-noise-adapt-rate", "0.05"])
     spec, _ = race_spec(args)
-    assert spec.eskf.map_sigma_m == 0.2 and spec.eskf.align_s == 2.0 and spec.guards == guards_lib.GuardConfig()
+    assert spec.eskf.map_sigma_m == 0.5 and spec.eskf.align_s == 2.0 and spec.guards == guards_lib.GuardConfig()
     assert spec.eskf.noise_adapt_rate == 0.05
     plain, _ = race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf"]))
-    assert plain.eskf.map_sigma_m == 0.0 and plain.eskf.align_s == 0.0 and plain.eskf.noise_adapt_rate == 0.0
+    assert plain.eskf.map_sigma_m == SURVEYED_MAP_SIGMA_M and plain.eskf.align_s == 0.0
+    assert plain.eskf.noise_adapt_rate == 0.0
+    exact, _ = race_spec(cli.build_parser().parse_args(["race", "--out", str(tmp_path), "--estimator", "eskf",
+                                                        "--eskf-map-sigma", "0"]))
+    assert exact.eskf.map_sigma_m == 0.0
     for argv, message in ((["--eskf-map-sigma", "0.2"], "--eskf-map-sigma sets the Kalman filter"),
                           (["--eskf-align", "2"], "--eskf-align sets the Kalman filter"),
                           (["--eskf-noise-adapt-rate", "0.05"], "--eskf-noise-adapt-rate sets the Kalman filter"),

@@ -15,6 +15,7 @@ from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.dynamics.dof import packaged_dof_hash
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
+from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.sim import ticks_compact
 from pixelmpc_jax.sim.metrics import MEASURE
@@ -205,14 +206,15 @@ def test_a_race_recorded_with_a_retired_setting_reads_back_with_the_key_it_was_f
 
 def test_races_recorded_before_the_onboard_loop_read_back_as_they_flew_with_their_keys():
     """Before the clipped detector, the surveyed map and the estimated switch, every race flew the ideal projection
-    (recorded as "geometry"), a perturbed course known to the controller, and on a filter the world's switch. Their
+    (recorded as "geometry"), a perturbed course known to the controller, and on a filter the world's switch (and the
+    ESKF took the map as exact). Their
     records read back as those races, under the keys they were flown with; the new defaults are other races."""
     old_keys = {  # keys of records written before the settings
         "pixelmpc": (RaceSpec("pixelmpc", detector="ideal"), OLD_KEYS["pixelmpc"]),
         "pixelmpc_pf_perturbed": (RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal", map="known",
                                            gate_switch="truth"), OLD_KEYS["pixelmpc_pf_perturbed"]),
-        "mppi_eskf": (RaceSpec("mppi", estimator="eskf", detector="ideal", gate_switch="truth"),
-                      OLD_KEYS["mppi_eskf"]),
+        "mppi_eskf": (RaceSpec("mppi", estimator="eskf", detector="ideal", gate_switch="truth",
+                               eskf=ESKFConfig(map_sigma_m=0.0)), OLD_KEYS["mppi_eskf"]),
     }
     for name, (spec, key) in old_keys.items():
         old = json.loads(json.dumps(spec.record()))

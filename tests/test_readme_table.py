@@ -81,6 +81,21 @@ def test_every_row_names_a_folder_that_exists_and_says_whether_it_commits_per_ti
         assert readme_table.ISO_DATE.search(row.measured_on), row
 
 
+def test_the_loop_names_an_eskf_told_other_than_its_default_map_accuracy():
+    """A race recorded without the Kalman filter's settings flew the map as exact (its default then); today's
+    default, a surveyed map's accuracy, adds nothing to the words; any other is named."""
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
+    from pixelmpc_jax.perception.eskf import ESKFConfig
+
+    then = {"estimator": "eskf", "detector": "image", "gate_switch": "estimate"}
+    assert readme_table._loop("eskf", then).startswith("ESKF taking the map as exact, image detector")
+    today = RaceSpec("pixelmpc", estimator="eskf").record()
+    assert readme_table._loop("eskf", today).startswith("ESKF, ")
+    told = RaceSpec("pixelmpc", estimator="eskf", eskf=ESKFConfig(map_sigma_m=0.5)).record()
+    assert readme_table._loop("eskf", told).startswith("ESKF told the map to 0.5 m, ")
+    assert readme_table._loop("pf", then).startswith("particle filter, ")
+
+
 def test_the_tables_row_puts_the_paper_cell_beside_nominal_at_both_paces_from_the_per_tick_record():
     """Tables II-III's row: at the 14 m/s label and at its pace, nominal MPPI -> the `paper` preset under this measure
     and the paper's rule; each mean recomputes from the folder's committed compact per-tick record alone."""

@@ -12,7 +12,7 @@ from pixelmpc_jax.apps.experiments import robustness as R
 from pixelmpc_jax.apps.racing import grid, race
 from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.perception.eskf import ESKFConfig
+from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M, ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, Faults, fault_level
 
@@ -104,29 +104,42 @@ def test_the_controller_levers_fly_on_every_loop_and_the_guards_on_the_particle_
             cells[f"mppi_{estimator}_drag_moderate"].cell.spec.config
 
 
-def test_the_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
-    cells = _by_name(R.robustness_cells(levers=("map",)))
+def test_the_exact_map_setting_flies_on_the_kalman_filter_only_for_both_controllers():
+    cells = _by_name(R.robustness_cells(levers=("exact",)))
     for controller in ("mppi", "pixelmpc"):  # a filter's setting changes no controller: both fly it
         for fault in ("none", "map_moderate", "wind_moderate"):
-            spec = cells[f"{controller}_eskf_{fault}_map"].cell.spec
-            assert spec.eskf.map_sigma_m == R.MAP_SIGMA_M and spec.estimator == "eskf"
+            spec = cells[f"{controller}_eskf_{fault}_exact"].cell.spec
+            assert spec.eskf.map_sigma_m == 0.0 and spec.estimator == "eskf"
             assert spec.config == cells[f"{controller}_eskf_{fault}"].cell.spec.config
-        assert f"{controller}_eskf_map_severe_map" not in cells
+        assert f"{controller}_eskf_map_severe_exact" not in cells
         for estimator in ("pf", "truth"):
-            assert not any(name.endswith("_map") and name.startswith(f"{controller}_{estimator}_") for name in cells)
-    assert cells["pixelmpc_eskf_none"].cell.spec.eskf.map_sigma_m == 0.0
-    # the setting belongs to the Kalman filter: a race on another loop drops it, and the default adds no key
-    lever_spec = cells["pixelmpc_eskf_map_moderate_map"].cell.spec
+            assert not any(name.endswith("_exact") and name.startswith(f"{controller}_{estimator}_") for name in cells)
+    # the Kalman filter's default: a surveyed map's accuracy
+    assert cells["pixelmpc_eskf_none"].cell.spec.eskf.map_sigma_m == SURVEYED_MAP_SIGMA_M > 0
+    # the setting belongs to the Kalman filter: a race on another loop drops it
+    lever_spec = cells["pixelmpc_eskf_map_moderate_exact"].cell.spec
     assert lever_spec.replace(estimator="pf").eskf == RaceSpec().eskf
-    assert "eskf" not in cells["pixelmpc_eskf_none"].cell.spec.record()
     assert RaceSpec.from_record(lever_spec.record()) == lever_spec
-    # with the observer at once: on the Kalman filter only, both controllers
-    both = _by_name(R.robustness_cells(levers=("model-map",)))
-    spec = both["pixelmpc_eskf_combined_moderate_model-map"].cell.spec
-    assert spec.eskf.map_sigma_m == R.MAP_SIGMA_M
-    assert spec.config.disturbance_time_constant_s == R.DISTURBANCE_TIME_CONSTANT_S
-    assert not any(name.endswith("model-map") and "_eskf_" not in name for name in both)
-    assert both["mppi_eskf_combined_moderate_model-map"].cell.spec.eskf.map_sigma_m == R.MAP_SIGMA_M
+    default_spec = cells["pixelmpc_eskf_none"].cell.spec
+    assert RaceSpec.from_record(default_spec.record()) == default_spec
+
+
+def test_races_flown_before_the_surveyed_map_default_keep_their_record_and_key():
+    """The ESKF took the map as exact until a surveyed map's accuracy became its default: a race recorded then (its
+    record without the Kalman filter's settings, the default they were) reads back taking the map as exact, with the
+    record and the key it had; today's default is written out, and a race on another loop records none of it."""
+    then = RaceSpec("pixelmpc", speed=8.5, estimator="eskf", seed=200)
+    old_record = {**then.record()}
+    old_record.pop("eskf", None)  # as every race on the former default was recorded
+    was = RaceSpec.from_record(old_record)
+    assert was.eskf == ESKFConfig(map_sigma_m=0.0) and was.record() == old_record
+    assert was.key() == RaceSpec.from_record(json.loads(json.dumps(old_record))).key()
+    assert "eskf" in then.record() and then.record()["eskf"]["map_sigma_m"] == SURVEYED_MAP_SIGMA_M
+    assert then.key() != was.key() and RaceSpec.from_record(then.record()) == then
+    # a setting recorded in part (written before map_sigma_m existed, or by hand) reads the rest as it was then
+    aligned = RaceSpec.from_record({**old_record, "eskf": {"align_s": 2.0}})
+    assert aligned.eskf == ESKFConfig(map_sigma_m=0.0, align_s=2.0)
+    assert "eskf" not in RaceSpec("pixelmpc", speed=8.5, estimator="pf").record()
 
 
 def test_the_alignment_flies_on_the_kalman_filter_only_for_both_controllers():
@@ -243,14 +256,14 @@ def test_the_report_of_finished_cells_only(tmp_path):
 
 
 def test_the_adapted_noise_flies_on_the_kalman_filter_at_both_levels_and_the_other_sets_at_the_moderate_only():
-    cells = _by_name(R.robustness_cells(levers=("adapt", "map")))
+    cells = _by_name(R.robustness_cells(levers=("adapt", "exact")))
     for controller in ("mppi", "pixelmpc"):
         for fault in ("none", "pixel_noise_moderate", "pixel_noise_severe", "false_severe"):
             spec = cells[f"{controller}_eskf_{fault}_adapt"].cell.spec
             assert spec.eskf.noise_adapt_rate == R.NOISE_ADAPT_RATE and spec.estimator == "eskf"
             assert spec.config == cells[f"{controller}_eskf_{fault}"].cell.spec.config
         assert f"{controller}_eskf_combined_moderate_adapt" in cells
-        assert f"{controller}_eskf_pixel_noise_severe_map" not in cells  # the map set answers the moderate level
+        assert f"{controller}_eskf_pixel_noise_severe_exact" not in cells  # the exact set flies the moderate level
         assert not any(name.endswith("_adapt") and "_eskf_" not in name for name in cells)
     severe = [rc for rc in cells.values() if rc.levers == "adapt" and rc.level == "severe"]
     assert len(severe) == 2 * len(FAULT_LEVELS) and all(rc.laps == 6 for rc in severe)

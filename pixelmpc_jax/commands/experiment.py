@@ -117,11 +117,11 @@ def _add_robustness(jobs) -> None:
                    help="also fly the moderate cells with each set of levers on, apart: model (the disturbance "
                         "observer, the latency in the model; on every loop, both controllers), filter (the particle "
                         "filter's guards), gate and bias (the guards' two halves alone), robust (model and gate at "
-                        "once); the guards on the particle filter and PixelMPC only; map (the Kalman filter told how "
-                        "far a gate may stand from the map), model-map (model and map at once), align (the "
-                        "Kalman filter aligned on its IMU at rest before the lap), adapt (the Kalman filter's "
-                        "corner noise following its innovations; also at the severe level) and model-adapt (model "
-                        "and adapt at once) on the Kalman filter; no name: all")
+                        "once); the guards on the particle filter and PixelMPC only; exact (the Kalman filter taking "
+                        "the map as exact, its default before a surveyed map's accuracy), align (the Kalman filter "
+                        "aligned on its IMU at rest before the lap), adapt (the Kalman filter's corner noise "
+                        "following its innovations; also at the severe level) and model-adapt (model and adapt at "
+                        "once) on the Kalman filter; no name: all")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="other grids' output folders whose finished cells of the same race (the fault-free "
                         "ones, and any other flown the same) are copied, not flown")

@@ -132,8 +132,8 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "each particle carrying its own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)",
               {"type": arg.imu_bias_std, "metavar": "ACCEL,GYRO"}),
     FieldFlag("--eskf-map-sigma", "eskf.map_sigma_m", "with --estimator eskf: each gate stands within M m per axis "
-              "(1 sigma) of where the map says, so a gate's corners share that offset in the filter's update (0.2 for "
-              "a tape-measured course; default: 0, an exact map)",
+              "(1 sigma) of where the map says, so a gate's corners share that offset in the filter's update (0: an "
+              "exact map; default: 0.2, a tape-measured course)",
               {"type": arg.float_in(0.0, 100.0, unit="m"), "metavar": "M"}),
     FieldFlag("--eskf-align", "eskf.align_s", "with --estimator eskf: the filter averages S s of its IMU's readings at "
               "rest before the lap (on the pad) and learns the gyro bias and the accelerometer's along gravity from "

@@ -13,8 +13,8 @@ set against it lap for lap, on the same seeds), 6 for the severe level (``quick`
 moderate level on the particle filter only unless ``estimators`` says otherwise). With ``levers``, the cells
 of the moderate level, where the bars are set, and the fault-free ones (what a lever costs) are flown again with each
 named set of levers (:data:`LEVER_SETS`) that applies to the loop and the controller on: on the particle filter its
-guards and the ``model`` set, on the Kalman filter its ``map``, ``align`` and ``adapt`` settings, the ``model`` set and
-``model-map``, on the true
+guards and the ``model`` set, on the Kalman filter its ``exact``, ``align`` and ``adapt`` settings and the ``model``
+set, on the true
 state the ``model`` set, so every filter cell with a controller lever has its true-state cell with the same lever.
 Nominal MPPI flies the ``model`` set too (its own bar: within a lap of its true-state cell) and, as the filters'
 settings change no controller, the Kalman filter's settings (the guards' sets stay PixelMPC's, as the
@@ -23,12 +23,12 @@ controller's model (``ControllerConfig.disturbance_time_constant_s``) and, under
 in its model (``ControllerConfig.model_latency_ticks``); ``filter``, the filter's guards
 (:mod:`pixelmpc_jax.perception.filter_guards`): the detection gate, the divergence recovery and the IMU bias
 states; ``gate`` and ``bias``, the filter set's two halves alone (which of them costs what); ``robust``, the model
-and gate sets at once (:data:`COMBINED_LEVERS`); ``map``, the Kalman filter told how far a gate may stand from
-the map (:data:`MAP_SIGMA_M`, ``ESKFConfig.map_sigma_m``); ``model-map``, the model and map sets at once;
-``align``, the Kalman filter aligned on its IMU's readings at rest before the lap (:data:`ALIGN_S`,
-``ESKFConfig.align_s``), as a vehicle sits on the pad before take-off; ``adapt``, the Kalman filter's corner noise
-following what its innovations show (:data:`NOISE_ADAPT_RATE`, ``ESKFConfig.noise_adapt_rate``), the one set also
-flown at the severe level (:data:`SEVERE_LEVERS`), whose 6 px corners it answers; ``model-adapt``, the model and
+and gate sets at once (:data:`COMBINED_LEVERS`); ``exact``, the Kalman filter taking the map as exact
+(``ESKFConfig.map_sigma_m`` 0, its default before a surveyed map's accuracy); ``align``, the Kalman filter aligned
+on its IMU's readings at rest before the lap (:data:`ALIGN_S`, ``ESKFConfig.align_s``), as a vehicle sits on the pad
+before take-off; ``adapt``, the Kalman filter's corner noise following what its innovations show
+(:data:`NOISE_ADAPT_RATE`, ``ESKFConfig.noise_adapt_rate``), the one set also flown at the severe level
+(:data:`SEVERE_LEVERS`), whose 6 px corners it answers; ``model-adapt``, the model and
 adapt sets at once. The
 sets fly apart, so each is measured on its own. The ``best`` preset already keeps a clearance to the frames
 widened by the filter's error
@@ -54,7 +54,7 @@ from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
 from pixelmpc_jax.apps.racing.grid import Cell, fmt
 from pixelmpc_jax.apps.racing.presets import preset
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.perception.eskf import ESKFConfig
+from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M, ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
 from pixelmpc_jax.platform_info import device_line
 from pixelmpc_jax.sim.faults import COMBINED, FAULT_LEVELS, LEVELS, Faults, fault_level
@@ -87,12 +87,11 @@ LEVER_SETS = {"model": f"the disturbance observer ({DISTURBANCE_TIME_CONSTANT_S:
               "bias": f"the filter's {_BIAS_WORDS} alone (the filter set less the gate and the recovery)",
               "robust": f"the {' and '.join(COMBINED_LEVERS['robust'])} sets at once (not the bias states)"}
 FILTER_GUARDS = {"filter": GUARDS, "gate": GATE_GUARDS, "bias": BIAS_GUARDS}
-# the Kalman filter told how far a gate may stand from the map: a tape-measured course's accuracy (the moderate map
-# fault moves each gate 0.3 m horizontally, 0.21 m per horizontal axis on average)
-MAP_SIGMA_M = 0.2
-ESKF_SETTINGS = {"map": ESKFConfig(map_sigma_m=MAP_SIGMA_M)}
-LEVER_SETS["map"] = (f"the ESKF told that each gate stands within {MAP_SIGMA_M:g} m per axis (1 sigma) of the map "
-                     "(ESKFConfig.map_sigma_m)")
+# the Kalman filter taking the map as exact, its default until a surveyed map's accuracy (SURVEYED_MAP_SIGMA_M): the
+# cells flown before that named the surveyed map's accuracy the "map" set
+ESKF_SETTINGS = {"exact": ESKFConfig(map_sigma_m=0.0)}
+LEVER_SETS["exact"] = (f"the ESKF taking the map as exact (ESKFConfig.map_sigma_m 0, its default before "
+                       f"{SURVEYED_MAP_SIGMA_M:g} m per axis, a surveyed map's accuracy)")
 # the Kalman filter aligned on its IMU's readings at rest before the lap, as a vehicle on the pad before take-off
 ALIGN_S = 2.0
 ESKF_SETTINGS["align"] = ESKFConfig(align_s=ALIGN_S)
@@ -105,8 +104,6 @@ ESKF_SETTINGS["adapt"] = ESKFConfig(noise_adapt_rate=NOISE_ADAPT_RATE)
 LEVER_SETS["adapt"] = (f"the ESKF's corner noise following what its innovations show (rate {NOISE_ADAPT_RATE:g} a "
                        "detection; ESKFConfig.noise_adapt_rate), also flown at the severe level")
 SEVERE_LEVERS = ("adapt",)  # the sets also flown at the severe level: the severe faults are what they answer
-COMBINED_LEVERS["model-map"] = ("model", "map")
-LEVER_SETS["model-map"] = "the model and map sets at once (the Kalman filter's counterpart of robust)"
 COMBINED_LEVERS["model-adapt"] = ("model", "adapt")
 LEVER_SETS["model-adapt"] = "the model and adapt sets at once"
 CONTROLLER_LEVERS = ("model",)  # the sets that change the controller only: they fly on every loop

@@ -52,6 +52,12 @@ RETIRED_SETTINGS = ((("config", "mppi", "sample_devices"), 1), (("config", "mppi
 # without it reads back at the earlier value, so every race flown before keeps its record and its key; where it flies
 # nothing it keeps its default and stays out of the record.
 EARLIER_VALUES = {"map": "known", "gate_switch": "truth"}
+# Nested settings whose defaults changed after races were recorded, with the settings every race before flew: on a
+# loop that flies them (:meth:`RaceSpec.flies`), a record leaves them out when they hold those earlier settings and
+# writes them whole otherwise (so every race flown before keeps its record and its key), and a record without them,
+# or without one of their fields, reads back at the earlier settings. The ESKF took the map as exact until a surveyed
+# map's accuracy became its default (``ESKFConfig.map_sigma_m``).
+EARLIER_SETTINGS = {"eskf": ESKFConfig(map_sigma_m=0.0)}
 # Values renamed after races were recorded: a record's old spelling reads back as the new name, and the key hashes the
 # new name as the old spelling, so every race flown before keeps its key. "geometry" was the ideal projection until
 # the clipped detector became the default.
@@ -175,9 +181,9 @@ class RaceSpec:
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
 
     def flies(self, name: str) -> bool:
-        """Whether the setting ``name`` of :data:`EARLIER_VALUES` changes a lap: the map with ``perturb``, the gate
-        switch on a filter."""
-        return self.perturb if name == "map" else self.estimator != "truth"
+        """Whether the setting ``name`` of :data:`EARLIER_VALUES` or :data:`EARLIER_SETTINGS` changes a lap: the map
+        with ``perturb``, the gate switch on a filter, the Kalman filter's settings on the Kalman filter."""
+        return _flies(name, self.perturb, self.estimator)
 
     def episode_config(self) -> EpisodeConfig:
         """The environment and driver the race's laps fly in (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`)."""
@@ -195,13 +201,17 @@ class RaceSpec:
 
     def record(self) -> dict:
         """The spec in JSON types: its fields, the configuration nested as its dataclasses (tuples as lists once
-        written), less the :data:`LATER_SETTINGS` at their defaults and the :data:`EARLIER_VALUES` where they fly
-        nothing or hold their earlier value. :meth:`from_record` reads it back."""
+        written), less the :data:`LATER_SETTINGS` at their defaults (the :data:`EARLIER_SETTINGS` at their earlier
+        ones where they fly) and the :data:`EARLIER_VALUES` where they fly nothing or hold their earlier value.
+        :meth:`from_record` reads it back."""
         record = dataclasses.asdict(self)
         for name, earlier in EARLIER_VALUES.items():
             if not self.flies(name) or record[name] == earlier:
                 del record[name]
         default = dataclasses.asdict(RaceSpec())
+        for name, earlier in EARLIER_SETTINGS.items():  # where they fly, they are left out at the earlier settings
+            if self.flies(name):
+                default[name] = dataclasses.asdict(earlier)
         for *parents, name in LATER_SETTINGS:
             node, default_node = record, default
             for parent in parents:
@@ -230,13 +240,19 @@ class RaceSpec:
         default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``; a
         :data:`RETIRED_SETTINGS` at its one value is dropped, a :data:`RENAMED_VALUES` spelling reads as its new name,
         a record of a version that recorded fewer settings flew :data:`UNRECORDED_BEFORE`, and an
-        :data:`EARLIER_VALUES` setting the record lacks reads back at its earlier value where it flies."""
+        :data:`EARLIER_VALUES` setting the record lacks reads back at its earlier value where it flies, as do the
+        :data:`EARLIER_SETTINGS` it lacks or holds in part."""
         record = _without_retired(record)
         if isinstance(record, dict):
             record = {**UNRECORDED_BEFORE, **record}
             for name, renamed in RENAMED_VALUES.items():
                 if isinstance(record[name], str) and record[name] in renamed:
                     record[name] = renamed[record[name]]
+            for name, earlier in EARLIER_SETTINGS.items():
+                if _flies(name, record.get("perturb", False), record.get("estimator", "truth")):
+                    recorded = record.get(name, {})
+                    if isinstance(recorded, dict):  # anything else is refused by name below
+                        record[name] = {**dataclasses.asdict(earlier), **recorded}
         spec = _from_record(cls(), record, "")
         earlier = {name: value for name, value in EARLIER_VALUES.items() if name not in record and spec.flies(name)}
         return spec.replace(**earlier) if earlier else spec
@@ -325,6 +341,13 @@ def _canonical(value):
     if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
         return float(value)
     return value
+
+
+def _flies(name: str, perturb: bool, estimator: str) -> bool:
+    """:meth:`RaceSpec.flies` from the race's ``perturb`` and ``estimator``."""
+    if name == "map":
+        return bool(perturb)
+    return estimator == "eskf" if name in EARLIER_SETTINGS else estimator != "truth"
 
 
 def _without_retired(record):
