@@ -28,7 +28,7 @@ from pixelmpc_jax.apps.experiments.estimation import PAPER_TABLE_IV
 from pixelmpc_jax.apps.experiments.paper import LABEL_SPEED, PAPER_LAP_TIME, PAPER_VIS_BELOW_50
 from pixelmpc_jax.apps.experiments.skeleton import failure_counts
 from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEEDS
-from pixelmpc_jax.apps.racing.spec import EARLIER_SETTINGS
+from pixelmpc_jax.apps.racing.spec import flown_setting
 from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
 from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
 from pixelmpc_jax.sim import ticks_compact
@@ -125,8 +125,8 @@ def _loop(estimator: str, config: dict | None = None) -> str:
     """The loop a race flew, in words: the estimator and, from its recorded ``config``, the detector, on a filter
     where the gate switch came from, and on the ESKF the map's accuracy it was told when that was not its default."""
     words = [{"truth": "true state", "pf": "particle filter", "eskf": "ESKF"}.get(estimator, estimator)]
-    if config is not None and estimator == "eskf":  # a record without it flew the earlier setting (racing/spec.py)
-        sigma = config.get("eskf", {}).get("map_sigma_m", EARLIER_SETTINGS["eskf"].map_sigma_m)
+    if config is not None and estimator == "eskf":
+        sigma = flown_setting(config, "eskf").map_sigma_m
         if sigma != SURVEYED_MAP_SIGMA_M:
             words[0] = "ESKF taking the map as exact" if sigma == 0 else f"ESKF told the map to {sigma:g} m"
     if config is not None:

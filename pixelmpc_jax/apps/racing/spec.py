@@ -248,11 +248,10 @@ class RaceSpec:
             for name, renamed in RENAMED_VALUES.items():
                 if isinstance(record[name], str) and record[name] in renamed:
                     record[name] = renamed[record[name]]
-            for name, earlier in EARLIER_SETTINGS.items():
-                if _flies(name, record.get("perturb", False), record.get("estimator", "truth")):
-                    recorded = record.get(name, {})
-                    if isinstance(recorded, dict):  # anything else is refused by name below
-                        record[name] = {**dataclasses.asdict(earlier), **recorded}
+            for name in EARLIER_SETTINGS:
+                if (_flies(name, record.get("perturb", False), record.get("estimator", "truth"))
+                        and isinstance(record.get(name, {}), dict)):  # anything else is refused by name below
+                    record[name] = dataclasses.asdict(flown_setting(record, name))
         spec = _from_record(cls(), record, "")
         earlier = {name: value for name, value in EARLIER_VALUES.items() if name not in record and spec.flies(name)}
         return spec.replace(**earlier) if earlier else spec
@@ -341,6 +340,13 @@ def _canonical(value):
     if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
         return float(value)
     return value
+
+
+def flown_setting(record: dict, name: str):
+    """The :data:`EARLIER_SETTINGS` ``name`` (its dataclass) that a race recorded in ``record`` flew, on a loop that
+    flies it: the fields the record holds, the earlier settings for those it lacks (all of them where it left the
+    setting out)."""
+    return _from_record(EARLIER_SETTINGS[name], record.get(name, {}), f"{name}.")
 
 
 def _flies(name: str, perturb: bool, estimator: str) -> bool:
