@@ -336,6 +336,41 @@ def test_vdofs_size_cue_takes_the_corners_out_of_view_from_the_map(world):
     assert float(vdof_lib.box_size(half.detection.corners)) > 1.5 * size["whole"]
 
 
+def test_a_gate_cut_by_the_image_border_starts_from_the_map_with_partial_target_map(world):
+    """A detection with two opening corners out of view reports the centre of its visible outline: the controller
+    plans from it with ``partial_target="detected"`` and from the gate's centre and corners projected from the map
+    and the estimate with "map"; a detection with every corner in view is planned from the detection either way."""
+    from pixelmpc_jax.dynamics import vdof as vdof_lib
+
+    learned = world.replace(dof=vdof_lib.load_packaged_vdof())
+    env = env_lib.make_env(CONFIG)
+    _, whole = env.observe(learned, env.reset(learned, jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    assert bool(jnp.all(whole.detection.corners_visible))
+    in_view = jnp.asarray([False, True, True, False])
+    clipped_centre = jnp.asarray([0.8, 0.5], jnp.float32)  # the visible outline's centre, the gate's right part
+    half = whole._replace(detection=whole.detection.replace(
+        centre=clipped_centre, corners=jnp.where(in_view[:, None], whole.detection.corners, 0.0),
+        corners_visible=in_view))
+    mapped, mapped_corners = pixelmpc_lib.map_pixel_state(learned.track.gate(half.target_gate), half.x_est,
+                                                          learned.camera)
+    assert float(jnp.abs(mapped - clipped_centre).max()) > 0.2
+    started = {}
+    for partial_target in ("detected", "map"):
+        policy = policies.pixelmpc_policy(pixelmpc_lib.ControllerConfig(
+            mppi=pixelmpc_lib.paper_mppi_config(num_samples=16, horizon=4), pixel_model="vdof",
+            partial_target=partial_target))
+        act, state = jax.jit(policy.act), jax.jit(policy.init)(jax.random.PRNGKey(2), learned)
+        started[partial_target] = {name: np.asarray(act(state, obs, learned)[2][0, 10:13])
+                                   for name, obs in (("whole", whole), ("half", half))}
+    np.testing.assert_allclose(started["detected"]["half"][:2], clipped_centre, atol=1e-6)
+    np.testing.assert_allclose(started["map"]["half"], vdof_lib.initial_pixel_state(mapped, mapped_corners),
+                               atol=1e-6)
+    np.testing.assert_array_equal(started["map"]["whole"], started["detected"]["whole"])
+    np.testing.assert_allclose(started["map"]["whole"][:2], whole.detection.centre, atol=1e-6)
+    with pytest.raises(ValueError, match="partial_target must be one of"):
+        pixelmpc_lib.ControllerConfig(partial_target="guess")
+
+
 def test_the_kept_pixel_charges_a_lost_target_with_the_pixel_its_model_predicted(world):
     """``target_prior="kept"``: once the target has been seen, a tick without a detection is planned from the pixel
     the controller's pixel model predicted for it at the last tick, and charged; a new target not yet seen is not,

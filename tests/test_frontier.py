@@ -1,5 +1,6 @@
 """The speed frontier: interpolation and gain, strict JSON, report and plot, the CLI, a tiny flight."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -162,6 +163,28 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     assert [c.spec.config.pixel_cost for c in seen["cells"]] == ["border"] * 2
     assert {c.spec.config.pixel_model for c in seen["cells"]} == {"projection", "dof"}
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
+
+
+def test_the_partial_cells_fly_best_beside_its_map_aided_partial_target_and_nothing_else_apart(tmp_path,
+                                                                                               monkeypatch):
+    """``--cells partial``: the best preset at the paper's pace, keyed as every earlier race of it, and the same race
+    with ``partial_target="map"``, the one field apart."""
+    from pixelmpc_jax.apps.racing import presets
+
+    seen = {}
+
+    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
+        seen.update(cells=cells)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(F, "run_frontier", stop)
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path), "--cells", "partial"]) == 130
+    best, mapped = seen["cells"]
+    assert (best.name, mapped.name) == ("best_v8.5", "best_partial_map_v8.5")
+    assert best.spec == presets.preset("best") and best.spec.key() == presets.preset("best").key()
+    assert "partial_target" not in best.spec.record()["config"]
+    assert mapped.spec.config.partial_target == "map" and mapped.spec.key() != best.spec.key()
+    assert mapped.spec.replace(config=dataclasses.replace(mapped.spec.config, partial_target="detected")) == best.spec
 
 
 def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_path, monkeypatch):

@@ -249,16 +249,11 @@ def _project(centre, x):
     return jnp.where(in_front, uv, PM.behind_camera_pixel(uv.dtype))
 
 
-def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_reference_does(setup):
-    """With ``look_ahead`` the state carries the next gate's pixel too, and each predicted state past the target's
-    plane (and before the next gate's) is charged ``look_ahead`` times the next gate's pixel cost: the step equals a
-    generic MPPI with one-sample costs doing exactly that, from 1 m before gate 0 at 8 m/s (the samples pass it
-    within the 0.25 s the pixel is costed)."""
-    track, dof_params = setup
-    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
-    fast = compile_controller(PM.make_pixelmpc(config))
-    dt = SMALL.dt
-    centre, x0 = track.gates.centre[0], _before_gate_0(track)
+def _look_ahead_reference(config, plan_passes=None):
+    """A generic MPPI with one-sample costs over the projection look-ahead's state [x; target uv; next uv]: the racing
+    cost, the target's pixel cost before its plane and ``look_ahead`` times the next gate's past it, or from horizon
+    step ``plan_passes`` on (None: never) where the sample has not passed yet."""
+    dt = config.mppi.dt
 
     def full_dynamics(X, u, p):
         x_next = Q.step(X[:10], u, dt, Q.QuadParams())
@@ -269,11 +264,24 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
         in_prefix = t < config.pixel_steps
         ahead = jnp.dot(X[:3] - p.target_centre, p.target_normal) < 0.0
         before_next = jnp.dot(X[:3] - p.next_centre, p.next_normal) < 0.0
+        charged = ~ahead if plan_passes is None else ~ahead | (t >= plan_passes)
         target = jnp.where(in_prefix & ahead & p.target_active, PM.pixel_cost(X[10:12], config), 0.0)
-        following = jnp.where(in_prefix & ~ahead & before_next & p.next_active, PM.pixel_cost(X[12:14], config), 0.0)
+        following = jnp.where(in_prefix & charged & before_next & p.next_active, PM.pixel_cost(X[12:14], config), 0.0)
         return racing + target + config.look_ahead * following
 
-    full = compile_controller(make_mppi(SMALL, full_dynamics, full_cost))
+    return compile_controller(make_mppi(config.mppi, full_dynamics, full_cost))
+
+
+def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_reference_does(setup):
+    """With ``look_ahead`` the state carries the next gate's pixel too, and each predicted state past the target's
+    plane (and before the next gate's) is charged ``look_ahead`` times the next gate's pixel cost: the step equals a
+    generic MPPI with one-sample costs doing exactly that, from 1 m before gate 0 at 8 m/s (the samples pass it
+    within the 0.25 s the pixel is costed)."""
+    track, dof_params = setup
+    config = PM.ControllerConfig(mppi=SMALL, t_f=0.25, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
+    fast = compile_controller(PM.make_pixelmpc(config))
+    centre, x0 = track.gates.centre[0], _before_gate_0(track)
+    full = _look_ahead_reference(config)
     params = make_params(track, dof_params, config).replace(
         next_active=jnp.asarray(True), next_centre=track.gates.centre[1], next_normal=track.gates.normal[1])
     X0 = jnp.concatenate([x0, _project(centre, x0), _project(track.gates.centre[1], x0)])
@@ -291,6 +299,47 @@ def test_the_look_ahead_charges_the_next_gate_past_the_target_as_a_full_horizon_
     assert float(jnp.min(info_a.costs - alone.costs)) >= 0.0
     with pytest.raises(ValueError, match="look_ahead must be a finite weight"):
         PM.ControllerConfig(look_ahead=-1.0)
+
+
+def test_the_look_ahead_from_the_plan_charges_a_sample_that_passes_later_from_the_plans_passage(setup):
+    """``look_ahead_from="plan"``: a predicted state is charged the next gate's pixel cost once its sample has passed
+    the target's plane or once the plan (the zero-noise sample) has, so a sample that passes later than the plan, or
+    not at all, is charged from the plan's passage: the step equals a generic MPPI with one-sample costs that charge
+    from the step the plan's own rollout passes, the plan itself costs what it costs charged from its own passage, and
+    no sample costs less than charged from its own passage only."""
+    track, dof_params = setup
+    wide = dataclasses.replace(SMALL, noise_sigma=(1.5, 1.5, 1.5, 8.0))  # samples that part from the plan's passage
+    plane = PM.ControllerConfig(mppi=wide, t_f=0.5, c_pixel=9e6, pixel_model="projection", look_ahead=0.5)
+    config = dataclasses.replace(plane, look_ahead_from="plan")
+    dt = SMALL.dt
+    centre, normal = track.gates.centre[0], track.gates.normal[0]
+    x0 = Q.hover_state(tuple(np.asarray(centre - 0.8 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
+    x0 = x0.at[7:].set(2.0 * normal)  # the plan passes the plane about 0.4 s on, inside the 0.5 s pixel horizon
+    u_init = Q.hover_control(Q.QuadParams())
+    plan_states = jax.lax.scan(lambda x, _: (Q.step(x, u_init, dt, Q.QuadParams()),) * 2, x0, None,
+                               length=wide.horizon)[1]  # x_1 .. x_T under the plan, the hover command held
+    plan_past = np.asarray(jnp.dot(plan_states[:, :3] - centre, normal) >= 0.0)
+    plan_passes = int(np.argmax(plan_past))
+    assert plan_past.any() and 0 < plan_passes < config.pixel_steps
+
+    full = _look_ahead_reference(config, plan_passes)
+    following = track.gates.centre[1] + jnp.asarray([0.0, 4.0, 1.0])  # off the image's centre: its L1 cost is not 0
+    params = make_params(track, dof_params, config).replace(
+        next_active=jnp.asarray(True), next_centre=following, next_normal=track.gates.normal[1])
+    X0 = jnp.concatenate([x0, _project(centre, x0), _project(following, x0)])
+    key = jax.random.PRNGKey(3)
+    runs = {}
+    for name, controller in (("plan", compile_controller(PM.make_pixelmpc(config))),
+                             ("plane", compile_controller(PM.make_pixelmpc(plane))), ("reference", full)):
+        runs[name] = controller.step(controller.init(key, u_init), X0, params)[2].costs
+    np.testing.assert_allclose(runs["plan"], runs["reference"], rtol=2e-5)
+    np.testing.assert_allclose(runs["plan"][0], runs["plane"][0], rtol=1e-6)  # the plan: charged from its passage
+    extra = np.asarray(runs["plan"] - runs["plane"])
+    assert extra.min() >= -1e-3 * float(jnp.max(runs["plane"])) and extra.max() > 0.0
+    with pytest.raises(ValueError, match="look_ahead_from must be one of"):
+        PM.ControllerConfig(look_ahead_from="target")
+    with pytest.raises(ValueError, match="nominal_sample"):
+        PM.ControllerConfig(mppi=dataclasses.replace(wide, nominal_sample=False), look_ahead_from="plan")
 
 
 def test_the_projection_look_ahead_predicts_the_next_gate_from_the_map_and_the_target_by_the_pixel_model(setup):

@@ -13,8 +13,9 @@ from pixelmpc_jax.apps.racing.presets import LOOPS
 from pixelmpc_jax.arguments import SEED_MAX
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
-# or none (nominal MPPI's points alone, for another run's --reuse)
-FRONTIER_CELLS = ("all", "border", "preset", "none")
+# the best preset beside its partial_target="map" option, or none (nominal MPPI's points alone, for another run's
+# --reuse)
+FRONTIER_CELLS = ("all", "border", "preset", "partial", "none")
 
 
 def add_experiment(sub) -> None:
@@ -192,7 +193,9 @@ def _add_frontier(jobs) -> None:
                    help="PixelMPC cells: all (the paper's L1 and the border cost, both pixel models; default), "
                         "border (the border cost alone, at each model's weight of the 4-lap sweep), preset (the "
                         "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
-                        "of knowing where the gate is); none flies nominal MPPI's points alone, to split a frontier "
+                        "of knowing where the gate is), partial (the best preset at the paper's pace and the same "
+                        "race with its target's pixel from the map while the detector reports the gate cut by the "
+                        "image border); none flies nominal MPPI's points alone, to split a frontier "
                         "over processes (a last run with the cells and --reuse of each folder joins them)")
     p.add_argument("--speeds", type=arg.target_speeds, nargs="+", default=None, metavar="M_S|LO:HI:STEP",
                    help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}], each a speed or a range "
@@ -242,6 +245,10 @@ def _cmd_frontier(args) -> int:
         from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
 
         changes["cells"] = frontier.ceiling_cells(PAPER_PACE_SPEED)
+    elif args.cells == "partial":
+        from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEED
+
+        changes["cells"] = frontier.partial_target_cells(PAPER_PACE_SPEED)
     elif args.cells == "none":
         changes["cells"] = ()
     if args.speeds:

@@ -19,7 +19,14 @@ from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
 from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
 from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
-from pixelmpc_jax.control.pixelmpc import LOOK_AHEAD_MODELS, PIXEL_COSTS, PIXEL_MODELS, TARGET_PRIORS
+from pixelmpc_jax.control.pixelmpc import (
+    LOOK_AHEAD_FROM,
+    LOOK_AHEAD_MODELS,
+    PARTIAL_TARGETS,
+    PIXEL_COSTS,
+    PIXEL_MODELS,
+    TARGET_PRIORS,
+)
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
@@ -65,12 +72,19 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
               "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
               "and from the map before", {"choices": TARGET_PRIORS}),
+    FieldFlag("--partial-target", "config.partial_target", "where PixelMPC's target pixel starts when the detector "
+              "reports the gate cut by the image border: detected, the centre of its visible outline (the paper's); "
+              "map, the gate projected from the map and the estimate", {"choices": PARTIAL_TARGETS}),
     FieldFlag("--look-ahead", "config.look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's "
               "pixel cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, "
               "the paper's", {"type": arg.float_in(0.0, 1e3)}),
     FieldFlag("--look-ahead-model", "config.look_ahead_model", "what predicts the next gate's pixel along the horizon "
               "with the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
               "through each predicted pose (map-aided)", {"choices": LOOK_AHEAD_MODELS}),
+    FieldFlag("--look-ahead-from", "config.look_ahead_from", "from which predicted state the look-ahead charges the "
+              "next gate: plane, once the sample has passed the target's plane (a sample that stops short of the gate "
+              "escapes it); plan, from there or from the step the current plan passes it, the earlier",
+              {"choices": LOOK_AHEAD_FROM}),
     FieldFlag("--border-margin", "config.border_margin", "where the border cost starts, as a fraction of the image "
               "inside the border, in (0, 0.5]", {"type": arg.float_in(0.0, 0.5, lo_open=True)}),
     FieldFlag("--noise-exponent", "config.mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "

@@ -57,7 +57,14 @@ IMAGE_CENTRE = (0.5, 0.5)
 # until the target is detected); "map", a map-aided prior (the target's pixel projected from the map and the
 # estimate, see :func:`map_pixel_state`); "kept", the pixel kept alive by the pixel model once it was detected.
 TARGET_PRIORS = ("none", "map", "kept", "seeded")
+# Where the target's pixel state starts when the detector reports the gate cut by the image border (an opening corner
+# out of view): "detected", the detection's (the centre of its visible outline, as a clipped box gives it); "map", the
+# gate's centre and corners projected from the map and the estimate, as a lost target's with the map-aided prior.
+PARTIAL_TARGETS = ("detected", "map")
 LOOK_AHEAD_MODELS = ("own", "projection")  # what predicts the next gate's pixel with the look-ahead
+# From which predicted state the look-ahead charges the next gate: "plane", once the sample has passed the target's
+# plane; "plan", from there or from the step the current plan (MPPI's zero-noise sample) passes it, the earlier.
+LOOK_AHEAD_FROM = ("plane", "plan")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 
 
@@ -138,6 +145,18 @@ class ControllerConfig:
             (:data:`LOOK_AHEAD_MODELS`): "own", the controller's pixel model; "projection", the gate's centre from
             the map projected through each predicted pose (map-aided, as the next gate's pixel already starts; the
             target's pixel stays the pixel model's). The projection pixel model always predicts it so.
+        look_ahead_from: from which predicted state the look-ahead charges the next gate (:data:`LOOK_AHEAD_FROM`):
+            "plane", once the sample has passed the target's plane, so a sample that stops short of the gate escapes
+            the next gate's cost (near a gate the vehicle can still stop before, a plan that brakes to a hover is
+            then cheaper than one that flies through with the next gate out of view); "plan", from there or from
+            the step at which the current plan passes the plane, whichever is earlier: a sample that delays the
+            passage the plan intends pays the next gate's cost all the same. The plan is MPPI's zero-noise sample,
+            so "plan" needs ``mppi.nominal_sample``.
+        partial_target: where the target's pixel state starts when the detector reports it cut by the image border
+            (:data:`PARTIAL_TARGETS`): "detected", the detection's, the paper's (a camera's detector reports the
+            centre of the gate's visible outline, which stays inside the image as the gate leaves it, so a gate
+            mostly out of view is charged as if centred); "map", the gate's centre and corners projected from the map
+            and the estimate (map-aided, as the look-ahead's next gate), which leave the image with the gate.
     """
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
@@ -156,6 +175,8 @@ class ControllerConfig:
     target_prior: str = "none"
     look_ahead: float = 0.0
     look_ahead_model: str = "own"
+    partial_target: str = "detected"
+    look_ahead_from: str = "plane"
 
     def __post_init__(self):
         if isinstance(self.look_ahead, bool) or not (isinstance(self.look_ahead, (int, float))
@@ -164,6 +185,13 @@ class ControllerConfig:
         object.__setattr__(self, "look_ahead", float(self.look_ahead))
         if self.target_prior not in TARGET_PRIORS:
             raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
+        if self.look_ahead_from not in LOOK_AHEAD_FROM:
+            raise ValueError(f"look_ahead_from must be one of {LOOK_AHEAD_FROM}, got {self.look_ahead_from!r}")
+        if self.look_ahead_from == "plan" and not self.mppi.nominal_sample:
+            raise ValueError("look_ahead_from='plan' reads the current plan from MPPI's zero-noise sample: it needs "
+                             "mppi.nominal_sample")
+        if self.partial_target not in PARTIAL_TARGETS:
+            raise ValueError(f"partial_target must be one of {PARTIAL_TARGETS}, got {self.partial_target!r}")
         if self.pixel_model not in PIXEL_MODELS:
             raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
         if self.look_ahead_model not in LOOK_AHEAD_MODELS:
@@ -409,7 +437,10 @@ def make_pixelmpc(config: ControllerConfig | None = None,
         in_prefix = (steps < n_f)[:, None]
         total = total + gate_pixel_cost(X, 0, in_prefix & p.target_active & ahead)
         if gates == 2:
-            beyond = in_prefix & p.next_active & ~ahead & ahead_of(X, p.next_centre, p.next_normal)
+            past = ~ahead
+            if config.look_ahead_from == "plan":  # from the step the plan (sample 0) passes the target's plane on
+                past = past | (jnp.cumsum(past[:, 0].astype(jnp.int32)) > 0)[:, None]
+            beyond = in_prefix & p.next_active & past & ahead_of(X, p.next_centre, p.next_normal)
             total = total + config.look_ahead * gate_pixel_cost(X, 1, beyond)
         return total
 

@@ -200,7 +200,8 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
     def build(obs, world, racing, disturbance, kept):
         detection = obs.detection
         prior = config.target_prior
-        if prior in ("map", "seeded") or config.pixel_model == "vdof":  # the target's pixel from the map and estimate
+        if prior in ("map", "seeded") or config.pixel_model == "vdof" or config.partial_target == "map":
+            # the target's pixel from the map and the estimate
             mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
                                                                   world.camera)
         if prior == "map":  # an undetected target's pixel from the map and the estimate
@@ -212,6 +213,10 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
         if config.pixel_model == "vdof":  # the size from the corners in view (none when undetected), the rest mapped
             corners = jnp.where(detection.corners_visible[:, None], detection.corners, mapped_corners)
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
+        if config.partial_target == "map":  # a gate cut by the image border: its pixel state from the map
+            partial = detection.found & ~jnp.all(detection.corners_visible)
+            whole = mapped if config.pixel_model != "vdof" else vdof_lib.initial_pixel_state(mapped, mapped_corners)
+            uv0 = jnp.where(partial, whole.astype(uv0.dtype), uv0)
         if prior in ("kept", "seeded"):  # an undetected target's pixel as the pixel model moved it since it was seen
             alive = ~detection.found & kept.valid & (kept.gate == obs.target_gate)
             uv0 = jnp.where(alive, kept.pixel.astype(uv0.dtype), uv0)

@@ -110,6 +110,17 @@ def ceiling_cells(speed: float) -> tuple:
     return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_projection_v{speed:g}", exact)
 
 
+def partial_target_cells(speed: float) -> tuple:
+    """The ``best`` preset at ``speed`` and the same race with its target's pixel from the map while the detector
+    reports the gate cut by the image border (``partial_target="map"``): the option against the tail's lost gates,
+    measured against the preset (docs/results.md)."""
+    from pixelmpc_jax.apps.racing.presets import preset
+
+    best = preset("best").replace(speed=speed)
+    mapped = best.replace(config=dataclasses.replace(best.config, partial_target="map"))
+    return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_partial_map_v{speed:g}", mapped)
+
+
 def default_cells() -> tuple:
     """The paper's L1 cost at c_pixel 9e6 and the border cost at the sweep's weight, each with the projection and
     the DOF, 8 m/s."""

@@ -41,7 +41,8 @@ from pixelmpc_jax.world.course import COURSES
 # before them keeps its record and its key (a record that lacks them reads back as the defaults).
 LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
                   ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
-                  ("camera_tilt_deg",), ("config", "look_ahead_model"), ("eskf",))
+                  ("camera_tilt_deg",), ("config", "look_ahead_model"), ("eskf",),
+                  ("config", "partial_target"), ("config", "look_ahead_from"))
 # Settings taken out of the configuration after races were recorded, with the one value every race was recorded
 # with: how a step ran, not what it computed (now :class:`~pixelmpc_jax.devices.Execution`). A record that holds one
 # at that value reads back without it, and the key hashes it at that value, so every race flown before keeps its
