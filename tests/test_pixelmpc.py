@@ -10,6 +10,7 @@ import pytest
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control import pixelmpc as PM
 from pixelmpc_jax.control.mppi import make_mppi
+from pixelmpc_jax.control.rollout import rollout_states
 from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import dof
 from pixelmpc_jax.dynamics import quadrotor as Q
@@ -316,8 +317,8 @@ def test_the_look_ahead_from_the_plan_charges_a_sample_that_passes_later_from_th
     x0 = Q.hover_state(tuple(np.asarray(centre - 0.8 * normal)), yaw=float(jnp.arctan2(normal[1], normal[0])))
     x0 = x0.at[7:].set(2.0 * normal)  # the plan passes the plane about 0.4 s on, inside the 0.5 s pixel horizon
     u_init = Q.hover_control(Q.QuadParams())
-    plan_states = jax.lax.scan(lambda x, _: (Q.step(x, u_init, dt, Q.QuadParams()),) * 2, x0, None,
-                               length=wide.horizon)[1]  # x_1 .. x_T under the plan, the hover command held
+    plan = jnp.tile(u_init, (wide.horizon, 1))  # the warm start: the hover command held
+    plan_states = rollout_states(lambda x, u, p: Q.step(x, u, dt, Q.QuadParams()), x0, plan, None)[1:]  # x_1 .. x_T
     plan_past = np.asarray(jnp.dot(plan_states[:, :3] - centre, normal) >= 0.0)
     plan_passes = int(np.argmax(plan_past))
     assert plan_past.any() and 0 < plan_passes < config.pixel_steps

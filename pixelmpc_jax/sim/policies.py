@@ -204,6 +204,9 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             # the target's pixel from the map and the estimate
             mapped, mapped_corners = pixelmpc_lib.map_pixel_state(world.track.gate(obs.target_gate), obs.x_est,
                                                                   world.camera)
+            # the whole pixel state from the map: [u, v], or [u, v, s] with vdof
+            mapped_state = mapped if config.pixel_model != "vdof" else vdof_lib.initial_pixel_state(mapped,
+                                                                                                   mapped_corners)
         if prior == "map":  # an undetected target's pixel from the map and the estimate
             uv0 = jnp.where(detection.found, detection.centre, mapped)
             active = jnp.asarray(True)
@@ -215,15 +218,13 @@ def pixelmpc_policy(config: pixelmpc_lib.ControllerConfig | None = None,
             uv0 = vdof_lib.initial_pixel_state(uv0, corners)
         if config.partial_target == "map":  # a gate cut by the image border: its pixel state from the map
             partial = detection.found & ~jnp.all(detection.corners_visible)
-            whole = mapped if config.pixel_model != "vdof" else vdof_lib.initial_pixel_state(mapped, mapped_corners)
-            uv0 = jnp.where(partial, whole.astype(uv0.dtype), uv0)
+            uv0 = jnp.where(partial, mapped_state.astype(uv0.dtype), uv0)
         if prior in ("kept", "seeded"):  # an undetected target's pixel as the pixel model moved it since it was seen
             alive = ~detection.found & kept.valid & (kept.gate == obs.target_gate)
             uv0 = jnp.where(alive, kept.pixel.astype(uv0.dtype), uv0)
             active = detection.found | alive
         if prior == "seeded":  # a target not detected since it became the target: its pixel from the map
-            seed = mapped if config.pixel_model != "vdof" else vdof_lib.initial_pixel_state(mapped, mapped_corners)
-            uv0 = jnp.where(active, uv0, seed.astype(uv0.dtype))
+            uv0 = jnp.where(active, uv0, mapped_state.astype(uv0.dtype))
             active = jnp.asarray(True)
         gates = world.track.gates
         params = pixelmpc_lib.PixelMPCParams(

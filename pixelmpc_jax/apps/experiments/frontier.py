@@ -103,22 +103,24 @@ def preset_cells(speed: float) -> tuple:
 def ceiling_cells(speed: float) -> tuple:
     """The ``best`` preset at ``speed`` and the exact projection flying every other setting of it: the ceiling of
     knowing where the gate is, against which the preset's learned pixel model is measured."""
-    from pixelmpc_jax.apps.racing.presets import preset
-
-    best = preset("best").replace(speed=speed)
-    exact = best.replace(config=dataclasses.replace(best.config, pixel_model="projection"))
-    return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_projection_v{speed:g}", exact)
+    return _best_beside(speed, "projection", pixel_model="projection")
 
 
 def partial_target_cells(speed: float) -> tuple:
     """The ``best`` preset at ``speed`` and the same race with its target's pixel from the map while the detector
     reports the gate cut by the image border (``partial_target="map"``): the option against the tail's lost gates,
     measured against the preset (docs/results.md)."""
+    return _best_beside(speed, "partial_map", partial_target="map")
+
+
+def _best_beside(speed: float, name: str, **changes) -> tuple:
+    """The ``best`` preset at ``speed`` (cell ``best_v<speed>``) and the same race with the controller settings
+    ``changes`` (cell ``best_<name>_v<speed>``)."""
     from pixelmpc_jax.apps.racing.presets import preset
 
     best = preset("best").replace(speed=speed)
-    mapped = best.replace(config=dataclasses.replace(best.config, partial_target="map"))
-    return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_partial_map_v{speed:g}", mapped)
+    other = best.replace(config=dataclasses.replace(best.config, **changes))
+    return grid.Cell(f"best_v{speed:g}", best), grid.Cell(f"best_{name}_v{speed:g}", other)
 
 
 def default_cells() -> tuple:
