@@ -80,6 +80,19 @@ class _Carry(NamedTuple):
     log: EpisodeLog
 
 
+def _varying_with(key: jax.Array, tree):
+    """``tree`` unchanged, each leaf selected on a flag computed from ``key``.
+
+    Under ``vmap`` every leaf is then batched before the episode's ``while_loop``. The laps end at different ticks,
+    so the loop's predicate is batched and vmap batches the whole carry anyway. It finds which carry leaves are
+    batched by batching the loop body again until nothing changes, then batches it once more for the batched
+    predicate: four passes over the body from the carry as it is built, two from a carry already batched. A batched
+    episode traces about 0.5 s faster (1.6 s against 1.1 s on a 2-core AMD EPYC); what it computes is the same (XLA
+    drops a select between equal values, and the golden laps hold bit for bit)."""
+    flag = jax.random.key_data(key).reshape(-1)[0] == 0
+    return jax.tree_util.tree_map(lambda leaf: jnp.where(flag, leaf, leaf), tree)
+
+
 def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Callable:
     """The pure episode ``run(world, key) -> EpisodeLog`` (jit and vmap it; see :func:`make_runner`)."""
     env = env_lib.make_env(config)
@@ -141,7 +154,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             return _Carry(sim=sim, policy_state=policy_state, key=key,
                           log=record(c.log, world, obs, u, prediction, sim))
 
-        final = jax.lax.while_loop(lambda c: ~c.sim.done, body, carry)
+        final = jax.lax.while_loop(lambda c: ~c.sim.done, body, _varying_with(key, carry))
         sim = final.sim
         return final.log._replace(num_ticks=sim.tick, gates_passed=jnp.minimum(sim.target, world.track.num_gates),
                                   end_cause=sim.end_cause, finished=env_lib.lap_finished(world, sim))
