@@ -114,7 +114,8 @@ def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
     best = presets.preset("best").config  # what no flag names stays the default preset's
     config = ControllerConfig(mppi=mppi, racing=racing, pixel_model="projection",
                             t_f=0.5, c_pixel=3e6, pixel_cost="border", border_margin=0.2,
-                            target_prior=best.target_prior, look_ahead=best.look_ahead)
+                            target_prior=best.target_prior, look_ahead=best.look_ahead,
+                            look_ahead_from=best.look_ahead_from, partial_target=best.partial_target)
     assert seen["spec"] == RaceSpec("pixelmpc", config, speed=9.0, laps=3, seed=5, perturb=True, course="straight",
                                     detector="image", estimator="pf", max_time_s=20.0)
     assert seen["batch_size"] == 2 and seen["video"] is True and seen["out"] == tmp_path

@@ -1,6 +1,7 @@
 """The main job: PixelMPC beside nominal MPPI (apps/racing/compare.py), the presets, and the two visibility families of
 the lap metrics (the share of time with the target in view, the angle to it)."""
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -129,12 +130,15 @@ def test_the_presets():
     assert best.speed == presets.PAPER_PACE_SPEED and best.config.pixel_cost == "border"
     assert best.config.pixel_model == "vdof" and best.key() != paper.key()
     # best flies the tuned trial it names (the search's best feasible trial), exactly as the search recorded it, but
-    # for the detector: the search flew the ideal projection, the preset the projection cut at the image border
+    # for the detector (the search flew the ideal projection, the preset the projection cut at the image border) and
+    # the two options against its tail: the look-ahead from the plan, the map's pixel for a gate cut by the border
     results = Path(__file__).resolve().parent.parent / "experiments" / "results"
     record = results / "tune_look_ahead" / "best.json"
     trial = RaceSpec.from_record(json.loads(record.read_text())).replace(laps=1, seed=0)
     assert trial.detector == "ideal" and best.detector == "clipped"
-    assert trial.replace(detector="clipped").key() == best.key()
+    assert trial.config == presets.LOOK_AHEAD_BEST and trial.replace(detector="clipped").key() != best.key()
+    options = dataclasses.replace(trial.config, look_ahead_from="plan", partial_target="map")
+    assert trial.replace(detector="clipped", config=options).key() == best.key()
     assert best.config.racing.vehicle_radius == presets.BEST_VEHICLE_RADIUS_M == 0.3
     assert best.config.target_prior == "kept" and best.config.look_ahead_model == "projection"
     # the preset before it, the search without the projection look-ahead, as that search recorded it

@@ -165,11 +165,13 @@ def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path,
     assert len(F.default_spec().nominal_speeds) >= 5 and len(F.default_cells()) == 4
 
 
-def test_the_partial_cells_fly_best_beside_its_map_aided_partial_target_and_nothing_else_apart(tmp_path,
+def test_the_partial_cells_fly_best_beside_its_target_from_the_detector_and_nothing_else_apart(tmp_path,
                                                                                                monkeypatch):
-    """``--cells partial``: the best preset at the paper's pace, keyed as every earlier race of it, and the same race
-    with ``partial_target="map"``, the one field apart."""
+    """``--cells partial``: the best preset at the paper's pace, which starts a gate cut by the image border from
+    the map's pixel, and the same race with ``partial_target="detected"``, the one field apart; that race without
+    the plan's look-ahead is the preset before its two options, keyed as every race of it flown before."""
     from pixelmpc_jax.apps.racing import presets
+    from pixelmpc_jax.apps.racing.spec import RaceSpec
 
     seen = {}
 
@@ -179,12 +181,15 @@ def test_the_partial_cells_fly_best_beside_its_map_aided_partial_target_and_noth
 
     monkeypatch.setattr(F, "run_frontier", stop)
     assert cli.main(["experiment", "frontier", "--out", str(tmp_path), "--cells", "partial"]) == 130
-    best, mapped = seen["cells"]
-    assert (best.name, mapped.name) == ("best_v8.5", "best_partial_map_v8.5")
-    assert best.spec == presets.preset("best") and best.spec.key() == presets.preset("best").key()
-    assert "partial_target" not in best.spec.record()["config"]
-    assert mapped.spec.config.partial_target == "map" and mapped.spec.key() != best.spec.key()
-    assert mapped.spec.replace(config=dataclasses.replace(mapped.spec.config, partial_target="detected")) == best.spec
+    best, detected = seen["cells"]
+    assert (best.name, detected.name) == ("best_v8.5", "best_partial_detected_v8.5")
+    assert best.spec == presets.preset("best") and best.spec.config.partial_target == "map"
+    assert detected.spec.config.partial_target == "detected" and detected.spec.key() != best.spec.key()
+    assert detected.spec.replace(config=dataclasses.replace(detected.spec.config, partial_target="map")) == best.spec
+    before = detected.spec.replace(config=dataclasses.replace(detected.spec.config, look_ahead_from="plane"))
+    assert before.config == presets.LOOK_AHEAD_BEST
+    assert before.key() == RaceSpec("pixelmpc", presets.LOOK_AHEAD_BEST, speed=8.5).key()
+    assert not {"partial_target", "look_ahead_from"} & set(before.record()["config"])
 
 
 def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_path, monkeypatch):

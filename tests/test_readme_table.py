@@ -40,8 +40,39 @@ def test_a_gain_recomputes_from_a_folders_compact_record_alone(tmp_path):
     assert row["lap_time_s"] == pytest.approx(35.0) and row["avoidable_s"] == pytest.approx(0.5)
     assert row["frontier_avoidable_s"] == pytest.approx(3.0) and row["frontier_gain"] == pytest.approx(6.0)
     assert row["frontier_gain_interval"] == pytest.approx((6.0, 6.0))
+    # paired on each seed's own nominal laps: the same 3 s at 35 s, the same gain
+    assert row["gains"]["paired"]["gain"] == pytest.approx(6.0) and row["gains"]["laps_paired"] == 2
     with pytest.raises(ValueError, match="no race 'paper_v8.5'"):
         readme_table.frontier_row_from_compact(tmp_path, "paper_v8.5")
+
+
+def test_a_row_names_the_preset_its_race_flew_and_refuses_another_controller():
+    """A row's controller comes from its folder's record: the preset as it is, the preset before its two options
+    against the tail (the races flown before them), and nothing else."""
+    from pixelmpc_jax.apps.racing import presets
+
+    best = presets.preset("best")
+    assert readme_table.flown_preset({"name": "best_v8.5", **best.record()}) == "`best`"
+    before = best.replace(config=presets.LOOK_AHEAD_BEST)
+    assert readme_table.flown_preset(before.record()) == "`best` before its tail options"
+    results = json.loads((ROOT / "experiments" / "results" / "best_heldout_700" / "results.json").read_text())
+    assert readme_table.flown_preset(results["best_v8.5"]["config"]) == "`best` before its tail options"
+    with pytest.raises(ValueError, match="'best_projection_v8.5' flew neither"):
+        readme_table.flown_preset(results["best_projection_v8.5"]["config"])
+
+
+def test_a_frontier_folder_whose_paired_gain_differs_from_its_per_tick_record_is_refused(tmp_path):
+    folder = tmp_path / "experiments" / "results" / "best_onboard_2000"
+    folder.mkdir(parents=True)
+    for name in ("frontier.json", "results.json", "ticks_compact.npz"):
+        shutil.copy(ROOT / "experiments" / "results" / "best_onboard_2000" / name, folder / name)
+    row = readme_table.frontier_gain("best_onboard_2000", "{controller}")(tmp_path)
+    assert row.claim == "`best` before its tail options" and row.ours.startswith("paired **3.42** [2.92, 4.03]")
+    record = json.loads((folder / "frontier.json").read_text())
+    record["cells"][0]["gains"]["paired"]["gain"] += 0.01
+    (folder / "frontier.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="best_v8.5's paired gain is"):
+        readme_table.frontier_gain("best_onboard_2000", "{controller}")(tmp_path)
 
 
 def test_a_compact_record_that_disagrees_with_its_results_is_refused(tmp_path):

@@ -24,11 +24,12 @@ from typing import NamedTuple
 
 from pixelmpc_jax.apps.bench.table1 import PAPER as PAPER_TABLE_I
 from pixelmpc_jax.apps.experiments import frontier
+from pixelmpc_jax.apps.experiments import gains as gains_lib
 from pixelmpc_jax.apps.experiments.estimation import PAPER_TABLE_IV
 from pixelmpc_jax.apps.experiments.paper import LABEL_SPEED, PAPER_LAP_TIME, PAPER_VIS_BELOW_50
 from pixelmpc_jax.apps.experiments.skeleton import failure_counts
-from pixelmpc_jax.apps.racing.presets import PAPER_PACE_SPEEDS
-from pixelmpc_jax.apps.racing.spec import flown_setting
+from pixelmpc_jax.apps.racing.presets import LOOK_AHEAD_BEST, PAPER_PACE_SPEEDS, preset
+from pixelmpc_jax.apps.racing.spec import RaceSpec, flown_setting
 from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
 from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
 from pixelmpc_jax.sim import ticks_compact
@@ -177,6 +178,18 @@ def _same(a, b) -> bool:
     return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
 
 
+def flown_preset(record: dict) -> str:
+    """How a row names the PixelMPC a race flew, from the race's recorded settings: "`best`" when it flew the preset
+    as it is, or the preset before its two options against the tail (:data:`~pixelmpc_jax.apps.racing.presets.
+    LOOK_AHEAD_BEST`). Any other race is a ValueError: a row names the controller its folder flew."""
+    config = RaceSpec.from_record({k: v for k, v in record.items() if k != "name"}).config
+    if config == preset("best").config:
+        return "`best`"
+    if config == LOOK_AHEAD_BEST:
+        return "`best` before its tail options"
+    raise ValueError(f"the race {record.get('name', '')!r} flew neither the best preset nor the preset before it")
+
+
 def frontier_row_from_compact(folder: Path, cell: str) -> dict:
     """A frontier folder's row for ``cell`` (:func:`~pixelmpc_jax.apps.experiments.frontier.against_nominal`: its
     gain, the gain's interval, the figures at the same lap time) recomputed from the folder's compact per-tick
@@ -191,7 +204,10 @@ def frontier_row_from_compact(folder: Path, cell: str) -> dict:
                for speed, name in zip(speeds, names)]
     if cell not in results:
         raise ValueError(f"{folder}: the per-tick record holds no race {cell!r}")
-    return frontier.against_nominal(results[cell], nominal, [results[name] for name in names])
+    row = frontier.against_nominal(results[cell], nominal, [results[name] for name in names])
+    row["gains"] = gains_lib.frontier_gains(gains_lib.completed_laps(results[cell]),
+                                            [gains_lib.completed_laps(results[name]) for name in names])
+    return row
 
 
 def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
@@ -206,6 +222,9 @@ def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
             if not _same(recomputed[key], row[key]):
                 raise ValueError(f"{folder}: {cell}'s {key} is {row[key]} in frontier.json, {recomputed[key]} from "
                                  f"its per-tick record")
+        if "gains" in row and not _same(recomputed["gains"]["paired"]["gain"], row["gains"]["paired"]["gain"]):
+            raise ValueError(f"{folder}: {cell}'s paired gain is {row['gains']['paired']['gain']} in frontier.json, "
+                             f"{recomputed['gains']['paired']['gain']} from its per-tick record")
         row = {**row, **recomputed}
     at_target = next(p for p in record["nominal"] if p["speed"] == row["speed"])
     return record, row, at_target
@@ -225,39 +244,62 @@ def _frontier_loop(root: Path, folder: Path, record: dict, row: dict) -> str:
             f"seeds {seeds[0]}-{seeds[1]}")
 
 
+def lap_tail(laps: list[dict]) -> str:
+    """The tail of a race's laps: laps finished, the worst finished lap against the median, and how many finished
+    more than 10 % over the median."""
+    done = [lap["lap_time_s"] for lap in laps if lap["success"]]
+    median = statistics.median(done)
+    over = sum(t > 1.1 * median for t in done)
+    return (f"{len(done)}/{len(laps)} laps finished, the worst {max(done) / median - 1:+.1%} over the median, "
+            f"{over} more than 10 % over")
+
+
 def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
-    """A row of `best`'s frontier gain in a frontier folder: the gain [interval] at its lap time against nominal MPPI
-    at the same target, its worst lap's avoidable time beside nominal's at the same lap time."""
+    """A row of `best`'s frontier gain in a frontier folder: the paired gain [interval] at its lap time against
+    nominal MPPI flown slower, beside the joined means and the local fit (the bars apply to the smallest of the
+    three); the tail of its laps and its worst lap's avoidable time beside nominal's at the same lap time. ``claim``
+    names the controller as ``{controller}``, filled from what the folder's race flew (:func:`flown_preset`)."""
 
     def row(root: Path) -> Row:
         path = RESULTS / folder
         record, cell_row, at_target = _frontier(root, path, cell)
-        laps = [lap for lap in _json(root / path / "results.json")[cell]["laps"] if lap["success"]]
+        results = _json(root / path / "results.json")[cell]
+        laps = [lap for lap in results["laps"] if lap["success"]]
         worst = max(lap["time_vis_avoidable_s"] for lap in laps)
-        low, high = cell_row["frontier_gain_interval"]
+        gains = cell_row["gains"]
+        paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
+        low, high = paired["interval"]
         lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
-        return Row(claim, f"**{cell_row['frontier_gain']:.2f}** [{low:.2f}, {high:.2f}] at {lap_change:+.1%} lap time, "
-                          f"{_share(cell_row['laps_completed'], cell_row['laps'])} laps",
-                   f"worst lap {worst:.2f} s avoidable (nominal {cell_row['frontier_avoidable_s']:.2f} s)",
+        return Row(claim.format(controller=flown_preset(results["config"])),
+                   f"paired **{paired['gain']:.2f}** [{low:.2f}, {high:.2f}] ({gains['laps_paired']} of "
+                   f"{len(laps)} laps paired); joined means {joined['gain']:.2f}, local fit {local['gain']:.2f}; at "
+                   f"{lap_change:+.1%} lap time",
+                   f"{lap_tail(results['laps'])}; worst lap {worst:.2f} s avoidable (nominal at the cell's lap time "
+                   f"{cell_row['frontier_avoidable_s']:.2f} s)",
                    "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
                    path, per_tick(root / path))
 
     return row
 
 
-def visibility_at_same_lap_time(root: Path) -> Row:
-    """Time below 50 % a lap, nominal MPPI at `best`'s lap time -> `best`, beside the paper's nominal -> best cell."""
-    path = RESULTS / "best_heldout_700"
-    record, row, _ = _frontier(root, path, "best_v8.5")
-    laps = [lap for lap in _json(root / path / "results.json")["best_v8.5"]["laps"] if lap["success"]]
-    worst = max(lap["time_vis_below_50_s"] for lap in laps)
-    (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
-    (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
-    return Row("Time a lap with the target gate under 50 % in view: nominal MPPI -> PixelMPC (ours at the same lap "
-               "time, the paper's at the same target)",
-               f"{row['frontier_vis_below_50_s']:.2f} -> **{row['vis_below_50_s']:.2f}** s",
-               f"worst lap {worst:.2f} s", f"{nominal:g} -> {best:g} s (laps {nominal_lap:g} -> {best_lap:g} s)",
-               _frontier_loop(root, path, record, row), _measured(record), path, per_tick(root / path))
+def visibility_at_same_lap_time(folder: str) -> Callable[[Path], Row]:
+    """Time below 50 % a lap, nominal MPPI at `best`'s lap time -> `best`, beside the paper's nominal -> best cell,
+    from the frontier folder ``folder``."""
+
+    def row(root: Path) -> Row:
+        path = RESULTS / folder
+        record, cell_row, _ = _frontier(root, path, "best_v8.5")
+        results = _json(root / path / "results.json")["best_v8.5"]
+        worst = max(lap["time_vis_below_50_s"] for lap in results["laps"] if lap["success"])
+        (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
+        (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
+        return Row("Time a lap with the target gate under 50 % in view: nominal MPPI -> PixelMPC "
+                   f"({flown_preset(results['config'])}; ours at the same lap time, the paper's at the same target)",
+                   f"{cell_row['frontier_vis_below_50_s']:.2f} -> **{cell_row['vis_below_50_s']:.2f}** s",
+                   f"worst lap {worst:.2f} s", f"{nominal:g} -> {best:g} s (laps {nominal_lap:g} -> {best_lap:g} s)",
+                   _frontier_loop(root, path, record, cell_row), _measured(record), path, per_tick(root / path))
+
+    return row
 
 
 def dof_accuracy(root: Path) -> Row:
@@ -354,7 +396,7 @@ def table_iv_filter(root: Path) -> Row:
     failures = ", ".join(f"{cause.replace('_', ' ')} {count}" for cause, count in sorted(nominal["failures"].items()))
     seed = results[best["cell"]]["seed"]
     return Row(f"Table IV: laps finished racing on the particle filter at the paper's {best['label']:g} m/s "
-               "(our pace for it), nominal MPPI -> PixelMPC (`best`)",
+               f"(our pace for it), nominal MPPI -> PixelMPC ({flown_preset(results[best['cell']]['config'])})",
                f"{_share(_successes(nominal), nominal['num_laps'])} -> "
                f"**{_share(_successes(best), best['num_laps'])}** "
                f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
@@ -372,12 +414,13 @@ def table_iv_eskf(root: Path) -> Row:
     (nominal, best), (nominal_pf, best_pf) = rows("eskf"), rows("pf")
     worst = max(lap["rms_position_error_m"] for lap in results[best["cell"]]["laps"])
     seed = results[best["cell"]]["seed"]
+    flown = flown_preset(results[best["cell"]]["config"])
     return Row("The same on the error-state Kalman filter (`--estimator eskf`): laps finished and RMS position error, "
-               "nominal MPPI -> `best`",
+               f"nominal MPPI -> {flown}",
                f"{_share(_successes(nominal), nominal['num_laps'])} -> {_share(_successes(best), best['num_laps'])}; "
                f"{nominal['rms_position_error_m']:.3f} -> **{best['rms_position_error_m']:.3f}** m (particle filter "
                f"{nominal_pf['rms_position_error_m']:.3f} -> {best_pf['rms_position_error_m']:.3f} m)",
-               f"`best`'s worst lap {worst:.3f} m", "not measured (particle filter only)",
+               f"its worst lap {worst:.3f} m", "not measured (particle filter only)",
                f"{_loop('eskf', results[best['cell']]['config'])}, AlphaPilot, {best['speed']:g} m/s, "
                f"{best['num_laps']} laps a cell, "
                f"{_seeds(seed, best['num_laps'])}",
@@ -405,11 +448,11 @@ def onboard_pace(root: Path) -> Row:
     speed = race["speed"]
     label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
     return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
-               "PixelMPC (`best`)",
+               f"PixelMPC ({flown_preset(race)})",
                f"{_share(finished['nominal'], len(laps['nominal']))} -> "
                f"**{_share(finished['best'], len(laps['best']))}** "
                f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
-               f"`best`'s worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
+               f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
                f"failures: {failures or 'none'}",
                "not measured (particle filter only)",
                f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, {len(laps['best'])} "
@@ -436,13 +479,14 @@ def real_time(root: Path) -> Row:
 
 
 ROWS = (
-    visibility_at_same_lap_time,
-    frontier_gain("best_heldout_700", "PixelMPC (`best`) against nominal MPPI flown slower: frontier gain, nominal's "
-                  "avoidable low-visibility time at the same lap time over ours"),
-    frontier_gain("best_heldout_course_700", "The same on a generated course, made after the preset was chosen"),
-    frontier_gain("best_heldout_500", "The same on other held-out seeds, on two CPU cores"),
-    frontier_gain("best_onboard_2000", "The same on the onboard loop (the image detector, the ESKF, the gate switch "
-                  "from the estimate, the surveyed map), nominal MPPI flown slower on that loop too"),
+    visibility_at_same_lap_time("best_heldout_700"),
+    frontier_gain("best_heldout_700", "PixelMPC ({controller}) against nominal MPPI flown slower: frontier gain, "
+                  "nominal's avoidable low-visibility time at the same lap time over ours"),
+    frontier_gain("best_heldout_course_700", "The same ({controller}) on a generated course, made after the preset was "
+                  "chosen"),
+    frontier_gain("best_heldout_500", "The same ({controller}) on other held-out seeds, on two CPU cores"),
+    frontier_gain("best_onboard_2000", "The same ({controller}) on the onboard loop (the image detector, the ESKF, the "
+                  "gate switch from the estimate, the surveyed map), nominal MPPI flown slower on that loop too"),
     paper_main_cell,
     table_iv_filter,
     table_iv_eskf,

@@ -13,8 +13,8 @@ from pixelmpc_jax.apps.racing.presets import LOOPS
 from pixelmpc_jax.arguments import SEED_MAX
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
-# the best preset beside its partial_target="map" option, or none (nominal MPPI's points alone, for another run's
-# --reuse)
+# the best preset beside its target's pixel from the detector for a gate cut by the image border, or none (nominal
+# MPPI's points alone, for another run's --reuse)
 FRONTIER_CELLS = ("all", "border", "preset", "partial", "none")
 
 
@@ -194,9 +194,9 @@ def _add_frontier(jobs) -> None:
                         "border (the border cost alone, at each model's weight of the 4-lap sweep), preset (the "
                         "best preset at the paper's pace and the exact projection flying its settings, the ceiling "
                         "of knowing where the gate is), partial (the best preset at the paper's pace and the same "
-                        "race with its target's pixel from the map while the detector reports the gate cut by the "
-                        "image border); none flies nominal MPPI's points alone, to split a frontier "
-                        "over processes (a last run with the cells and --reuse of each folder joins them)")
+                        "race with its target's pixel from the detector while it reports the gate cut by the image "
+                        "border, where the preset takes the map's); none flies nominal MPPI's points alone, to split "
+                        "a frontier over processes (a last run with the cells and --reuse of each folder joins them)")
     p.add_argument("--speeds", type=arg.target_speeds, nargs="+", default=None, metavar="M_S|LO:HI:STEP",
                    help=f"nominal target speeds in m/s, in (0, {arg.TARGET_SPEED_MAX:g}], each a speed or a range "
                         "(6:9:0.25 flies 6, 6.25, ..., 9: a frontier without gaps for the paired gain; nominal "

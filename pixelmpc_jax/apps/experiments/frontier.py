@@ -107,10 +107,10 @@ def ceiling_cells(speed: float) -> tuple:
 
 
 def partial_target_cells(speed: float) -> tuple:
-    """The ``best`` preset at ``speed`` and the same race with its target's pixel from the map while the detector
-    reports the gate cut by the image border (``partial_target="map"``): the option against the tail's lost gates,
-    measured against the preset (docs/results.md)."""
-    return _best_beside(speed, "partial_map", partial_target="map")
+    """The ``best`` preset at ``speed`` and the same race with its target's pixel from the detector even while the
+    detector reports the gate cut by the image border (``partial_target="detected"``, the preset's before it took
+    the map's pixel there against the tail's lost gates; docs/results.md)."""
+    return _best_beside(speed, "partial_detected", partial_target="detected")
 
 
 def _best_beside(speed: float, name: str, **changes) -> tuple:
