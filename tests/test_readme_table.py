@@ -75,6 +75,24 @@ def test_a_frontier_folder_whose_paired_gain_differs_from_its_per_tick_record_is
         readme_table.frontier_gain("best_onboard_2000", "{controller}")(tmp_path)
 
 
+def test_the_onboard_row_pairs_the_presets_laps_with_nominal_mppi_on_its_own_loop_only(tmp_path):
+    """The onboard row pairs the races that flew the preset (not the look-ahead option alone beside them) with the
+    nominal laps of the onboard frontier; nominal laps flown on another loop (here, the ESKF told a surveyed map)
+    are refused."""
+    for folder in (readme_table.ONBOARD_BEST, readme_table.ONBOARD_FRONTIER):
+        shutil.copytree(ROOT / folder, tmp_path / folder, ignore=shutil.ignore_patterns("*.png", "ticks_[!c]*"))
+    row = readme_table.onboard_paired_gain(tmp_path)
+    assert row.claim.startswith("The same (`best`) on the onboard loop") and row.folder == readme_table.ONBOARD_BEST
+    assert row.ours.startswith("paired **4.61** [4.09, 5.21] (16 of 20 laps paired)")
+    assert row.tail.startswith("20/20 laps finished") and "ESKF taking the map as exact" in row.loop
+    path = tmp_path / readme_table.ONBOARD_FRONTIER / "results.json"
+    results = json.loads(path.read_text())
+    results["nominal_8"]["config"]["eskf"] = {**results["nominal_8"]["config"].get("eskf", {}), "map_sigma_m": 0.2}
+    path.write_text(json.dumps(results))
+    with pytest.raises(ValueError, match="nominal_8 is not nominal MPPI on the loop `best` flew"):
+        readme_table.onboard_paired_gain(tmp_path)
+
+
 def test_a_compact_record_that_disagrees_with_its_results_is_refused(tmp_path):
     race = _race(8.0, 1200, 200)
     ticks_compact.write(tmp_path / ticks_compact.FILE_NAME, {"nominal_8": race})

@@ -427,6 +427,59 @@ def table_iv_eskf(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
+ONBOARD_BEST = RESULTS / "look_ahead_from_plan_onboard_2000"
+# its per-tick record's races -> the folder of each race's metrics.json; `best` flew the first two
+ONBOARD_BEST_RACES = {"both_options_2000": "both_options_2000", "both_options_2010": "both_options_2010",
+                      "look_ahead_from_plan_2000": "plan_2000", "look_ahead_from_plan_2010": "plan_2010"}
+ONBOARD_FRONTIER = RESULTS / "best_onboard_2000"  # nominal MPPI flown slower on the onboard loop, the same seeds
+
+
+def onboard_paired_gain(root: Path) -> Row:
+    """`best` on the onboard loop against nominal MPPI flown slower on that loop: the laps of the races of
+    :data:`ONBOARD_BEST` that flew the preset (`pixelmpc race --loop onboard`), each paired with its seed's nominal
+    laps in :data:`ONBOARD_FRONTIER`, whose races must be nominal MPPI as every frontier flies it (the paper's
+    settings) on the same loop (a ValueError otherwise); the gains and their intervals of
+    :func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains`, every lap checked against both folders' per-tick
+    records."""
+    from pixelmpc_jax.apps.racing import grid
+    from pixelmpc_jax.control.pixelmpc import ControllerConfig
+
+    path = ONBOARD_BEST
+    metrics = {name: _json(root / path / folder / "metrics.json") for name, folder in ONBOARD_BEST_RACES.items()}
+    check_compact_record(root / path, {name: {"laps": m["controllers"]["pixelmpc"]["laps"]}
+                                       for name, m in metrics.items()})
+    best = preset("best").config
+    flown = {name: m for name, m in metrics.items() if RaceSpec.from_record(m["race"]).config == best}
+    if not flown:
+        raise ValueError(f"{path}: no race flew the best preset")
+    race = RaceSpec.from_record(next(iter(flown.values()))["race"])
+    laps = [lap for m in flown.values() for lap in m["controllers"]["pixelmpc"]["laps"]]
+    record, results = _json(root / ONBOARD_FRONTIER / "frontier.json"), _json(root / ONBOARD_FRONTIER / "results.json")
+    check_compact_record(root / ONBOARD_FRONTIER, results)
+    nominal = [results[point["name"]] for point in record["nominal"]]
+    for point, result in zip(record["nominal"], nominal):  # nominal MPPI as the frontier flies it, on the same loop
+        baseline = race.replace(controller="mppi", config=ControllerConfig(), speed=point["speed"],
+                                laps=len(result["laps"]), seed=result["seed"])
+        if grid.recorded_race(result).key() != baseline.key():
+            raise ValueError(f"{ONBOARD_FRONTIER}: {point['name']} is not nominal MPPI on the loop "
+                             f"{flown_preset(race.record())} flew")
+    gains = gains_lib.frontier_gains(gains_lib.completed_laps({"laps": laps}),
+                                     [gains_lib.completed_laps(result) for result in nominal])
+    paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
+    done = [lap for lap in laps if lap["success"]]
+    in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
+    seeds = sorted(lap["seed"] for lap in laps)
+    return Row(f"The same ({flown_preset(race.record())}) on the onboard loop (the image detector, the ESKF, the gate "
+               "switch from the estimate, the surveyed map), nominal MPPI flown slower on that loop too",
+               f"paired **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, {paired['interval'][1]:.2f}] "
+               f"({gains['laps_paired']} of {len(done)} laps paired); joined means {joined['gain']:.2f}, local fit "
+               f"{local['gain']:.2f}; in view {in_view:.1%}",
+               lap_tail(laps), "not measured (one target speed)",
+               f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, seeds {seeds[0]}-{seeds[-1]}; "
+               f"nominal MPPI's laps from [{ONBOARD_FRONTIER.name}]({ONBOARD_FRONTIER.as_posix()}/)",
+               _tables_measured(root, path), path, per_tick(root / path))
+
+
 ONBOARD_PACE = RESULTS / "onboard_16ms_pace"
 ONBOARD_PACE_RACES = {"nominal": "mppi", "best": "pixelmpc"}  # the folder's race -> the controller it flew
 
@@ -485,8 +538,7 @@ ROWS = (
     frontier_gain("best_heldout_course_700", "The same ({controller}) on a generated course, made after the preset was "
                   "chosen"),
     frontier_gain("best_heldout_500", "The same ({controller}) on other held-out seeds, on two CPU cores"),
-    frontier_gain("best_onboard_2000", "The same ({controller}) on the onboard loop (the image detector, the ESKF, the "
-                  "gate switch from the estimate, the surveyed map), nominal MPPI flown slower on that loop too"),
+    onboard_paired_gain,
     paper_main_cell,
     table_iv_filter,
     table_iv_eskf,
