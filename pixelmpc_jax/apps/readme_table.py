@@ -532,12 +532,11 @@ def real_time(root: Path) -> Row:
 
 
 ROWS = (
-    visibility_at_same_lap_time("best_heldout_700"),
-    frontier_gain("best_heldout_700", "PixelMPC ({controller}) against nominal MPPI flown slower: frontier gain, "
+    visibility_at_same_lap_time("best_validation_2200"),
+    frontier_gain("best_validation_2200", "PixelMPC ({controller}) against nominal MPPI flown slower: frontier gain, "
                   "nominal's avoidable low-visibility time at the same lap time over ours"),
     frontier_gain("best_heldout_course_700", "The same ({controller}) on a generated course, made after the preset was "
                   "chosen"),
-    frontier_gain("best_heldout_500", "The same ({controller}) on other held-out seeds, on two CPU cores"),
     onboard_paired_gain,
     paper_main_cell,
     table_iv_filter,
