@@ -14,6 +14,7 @@ and ``tests/test_readme.py`` fails when it differs from :func:`table`.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
@@ -212,7 +213,17 @@ def frontier_row_from_compact(folder: Path, cell: str) -> dict:
 
 def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
     """(the frontier's record, the cell's row, the nominal point at the cell's target) of a frontier folder; the row
-    recomputed from the compact per-tick record where the folder commits one (and checked against the record's)."""
+    recomputed from the compact per-tick record where the folder commits one (and checked against the record's).
+    Read once while the folder's files stay as they are (several rows read one folder; the gains' bootstrap over
+    100 seeds takes seconds); the returned dicts are shared, not to be changed."""
+    files = [Path(root) / folder / name for name in ("frontier.json", "results.json", ticks_compact.FILE_NAME)]
+    stamp = tuple(path.stat().st_mtime_ns if path.exists() else None for path in files)
+    return _read_frontier(Path(root), Path(folder), cell, stamp)
+
+
+@functools.lru_cache(maxsize=16)
+def _read_frontier(root: Path, folder: Path, cell: str, stamp: tuple) -> tuple[dict, dict, dict]:
+    """:func:`_frontier` of the folder's files as they were at ``stamp`` (their modification times)."""
     record = _json(root / folder / "frontier.json")
     row = next(r for r in record["cells"] if r["name"] == cell)
     if per_tick(root / folder) == "yes":
