@@ -33,7 +33,7 @@ from pixelmpc_jax.apps.racing.presets import LOOK_AHEAD_BEST, PAPER_PACE_SPEEDS,
 from pixelmpc_jax.apps.racing.spec import RaceSpec, flown_setting
 from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
 from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
-from pixelmpc_jax.sim import ticks_compact
+from pixelmpc_jax.sim import metrics, ticks_compact
 
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
@@ -256,13 +256,12 @@ def _frontier_loop(root: Path, folder: Path, record: dict, row: dict) -> str:
 
 
 def lap_tail(laps: list[dict]) -> str:
-    """The tail of a race's laps: laps finished, the worst finished lap against the median, and how many finished
-    more than 10 % over the median."""
-    done = [lap["lap_time_s"] for lap in laps if lap["success"]]
-    median = statistics.median(done)
-    over = sum(t > 1.1 * median for t in done)
-    return (f"{len(done)}/{len(laps)} laps finished, the worst {max(done) / median - 1:+.1%} over the median, "
-            f"{over} more than 10 % over")
+    """The tail of a race's laps (:func:`~pixelmpc_jax.sim.metrics.lap_tail`) in words: laps finished, the worst
+    finished lap against the median, and how many finished more than 10 % over the median."""
+    tail = metrics.lap_tail(laps)
+    over = round(tail["share_over_median"] * tail["laps_finished"])
+    return (f"{tail['laps_finished']}/{tail['laps']} laps finished, the worst {tail['worst_over_median']:+.1%} over "
+            f"the median, {over} more than {metrics.TAIL_OVER_MEDIAN * 100:g} % over")
 
 
 def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
@@ -456,11 +455,11 @@ def onboard_paired_gain(root: Path) -> Row:
     from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
     path = ONBOARD_BEST
-    metrics = {name: _json(root / path / folder / "metrics.json") for name, folder in ONBOARD_BEST_RACES.items()}
+    race_metrics = {name: _json(root / path / folder / "metrics.json") for name, folder in ONBOARD_BEST_RACES.items()}
     check_compact_record(root / path, {name: {"laps": m["controllers"]["pixelmpc"]["laps"]}
-                                       for name, m in metrics.items()})
+                                       for name, m in race_metrics.items()})
     best = preset("best").config
-    flown = {name: m for name, m in metrics.items() if RaceSpec.from_record(m["race"]).config == best}
+    flown = {name: m for name, m in race_metrics.items() if RaceSpec.from_record(m["race"]).config == best}
     if not flown:
         raise ValueError(f"{path}: no race flew the best preset")
     race = RaceSpec.from_record(next(iter(flown.values()))["race"])
