@@ -177,16 +177,31 @@ def test_a_row_follows_its_folder(tmp_path):
 
 
 def test_the_onboard_pace_row_counts_each_races_laps_and_refuses_a_record_that_disagrees(tmp_path):
-    """The row reads both races' laps from their metrics: a lap recorded lost there changes the count and the
-    failures; the per-tick record, which still shows it finished, then refuses the folder."""
+    """The row joins each controller's races and reads their laps from their metrics: a lap recorded lost there
+    changes the count and the failures; the per-tick record, which still shows it finished, then refuses the
+    folder."""
     folder = tmp_path / readme_table.ONBOARD_PACE
     shutil.copytree(ROOT / readme_table.ONBOARD_PACE, folder)
     row = readme_table.onboard_pace(tmp_path)
     assert row.ours.startswith("37/40 -> **40/40**") and "target mismatch 2" in row.tail
-    metrics = json.loads((folder / "best" / "metrics.json").read_text())
+    assert "40 laps a controller, seeds 2100-2139" in row.loop and row.claim.endswith("(`best`)")
+    metrics = json.loads((folder / "best_2120" / "metrics.json").read_text())
     metrics["controllers"]["pixelmpc"]["laps"][5].update(success=False, crash="wall")
-    (folder / "best" / "metrics.json").write_text(json.dumps(metrics))
-    with pytest.raises(ValueError, match=f"race 'best', seed {metrics['race']['seed'] + 5}"):
+    (folder / "best_2120" / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(ValueError, match=f"race 'best_2120', seed {metrics['race']['seed'] + 5}"):
+        readme_table.onboard_pace(tmp_path)
+
+
+@pytest.mark.parametrize("change, refusal", [({"estimator": "truth"}, "not pixelmpc on the loop"),
+                                             ({"seed": 2121}, "its first seed is 2121, the race before ended at 2119")])
+def test_the_onboard_pace_row_refuses_a_race_on_another_loop_or_seeds_with_a_gap(tmp_path, change, refusal):
+    """A controller's races join only when each flew the folder's loop and they follow one another in seed."""
+    folder = tmp_path / readme_table.ONBOARD_PACE
+    shutil.copytree(ROOT / readme_table.ONBOARD_PACE, folder)
+    metrics = json.loads((folder / "best_2120" / "metrics.json").read_text())
+    metrics["controllers"]["pixelmpc"]["race"].update(change)
+    (folder / "best_2120" / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(ValueError, match=refusal):
         readme_table.onboard_pace(tmp_path)
 
 

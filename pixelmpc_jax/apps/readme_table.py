@@ -491,35 +491,62 @@ def onboard_paired_gain(root: Path) -> Row:
 
 
 ONBOARD_PACE = RESULTS / "onboard_16ms_pace"
-ONBOARD_PACE_RACES = {"nominal": "mppi", "best": "pixelmpc"}  # the folder's race -> the controller it flew
+# each controller's races in the folder (a `pixelmpc race` each, named for its folder), flown on consecutive seeds
+ONBOARD_PACE_RACES = {"mppi": ("nominal",), "pixelmpc": ("best_2100", "best_2120")}
+
+
+def _onboard_pace_races(root: Path) -> tuple[dict, dict]:
+    """:data:`ONBOARD_PACE`'s races, each controller's joined in order: the first race's record and every lap. Each
+    race must fly its controller on the loop, course and target the folder's first race flew, and a controller's races
+    must follow one another in seed (a ValueError otherwise)."""
+    path = root / ONBOARD_PACE
+    metrics = {name: _json(path / name / "metrics.json") for races in ONBOARD_PACE_RACES.values() for name in races}
+    check_compact_record(path, {name: {"laps": metrics[name]["controllers"][controller]["laps"]}
+                                for controller, races in ONBOARD_PACE_RACES.items() for name in races})
+    flown = {name: metrics[name]["controllers"][controller]["race"]
+             for controller, races in ONBOARD_PACE_RACES.items() for name in races}
+    first = RaceSpec.from_record(next(iter(flown.values())))
+    records, laps = {}, {}
+    for controller, races in ONBOARD_PACE_RACES.items():
+        seed = None
+        for name in races:
+            race = RaceSpec.from_record(flown[name])
+            loop = first.replace(controller=race.controller, config=race.config, seed=race.seed, laps=race.laps)
+            if race.controller != controller or race.key() != loop.key():
+                raise ValueError(f"{ONBOARD_PACE / name}: not {controller} on the loop of the folder's other races")
+            if seed is not None and race.seed != seed:
+                raise ValueError(f"{ONBOARD_PACE / name}: its first seed is {race.seed}, the race before ended at "
+                                 f"{seed - 1}")
+            seed = race.seed + race.laps
+            records.setdefault(controller, flown[name])
+            laps.setdefault(controller, []).extend(metrics[name]["controllers"][controller]["laps"])
+    return records, laps
 
 
 def onboard_pace(root: Path) -> Row:
-    """Laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: one `pixelmpc
-    race --loop onboard` per controller (the metrics.json of a folder named for the race), every lap checked against
-    the per-tick record."""
+    """Laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: the `pixelmpc
+    race --loop onboard` runs of :data:`ONBOARD_PACE_RACES` (the metrics.json of a folder named for each), every lap
+    checked against the per-tick record."""
     path = ONBOARD_PACE
-    races = {name: _json(root / path / name / "metrics.json") for name in ONBOARD_PACE_RACES}
-    laps = {name: races[name]["controllers"][controller]["laps"] for name, controller in ONBOARD_PACE_RACES.items()}
-    check_compact_record(root / path, {name: {"laps": race_laps} for name, race_laps in laps.items()})
+    records, laps = _onboard_pace_races(root)
     finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
     intervals = [wilson_interval(finished[name], len(laps[name])) for name in ONBOARD_PACE_RACES]
     failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
-                         for cause, count in sorted(failure_counts(laps["nominal"]).items(), key=str))
-    done = [lap["lap_time_s"] for lap in laps["best"] if lap["success"]]
-    race = races["best"]["race"]
+                         for cause, count in sorted(failure_counts(laps["mppi"]).items(), key=str))
+    done = [lap["lap_time_s"] for lap in laps["pixelmpc"] if lap["success"]]
+    race = records["pixelmpc"]
     speed = race["speed"]
     label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
     return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
                f"PixelMPC ({flown_preset(race)})",
-               f"{_share(finished['nominal'], len(laps['nominal']))} -> "
-               f"**{_share(finished['best'], len(laps['best']))}** "
+               f"{_share(finished['mppi'], len(laps['mppi']))} -> "
+               f"**{_share(finished['pixelmpc'], len(laps['pixelmpc']))}** "
                f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
                f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
                f"failures: {failures or 'none'}",
                "not measured (particle filter only)",
-               f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, {len(laps['best'])} "
-               f"laps a race, {_seeds(race['seed'], len(laps['best']))}",
+               f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, "
+               f"{len(laps['pixelmpc'])} laps a controller, {_seeds(race['seed'], len(laps['pixelmpc']))}",
                _tables_measured(root, path), path, per_tick(root / path))
 
 
