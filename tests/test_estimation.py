@@ -1,6 +1,7 @@
 """The state-estimation experiment's bookkeeping: cells, summary and report from recorded laps."""
 
 import numpy as np
+import pytest
 
 from pixelmpc_jax.apps.experiments import estimation as E
 from pixelmpc_jax.sim import metrics
@@ -42,6 +43,19 @@ def test_cells_cover_the_paper_grid_at_the_labels_and_the_paces():
     assert len(both) == 20 and [c.spec.estimator for c in both] == ["pf"] * 10 + ["eskf"] * 10
     assert [c.spec.replace(estimator="pf") for c in both[10:]] == [c.spec for c in cells]
     assert both[10].name == cells[0].name.replace("_pf", "_eskf")
+
+
+def test_a_run_split_by_controller_flies_each_cell_once_in_the_grids_order():
+    """`pixelmpc experiment table4 --controllers`: each process flies its controllers' cells of the full grid, in its
+    order, and the processes' cells together are the grid; an unknown name is refused before anything flies."""
+    full = [c.name for c in E.race_cells(estimators=E.ESTIMATORS)]
+    split = {who: [c.name for c in E.race_cells(estimators=E.ESTIMATORS, who=(who,))] for who in E.WHO}
+    assert split["best"] == [name for name in full if name.startswith("best_")] and len(split["best"]) == 4
+    assert sorted(sum(split.values(), [])) == sorted(full)
+    assert [c.name for c in E.race_cells(quick=True, who=("mppi", "best"))] == ["mppi_9.1ms_pf", "best_9.1ms_pf"]
+    assert [c.name for c in E.straight_cells(quick=True, who=("best",))] == ["best_straight_10.3ms_pf"]
+    with pytest.raises(ValueError, match="unknown controller 'nominal'"):
+        E.race_cells(who=("nominal",))
 
 
 def test_summary_counts_successes_failures_and_covariance_maxima():

@@ -65,7 +65,7 @@ def _cmd_table2(args) -> int:
 
 
 def _add_table4(jobs) -> None:
-    from pixelmpc_jax.apps.experiments.estimation import ESTIMATORS
+    from pixelmpc_jax.apps.experiments.estimation import ESTIMATORS, WHO
 
     p = jobs.add_parser("table4", help="Table IV, the straight lane, Fig. 6 and Fig. 9: nominal MPPI against PixelMPC "
                                        "on a filter's estimate (REPORT.md, summary.json, figures)")
@@ -79,9 +79,13 @@ def _add_table4(jobs) -> None:
     p.add_argument("--estimators", nargs="+", choices=ESTIMATORS, default=ESTIMATORS,
                    help="Table IV's filters: pf, the paper's particle filter, and eskf, the error-state Kalman filter "
                         "(default: both; the straight lane flies the particle filter)")
+    p.add_argument("--controllers", nargs="+", choices=WHO, default=WHO,
+                   help="fly and report only these: mppi (nominal MPPI), paper and best (the presets; default: all "
+                        "three)")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (another Table IV run's) whose finished cells with the same race, laps and seed "
-                        "are copied, not flown again: a run split over processes (one filter each) joins here")
+                        "are copied, not flown again: a run split over processes (by filter or by controller) joins "
+                        "here")
     p.set_defaults(func=_cmd_table4)
 
 
@@ -89,7 +93,7 @@ def _cmd_table4(args) -> int:
     from pixelmpc_jax.apps.experiments.estimation import estimation_experiment
 
     estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed,
-                          estimators=tuple(args.estimators), reuse=tuple(args.reuse))
+                          estimators=tuple(args.estimators), reuse=tuple(args.reuse), who=tuple(args.controllers))
     _print_report(args.out)
     return 0
 

@@ -49,28 +49,33 @@ def _race(who: str, speed: float, estimator: str = "pf", **changes):
     return spec.replace(controller="mppi") if who == "mppi" else spec
 
 
-def _points(labels, quick: bool) -> list[tuple[float, float, tuple]]:
+def _points(labels, quick: bool, who: tuple = WHO) -> list[tuple[float, float, tuple]]:
     """(label, our target, who flies it): each label's pace (all three), then each label as the paper named it
-    (nominal and ``paper``), the fastest label first; ``quick``: the pace of the fastest label only."""
+    (nominal and ``paper``), the fastest label first; ``quick``: the pace of the fastest label only. Only the
+    controllers of ``who`` (of :data:`WHO`) fly."""
+    unknown = [name for name in who if name not in WHO]
+    if unknown:
+        raise ValueError(f"unknown controller {unknown[0]!r}; Table IV flies {', '.join(WHO)}")
     labels = sorted(labels, reverse=True)
-    if quick:
-        return [(labels[0], pace_speed(labels[0]), WHO)]
-    return [(label, pace_speed(label), WHO) for label in labels] + [(label, label, WHO[:2]) for label in labels]
+    paces = [(label, pace_speed(label), WHO) for label in labels[:1 if quick else None]]
+    points = paces if quick else paces + [(label, label, WHO[:2]) for label in labels]
+    return [(label, speed, tuple(name for name in whos if name in who)) for label, speed, whos in points]
 
 
-def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf",)) -> list[Cell]:
-    """Table IV's cells with each filter of ``estimators`` (of :data:`ESTIMATORS`), per operating point."""
+def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf",), who: tuple = WHO) -> list[Cell]:
+    """Table IV's cells with each filter of ``estimators`` (of :data:`ESTIMATORS`), per operating point, for the
+    controllers of ``who``."""
     unknown = [e for e in estimators if e not in ESTIMATORS]
     if unknown:
         raise ValueError(f"unknown estimator {unknown[0]!r}; Table IV flies {', '.join(ESTIMATORS)}")
-    return [Cell(f"{who}_{speed:g}ms_{estimator}", _race(who, speed, estimator))
-            for estimator in estimators for label, speed, whos in _points(labels, quick) for who in whos]
+    return [Cell(f"{name}_{speed:g}ms_{estimator}", _race(name, speed, estimator))
+            for estimator in estimators for label, speed, whos in _points(labels, quick, who) for name in whos]
 
 
-def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False) -> list[Cell]:
+def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False, who: tuple = WHO) -> list[Cell]:
     """The straight lane (five gates 20 m apart) with the filter, at the label and its pace."""
-    return [Cell(f"{who}_straight_{speed:g}ms_pf", _race(who, speed, course="straight", max_time_s=20.0))
-            for _, speed, whos in _points((label,), quick) for who in whos]
+    return [Cell(f"{name}_straight_{speed:g}ms_pf", _race(name, speed, course="straight", max_time_s=20.0))
+            for _, speed, whos in _points((label,), quick, who) for name in whos]
 
 
 def label_of(cell: Cell) -> float:
@@ -244,14 +249,15 @@ def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
 
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
                           dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
-                          reuse=(), estimators: tuple = ESTIMATORS) -> dict:
+                          reuse=(), estimators: tuple = ESTIMATORS, who: tuple = WHO) -> dict:
     """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
     into ``out``, laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`;
     cells a folder in ``reuse`` holds are copied, not flown. With ``run=False`` only the report of the cells already
     finished in ``out`` is written. Table IV flies on each filter of ``estimators``; the straight lane on the
-    particle filter (the paper's figures it answers are the particle filter's)."""
-    cells = race_cells(quick=quick, estimators=estimators)
-    lanes = straight_cells(quick=quick) if straight else []
+    particle filter (the paper's figures it answers are the particle filter's). Only the controllers of ``who``
+    fly: a run split over processes by controller joins with ``reuse``."""
+    cells = race_cells(quick=quick, estimators=estimators, who=who)
+    lanes = straight_cells(quick=quick, who=who) if straight else []
     experiment = Experiment(
         tuple(cells + lanes),
         summarise=lambda results: {"table_iv": summarise(results, cells), "straight_lane": summarise(results, lanes)},
