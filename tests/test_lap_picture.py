@@ -73,3 +73,18 @@ def test_the_command_refuses_a_folder_without_results(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["experiment", "lap-picture", str(tmp_path)])
     assert exc.value.code == 2 and "no result folder" in capsys.readouterr().err
+
+
+def test_a_race_a_second_folder_copied_from_the_first_is_drawn_once(tmp_path, monkeypatch):
+    """A frontier that reused another's nominal point holds its laps again: drawn once, the folder's own drawn."""
+    first = grid_folder(tmp_path / "frontier")
+    results = json.loads((first / "results.json").read_text())
+    again = {"nominal_8": results["nominal_8"], "nominal_9": {**results["nominal_8"], "config": {
+        "controller": "mppi", "speed": 9.0}, "laps": [lap(30.0 + 0.3 * s, 8.0, 0.85, s) for s in range(6)]}}
+    (tmp_path / "pace").mkdir()
+    (tmp_path / "pace" / "results.json").write_text(json.dumps(again))
+    drawn = []
+    monkeypatch.setattr(P, "plot_laps", lambda races, path, title=None: drawn.extend(races))
+    P.write_lap_picture([first, tmp_path / "pace"], tmp_path / "picture.png")
+    assert [(r.controller, r.speed) for r in drawn] == [("mppi", 7.0), ("mppi", 8.0), ("pixelmpc", 8.5),
+                                                        ("mppi", 9.0)]

@@ -122,13 +122,23 @@ def _nominal_label(nominal: list[RaceLaps]) -> str:
     return f"nominal MPPI, {len(nominal)} target speeds {speeds[0]:g}-{speeds[-1]:g} m/s ({done}/{total} laps)"
 
 
+def _same_laps(race: RaceLaps) -> tuple:
+    """What makes two folders' races one: the controller, the target and every lap's seed and figures (a race one
+    folder copied from another with ``--reuse``)."""
+    return race.controller, race.speed, json.dumps(race.laps, sort_keys=True)
+
+
 def write_lap_picture(folders, out: Path | None = None, names=None) -> Path:
     """Draw the races of ``folders`` (:func:`folder_races`) into ``out`` (default ``laps.png`` in the first
-    folder); returns the file. With several folders a PixelMPC race's label names its folder too."""
+    folder); returns the file. With several folders a PixelMPC race's label names its folder too, and a race a later
+    folder holds again (copied with ``--reuse``) is drawn once."""
     folders = [Path(folder) for folder in folders]
-    races = []
+    races, drawn = [], set()
     for folder in folders:
         for race in folder_races(folder, names):
+            if _same_laps(race) in drawn:
+                continue
+            drawn.add(_same_laps(race))
             label = race.label if len(folders) == 1 else f"{folder.name}/{race.label}"
             races.append(race._replace(label=label))
     out = Path(out) if out is not None else folders[0] / "laps.png"
