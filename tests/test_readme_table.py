@@ -11,6 +11,7 @@ import pytest
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps import readme_table
+from pixelmpc_jax.apps.experiments import gains
 from pixelmpc_jax.commands import EXIT_FAILED
 from pixelmpc_jax.sim import metrics, ticks_compact
 
@@ -233,3 +234,43 @@ def test_a_readme_without_its_markers_is_refused(tmp_path, capsys):
         with pytest.raises(SystemExit) as done:  # one of the two jobs, and a folder with per-tick records
             cli.main(argv)
         assert done.value.code == 2
+
+
+def _copy_tracked(name: str, into: Path) -> Path:
+    """A result folder copied with the files its checkout commits (the full per-tick records left out)."""
+    folder = into / readme_table.RESULTS / name
+    shutil.copytree(ROOT / readme_table.RESULTS / name, folder,
+                    ignore=shutil.ignore_patterns("trajectories_*.npz", "ticks_[!c]*.npz", "covariances_*.npz"))
+    return folder
+
+
+def test_the_pace_row_pairs_each_lap_with_nominal_laps_of_the_seeds_best_flew_only(tmp_path):
+    """`best` at the 16 m/s label's pace flew fewer seeds than the validation frontier holds: its joined means and
+    local fit read nominal MPPI's laps of those seeds alone, which differs from reading them all."""
+    folders = [_copy_tracked(folder.name, tmp_path) for folder in readme_table.PACE_FRONTIER]
+    row = readme_table.pace_paired_gain(tmp_path)
+    metrics_ = json.loads((folders[1] / "best" / "metrics.json").read_text())["controllers"]["pixelmpc"]
+    cell = gains.completed_laps({"laps": metrics_["laps"]})
+    seeds = set(cell.seed.tolist())
+    points = {}
+    for folder in folders:
+        record = json.loads((folder / "frontier.json").read_text())
+        results = json.loads((folder / "results.json").read_text())
+        for point in record["nominal"]:
+            points.setdefault(point["name"], (point["speed"], results[point["name"]]))
+    everyone = [gains.completed_laps(result) for _, result in sorted(points.values(), key=lambda p: p[0])]
+    mine = [gains.Laps(*(field[np.isin(laps.seed, sorted(seeds))] for field in laps)) for laps in everyone]
+    joined_mine = gains.frontier_gains(cell, mine)["joined_means"]["gain"]
+    joined_all = gains.frontier_gains(cell, everyone)["joined_means"]["gain"]
+    assert f"joined means {joined_mine:.2f}" in row.ours and f"{joined_mine:.2f}" != f"{joined_all:.2f}"
+    assert len(seeds) == 50 and "50/50 laps finished" in row.tail
+
+
+def test_the_pace_row_refuses_a_nominal_point_flown_with_other_settings(tmp_path):
+    """A nominal point of the pace folder flown at another sampling temperature is not the frontier's nominal MPPI."""
+    folders = [_copy_tracked(folder.name, tmp_path) for folder in readme_table.PACE_FRONTIER]
+    results = json.loads((folders[1] / "results.json").read_text())
+    results["nominal_9.1"]["config"]["config"]["mppi"]["temperature"] = 123.0
+    (folders[1] / "results.json").write_text(json.dumps(results))
+    with pytest.raises(ValueError, match="nominal_9.1 is not nominal MPPI on the loop"):
+        readme_table.pace_paired_gain(tmp_path)

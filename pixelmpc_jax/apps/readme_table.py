@@ -23,6 +23,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
+import numpy as np
+
 from pixelmpc_jax.apps.bench.table1 import PAPER as PAPER_TABLE_I
 from pixelmpc_jax.apps.experiments import frontier
 from pixelmpc_jax.apps.experiments import gains as gains_lib
@@ -437,6 +439,35 @@ def table_iv_eskf(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
+def _nominal_frontier(root: Path, race: RaceSpec, folders: tuple[Path, ...],
+                      others: dict[Path, dict] | None = None) -> list[tuple[float, dict]]:
+    """Nominal MPPI's points of the frontier folders ``folders`` as ``(speed, results)``, slowest first, each checked
+    against its folder's per-tick record (which holds the races of ``others[folder]`` too, ``{race: {"laps": [...]}}``)
+    and to be nominal MPPI as every frontier flies it (the paper's settings) on the loop ``race`` flew (a ValueError
+    otherwise); a point named in an earlier folder is read from that one."""
+    from pixelmpc_jax.apps.racing import grid
+    from pixelmpc_jax.control.pixelmpc import ControllerConfig
+
+    points: dict[str, tuple[float, dict]] = {}
+    for folder in folders:
+        record, results = _json(root / folder / "frontier.json"), _json(root / folder / "results.json")
+        check_compact_record(root / folder, {**results, **(others or {}).get(folder, {})})
+        for point in record["nominal"]:
+            result = results[point["name"]]
+            baseline = race.replace(controller="mppi", config=ControllerConfig(), speed=point["speed"],
+                                    laps=len(result["laps"]), seed=result["seed"])
+            if grid.recorded_race(result).key() != baseline.key():
+                raise ValueError(f"{folder}: {point['name']} is not nominal MPPI on the loop "
+                                 f"{flown_preset(race.record())} flew")
+            points.setdefault(point["name"], (point["speed"], result))
+    return sorted(points.values(), key=lambda point: point[0])
+
+
+def _of_seeds(laps: gains_lib.Laps, seeds: set[int]) -> gains_lib.Laps:
+    keep = np.isin(laps.seed, sorted(seeds))
+    return gains_lib.Laps(*(field[keep] for field in laps))
+
+
 ONBOARD_BEST = RESULTS / "look_ahead_from_plan_onboard_2000"
 # its per-tick record's races -> the folder of each race's metrics.json; `best` flew the first two
 ONBOARD_BEST_RACES = {"both_options_2000": "both_options_2000", "both_options_2010": "both_options_2010",
@@ -451,9 +482,6 @@ def onboard_paired_gain(root: Path) -> Row:
     settings) on the same loop (a ValueError otherwise); the gains and their intervals of
     :func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains`, every lap checked against both folders' per-tick
     records."""
-    from pixelmpc_jax.apps.racing import grid
-    from pixelmpc_jax.control.pixelmpc import ControllerConfig
-
     path = ONBOARD_BEST
     race_metrics = {name: _json(root / path / folder / "metrics.json") for name, folder in ONBOARD_BEST_RACES.items()}
     check_compact_record(root / path, {name: {"laps": m["controllers"]["pixelmpc"]["laps"]}
@@ -464,17 +492,9 @@ def onboard_paired_gain(root: Path) -> Row:
         raise ValueError(f"{path}: no race flew the best preset")
     race = RaceSpec.from_record(next(iter(flown.values()))["race"])
     laps = [lap for m in flown.values() for lap in m["controllers"]["pixelmpc"]["laps"]]
-    record, results = _json(root / ONBOARD_FRONTIER / "frontier.json"), _json(root / ONBOARD_FRONTIER / "results.json")
-    check_compact_record(root / ONBOARD_FRONTIER, results)
-    nominal = [results[point["name"]] for point in record["nominal"]]
-    for point, result in zip(record["nominal"], nominal):  # nominal MPPI as the frontier flies it, on the same loop
-        baseline = race.replace(controller="mppi", config=ControllerConfig(), speed=point["speed"],
-                                laps=len(result["laps"]), seed=result["seed"])
-        if grid.recorded_race(result).key() != baseline.key():
-            raise ValueError(f"{ONBOARD_FRONTIER}: {point['name']} is not nominal MPPI on the loop "
-                             f"{flown_preset(race.record())} flew")
+    nominal = _nominal_frontier(root, race, (ONBOARD_FRONTIER,))
     gains = gains_lib.frontier_gains(gains_lib.completed_laps({"laps": laps}),
-                                     [gains_lib.completed_laps(result) for result in nominal])
+                                     [gains_lib.completed_laps(result) for _, result in nominal])
     paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
     done = [lap for lap in laps if lap["success"]]
     in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
@@ -487,6 +507,44 @@ def onboard_paired_gain(root: Path) -> Row:
                lap_tail(laps), "not measured (one target speed)",
                f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, seeds {seeds[0]}-{seeds[-1]}; "
                f"nominal MPPI's laps from [{ONBOARD_FRONTIER.name}]({ONBOARD_FRONTIER.as_posix()}/)",
+               _tables_measured(root, path), path, per_tick(root / path))
+
+
+PACE_BEST = RESULTS / "best_pace_9.1_2200"  # `best` at the 16 m/s label's pace, and nominal MPPI at that target
+PACE_FRONTIER = (RESULTS / "best_validation_2200", PACE_BEST)  # nominal MPPI flown slower on the same seeds
+
+
+def pace_paired_gain(root: Path) -> Row:
+    """`best` at the 16 m/s label's pace on the true state (a `pixelmpc race` in :data:`PACE_BEST`'s ``best/``)
+    against nominal MPPI flown slower on the same seeds (the points of :data:`PACE_FRONTIER`, its laps of other seeds
+    left out): the paired gain, the joined means and the local fit with their intervals, and the median lap against
+    nominal MPPI's at the same target on the same seeds; every lap checked against the folders' per-tick records."""
+    path = PACE_BEST
+    metrics_ = _json(root / path / "best" / "metrics.json")["controllers"]["pixelmpc"]
+    laps = metrics_["laps"]
+    race = RaceSpec.from_record(metrics_["race"])
+    seeds = {lap["seed"] for lap in laps}
+    nominal = _nominal_frontier(root, race, PACE_FRONTIER, others={path: {"best": {"laps": laps}}})
+    at_target = [result for speed, result in nominal if math.isclose(speed, race.speed)]
+    if not at_target:
+        raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
+    gains = gains_lib.frontier_gains(gains_lib.completed_laps({"laps": laps}),
+                                     [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
+    paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
+    done = [lap for lap in laps if lap["success"]]
+    nominal_done = [lap["lap_time_s"] for lap in at_target[0]["laps"] if lap["success"] and lap["seed"] in seeds]
+    median_change = statistics.median(lap["lap_time_s"] for lap in done) / statistics.median(nominal_done) - 1
+    in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
+    label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, race.speed))
+    return Row(f"The same ({flown_preset(race.record())}) at the paper's {label:g} m/s label's pace, "
+               f"{race.speed:g} m/s; its median lap against nominal MPPI's at the same target",
+               f"paired **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, {paired['interval'][1]:.2f}] "
+               f"({gains['laps_paired']} of {len(done)} laps paired); joined means {joined['gain']:.2f}, local fit "
+               f"{local['gain']:.2f}; in view {in_view:.1%}; median lap {median_change:+.1%}",
+               lap_tail(laps), "not measured (one target speed)",
+               f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, {_seeds(race.seed, len(laps))}; "
+               f"nominal MPPI's laps of those seeds from "
+               + " and ".join(f"[{folder.name}]({folder.as_posix()}/)" for folder in PACE_FRONTIER),
                _tables_measured(root, path), path, per_tick(root / path))
 
 
@@ -575,6 +633,7 @@ ROWS = (
     frontier_gain("best_heldout_course_700", "The same ({controller}) on a generated course, made after the preset was "
                   "chosen"),
     onboard_paired_gain,
+    pace_paired_gain,
     paper_main_cell,
     table_iv_filter,
     table_iv_eskf,
