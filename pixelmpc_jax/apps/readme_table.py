@@ -463,6 +463,21 @@ def _nominal_frontier(root: Path, race: RaceSpec, folders: tuple[Path, ...],
     return sorted(points.values(), key=lambda point: point[0])
 
 
+def _gains(cell: gains_lib.Laps, nominal: list[gains_lib.Laps]) -> dict:
+    """:func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains` of these laps, computed once for the same laps
+    (its bootstrap takes about a second, and the table, its check and its tests ask again); the dict is shared, not
+    to be changed."""
+    def key(laps: gains_lib.Laps) -> tuple:
+        return tuple(tuple(field.tolist()) for field in laps)
+
+    return _cached_gains(key(cell), tuple(key(laps) for laps in nominal))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_gains(cell: tuple, nominal: tuple) -> dict:
+    return gains_lib.frontier_gains(gains_lib.laps(*cell), [gains_lib.laps(*laps) for laps in nominal])
+
+
 def _of_seeds(laps: gains_lib.Laps, seeds: set[int]) -> gains_lib.Laps:
     keep = np.isin(laps.seed, sorted(seeds))
     return gains_lib.Laps(*(field[keep] for field in laps))
@@ -493,8 +508,8 @@ def onboard_paired_gain(root: Path) -> Row:
     race = RaceSpec.from_record(next(iter(flown.values()))["race"])
     laps = [lap for m in flown.values() for lap in m["controllers"]["pixelmpc"]["laps"]]
     nominal = _nominal_frontier(root, race, (ONBOARD_FRONTIER,))
-    gains = gains_lib.frontier_gains(gains_lib.completed_laps({"laps": laps}),
-                                     [gains_lib.completed_laps(result) for _, result in nominal])
+    gains = _gains(gains_lib.completed_laps({"laps": laps}),
+                   [gains_lib.completed_laps(result) for _, result in nominal])
     paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
     done = [lap for lap in laps if lap["success"]]
     in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
@@ -528,8 +543,8 @@ def pace_paired_gain(root: Path) -> Row:
     at_target = [result for speed, result in nominal if math.isclose(speed, race.speed)]
     if not at_target:
         raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
-    gains = gains_lib.frontier_gains(gains_lib.completed_laps({"laps": laps}),
-                                     [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
+    gains = _gains(gains_lib.completed_laps({"laps": laps}),
+                   [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
     paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
     done = [lap for lap in laps if lap["success"]]
     nominal_done = [lap["lap_time_s"] for lap in at_target[0]["laps"] if lap["success"] and lap["seed"] in seeds]
