@@ -386,10 +386,13 @@ def paper_main_cell(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
+TABLE_IV = RESULTS / "table4_validation_2300"  # Table IV at the 16 m/s label's pace, both filters
+
+
 def _table_iv(root: Path) -> tuple[Path, Callable[[str], tuple[dict, dict]], dict]:
     """Table IV's 16 m/s pace: the folder, nominal MPPI's and `best`'s rows of its summary on an estimator, and its
     results, every lap checked against the per-tick record (:func:`check_compact_record`)."""
-    path = RESULTS / "table4_16ms_pace"
+    path = TABLE_IV
     cells = {c["cell"]: c for c in _json(root / path / "summary.json")["table_iv"]}
     results = _json(root / path / "results.json")
     check_compact_record(root / path, results)
