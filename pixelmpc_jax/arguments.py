@@ -178,6 +178,21 @@ def ticks_dir(path: str) -> Path:
     return folder
 
 
+def ticks_file(path: str) -> Path:
+    """An argparse type: a per-tick record (``ticks_<race>.npz``) with the states, targets and gates of its laps."""
+    import numpy as np
+
+    needed = ("states", "target", "num_ticks", "seed", "gate_centre", "camera_fx")
+    try:
+        with np.load(path) as data:
+            missing = [key for key in needed if key not in data.files]
+    except (OSError, ValueError) as err:
+        raise argparse.ArgumentTypeError(f"no per-tick record at {path!r}: {err}") from None
+    if missing:
+        raise argparse.ArgumentTypeError(f"{path!r} is not a per-tick record: it lacks {', '.join(missing)}")
+    return Path(path)
+
+
 def weights_file(path: str) -> Path:
     """An argparse type: an existing file (its contents are checked before anything runs)."""
     file = Path(path)

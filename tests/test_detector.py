@@ -264,3 +264,33 @@ def test_a_triangular_opening_gives_no_corners_not_an_error(camera):
 def test_image_detector_rejects_bad_images(bad, match, camera):
     with pytest.raises(ValueError, match=match):
         D.detect_from_image(bad, 0, camera)
+
+
+def test_the_agreement_summary_counts_frames_and_takes_centres_where_both_found():
+    """:func:`detector_agreement.summarise` on frames built by hand: agreement over every frame, the centre's
+    median and 95th percentile over the frames both detectors found, and over those partly out of view."""
+    from pixelmpc_jax.apps.experiments import detector_agreement as A
+
+    error = np.array([0.5, 1.0, np.nan, 3.0, 10.0, np.nan])
+    frames = {"found_geometry": np.array([True, True, False, True, True, False]),
+              "found_image": np.array([True, True, True, True, True, False]),
+              "partial": np.array([False, True, False, True, True, False]), "centre_error_px": error}
+    s = A.summarise(frames)
+    assert (s["frames"], s["partial_frames"], s["found_image_only"], s["found_geometry_only"]) == (6, 3, 1, 0)
+    assert s["found_agree"] == pytest.approx(5 / 6)
+    assert s["centre"]["frames"] == 4 and s["centre"]["median_px"] == pytest.approx(2.0)
+    assert s["centre_partial"]["frames"] == 3 and s["centre_partial"]["median_px"] == pytest.approx(3.0)
+    assert s["centre"]["p95_px"] == pytest.approx(np.percentile([0.5, 1.0, 3.0, 10.0], 95))
+    record = {"num_ticks": np.array([2, 3]), "states": np.arange(2 * 4 * 10).reshape(2, 4, 10),
+              "target": np.array([[0, 1, 1, 1], [2, 2, 3, 3]])}
+    states, targets = A.lap_frames(record, 1)
+    assert states.shape == (3, 10) and targets.tolist() == [2, 2, 3]
+
+
+def test_the_agreement_command_refuses_a_file_that_is_no_per_tick_record(tmp_path, capsys):
+    from pixelmpc_jax import cli
+
+    np.savez(tmp_path / "other.npz", states=np.zeros((1, 2, 10)))
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["experiment", "detector-agreement", str(tmp_path / "other.npz"), "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2 and "is not a per-tick record: it lacks target" in capsys.readouterr().err

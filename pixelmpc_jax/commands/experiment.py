@@ -22,10 +22,11 @@ def add_experiment(sub) -> None:
     """``pixelmpc experiment``: its jobs as sub-commands."""
     p = sub.add_parser("experiment", help="one experiment on its own, resumable: table2, table4, robustness, "
                                           "fault-curves, frontier, margin-probe, speed-probe; lap-picture draws "
-                                          "the laps of result folders")
+                                          "the laps of result folders; detector-agreement compares the detectors "
+                                          "on their frames")
     jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
     for add in (_add_table2, _add_table4, _add_robustness, _add_fault_curves, _add_frontier, _add_margin_probe,
-                _add_speed_probe, _add_lap_picture):
+                _add_speed_probe, _add_lap_picture, _add_detector_agreement):
         add(jobs)
 
 
@@ -329,4 +330,24 @@ def _cmd_lap_picture(args) -> int:
     from pixelmpc_jax.apps.experiments.lap_picture import write_lap_picture
 
     print(write_lap_picture(args.folders, args.out))
+    return 0
+
+
+def _add_detector_agreement(jobs) -> None:
+    p = jobs.add_parser("detector-agreement", help="the geometric detector against the image detector on every frame "
+                                                   "of flown laps (per-tick records, ticks_*.npz): found or not, and "
+                                                   "the centres' distance, the gates partly out of view apart "
+                                                   "(agreement.json, REPORT.md, agreement.png; flies nothing)")
+    p.add_argument("ticks", type=arg.ticks_file, nargs="+", metavar="TICKS",
+                   help="per-tick records of AlphaPilot races (ticks_*.npz, as a race or a grid writes them)")
+    p.add_argument("--laps", type=arg.positive_int, default=1, help="laps of each record, from its first (default 1)")
+    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder")
+    p.set_defaults(func=_cmd_detector_agreement)
+
+
+def _cmd_detector_agreement(args) -> int:
+    from pixelmpc_jax.apps.experiments import detector_agreement
+
+    detector_agreement.run(args.ticks, args.laps, args.out)
+    _print_report(args.out)
     return 0
