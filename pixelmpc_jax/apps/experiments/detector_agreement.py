@@ -37,11 +37,19 @@ def lap_agreement(record: dict, lap: int, chunk: int = CHUNK) -> dict:
     from pixelmpc_jax.sim import ticks as ticks_lib
     from pixelmpc_jax.world.course import make_course
 
-    track = make_course("alphapilot").replace(gates=ticks_lib.gates_of(record, lap))
+    course, gates = make_course("alphapilot"), ticks_lib.gates_of(record, lap)
+    if gates.centre.shape != course.gates.centre.shape:
+        raise ValueError(f"lap {lap} flew {len(gates.centre)} gates, AlphaPilot has {len(course.gates.centre)}: "
+                         "the check renders the AlphaPilot hall")
     states, targets = lap_frames(record, lap)
-    parts = [detector.image_agreement(track, states[i:i + chunk], targets[i:i + chunk], ticks_lib.camera_of(record))
+    count = len(states)
+    pad = -count % chunk  # the last chunk filled with its last frame: every chunk one shape, the render compiled once
+    states = np.concatenate([states, np.repeat(states[-1:], pad, axis=0)])
+    targets = np.concatenate([targets, np.repeat(targets[-1:], pad)])
+    camera = ticks_lib.camera_of(record)
+    parts = [detector.image_agreement(course.replace(gates=gates), states[i:i + chunk], targets[i:i + chunk], camera)
              for i in range(0, len(states), chunk)]
-    return {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
+    return {key: np.concatenate([part[key] for part in parts])[:count] for key in parts[0]}
 
 
 def summarise(frames: dict) -> dict:
