@@ -266,6 +266,15 @@ def lap_tail(laps: list[dict]) -> str:
             f"the median, {over} more than {metrics.TAIL_OVER_MEDIAN * 100:g} % over")
 
 
+def gains_text(gains: dict, finished: int) -> str:
+    """The three frontier gains of :func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains` in words: the paired
+    gain [its interval] with how many of the ``finished`` laps it paired, then the joined means and the local fit."""
+    paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
+    low, high = paired["interval"]
+    return (f"paired **{paired['gain']:.2f}** [{low:.2f}, {high:.2f}] ({gains['laps_paired']} of {finished} laps "
+            f"paired); joined means {joined['gain']:.2f}, local fit {local['gain']:.2f}")
+
+
 def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
     """A row of `best`'s frontier gain in a frontier folder: the paired gain [interval] at its lap time against
     nominal MPPI flown slower, beside the joined means and the local fit (the bars apply to the smallest of the
@@ -278,14 +287,9 @@ def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[
         results = _json(root / path / "results.json")[cell]
         laps = [lap for lap in results["laps"] if lap["success"]]
         worst = max(lap["time_vis_avoidable_s"] for lap in laps)
-        gains = cell_row["gains"]
-        paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
-        low, high = paired["interval"]
         lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
         return Row(claim.format(controller=flown_preset(results["config"])),
-                   f"paired **{paired['gain']:.2f}** [{low:.2f}, {high:.2f}] ({gains['laps_paired']} of "
-                   f"{len(laps)} laps paired); joined means {joined['gain']:.2f}, local fit {local['gain']:.2f}; at "
-                   f"{lap_change:+.1%} lap time",
+                   f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time",
                    f"{lap_tail(results['laps'])}; worst lap {worst:.2f} s avoidable (nominal at the cell's lap time "
                    f"{cell_row['frontier_avoidable_s']:.2f} s)",
                    "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
@@ -513,15 +517,12 @@ def onboard_paired_gain(root: Path) -> Row:
     nominal = _nominal_frontier(root, race, (ONBOARD_FRONTIER,))
     gains = _gains(gains_lib.completed_laps({"laps": laps}),
                    [gains_lib.completed_laps(result) for _, result in nominal])
-    paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
     done = [lap for lap in laps if lap["success"]]
     in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
     seeds = sorted(lap["seed"] for lap in laps)
     return Row(f"The same ({flown_preset(race.record())}) on the onboard loop (the image detector, the ESKF, the gate "
                "switch from the estimate, the surveyed map), nominal MPPI flown slower on that loop too",
-               f"paired **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, {paired['interval'][1]:.2f}] "
-               f"({gains['laps_paired']} of {len(done)} laps paired); joined means {joined['gain']:.2f}, local fit "
-               f"{local['gain']:.2f}; in view {in_view:.1%}",
+               f"{gains_text(gains, len(done))}; in view {in_view:.1%}",
                lap_tail(laps), "not measured (one target speed)",
                f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, seeds {seeds[0]}-{seeds[-1]}; "
                f"nominal MPPI's laps from [{ONBOARD_FRONTIER.name}]({ONBOARD_FRONTIER.as_posix()}/)",
@@ -548,7 +549,6 @@ def pace_paired_gain(root: Path) -> Row:
         raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
     gains = _gains(gains_lib.completed_laps({"laps": laps}),
                    [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
-    paired, joined, local = (gains[name] for name in ("paired", "joined_means", "local_fit"))
     done = [lap for lap in laps if lap["success"]]
     nominal_done = [lap["lap_time_s"] for lap in at_target[0]["laps"] if lap["success"] and lap["seed"] in seeds]
     median_change = statistics.median(lap["lap_time_s"] for lap in done) / statistics.median(nominal_done) - 1
@@ -556,9 +556,7 @@ def pace_paired_gain(root: Path) -> Row:
     label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, race.speed))
     return Row(f"The same ({flown_preset(race.record())}) at the paper's {label:g} m/s label's pace, "
                f"{race.speed:g} m/s; its median lap against nominal MPPI's at the same target",
-               f"paired **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, {paired['interval'][1]:.2f}] "
-               f"({gains['laps_paired']} of {len(done)} laps paired); joined means {joined['gain']:.2f}, local fit "
-               f"{local['gain']:.2f}; in view {in_view:.1%}; median lap {median_change:+.1%}",
+               f"{gains_text(gains, len(done))}; in view {in_view:.1%}; median lap {median_change:+.1%}",
                lap_tail(laps), "not measured (one target speed)",
                f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, {_seeds(race.seed, len(laps))}; "
                f"nominal MPPI's laps of those seeds from "

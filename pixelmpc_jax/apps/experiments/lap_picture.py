@@ -136,9 +136,10 @@ def write_lap_picture(folders, out: Path | None = None, names=None) -> Path:
     races, drawn = [], set()
     for folder in folders:
         for race in folder_races(folder, names):
-            if _same_laps(race) in drawn:
+            same = _same_laps(race)
+            if same in drawn:
                 continue
-            drawn.add(_same_laps(race))
+            drawn.add(same)
             label = race.label if len(folders) == 1 else f"{folder.name}/{race.label}"
             races.append(race._replace(label=label))
     out = Path(out) if out is not None else folders[0] / "laps.png"
