@@ -27,7 +27,7 @@ def _race(speed: float, num_ticks: int, avoidable_ticks: int, laps: int = 2, fir
     return {"seed": np.arange(first_seed, first_seed + laps), "num_ticks": np.full(laps, num_ticks),
             "finished": np.ones(laps, bool), "target": np.zeros((laps, num_ticks + 1), np.int8),
             "visibility": visibility, "pointed_visibility": np.ones((laps, num_ticks + 1), np.float32),
-            "floor_distance": np.full((laps, num_ticks + 1), np.nan, np.float32), "target_speed": np.asarray(speed),
+            "excused": np.zeros((laps, num_ticks + 1), bool), "target_speed": np.asarray(speed),
             "dt": np.asarray(DT), "measure": np.asarray(metrics.MEASURE)}
 
 

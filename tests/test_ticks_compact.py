@@ -2,6 +2,7 @@
 giving back the figures of the race it was written from."""
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -36,9 +37,8 @@ def test_a_hand_made_lap_gives_its_hand_computed_figures():
     tick). The 15 nearest are excused; the 5 the slow approach lingered are avoidable."""
     record = ticks_lib.stack([_approach_lap()], camera_lib.default_camera(), target_speed=4.0)
     race = ticks_compact.from_record(record)
-    distance = race["floor_distance"][0]
-    assert np.isnan(distance[:11]).all()
-    assert distance[11:] == pytest.approx(2.525 - 0.05 * np.arange(11, 41), abs=1e-5)
+    assert race["excused"].dtype == bool
+    assert np.flatnonzero(race["excused"][0]).tolist() == list(range(26, 41))  # the 15 nearest the gate
     figures = ticks_compact.lap_figures(race, 0)
     assert figures["success"] and figures["lap_time_s"] == pytest.approx(40 * DT)
     assert figures["time_vis_below_50_s"] == pytest.approx(20 * DT)
@@ -59,6 +59,27 @@ def test_the_record_round_trips_and_an_update_keeps_the_other_races(tmp_path):
         np.testing.assert_array_equal(loaded["nominal_8"][field], race[field])
     assert loaded["best_v8.5"]["target"].dtype == np.int8 and str(loaded["best_v8.5"]["measure"]) == metrics.MEASURE
     assert [lap["seed"] for lap in ticks_compact.race_laps(loaded["best_v8.5"])] == [3, 4]
+
+
+def test_a_record_that_kept_the_distances_reads_as_one_with_the_excused_ticks(tmp_path):
+    """A folder's record written before the excused ticks (``floor_distance``: the distances where the pointed
+    camera sees under half, NaN elsewhere, zlib members) gives the same laps and, rewritten, the current fields."""
+    record = ticks_lib.stack([_approach_lap(3), _approach_lap(4)], camera_lib.default_camera(), target_speed=4.0)
+    race = ticks_compact.from_record(record)
+    distance = 2.525 - 0.05 * np.arange(41)
+    old = {**{k: v for k, v in race.items() if k != "excused"},
+           "floor_distance": np.tile(np.where(distance <= 2.0, distance, np.nan), (2, 1)).astype(np.float32)}
+    path = tmp_path / ticks_compact.FILE_NAME
+    np.savez_compressed(path, **{f"best/{field}": value for field, value in old.items()})
+    loaded = ticks_compact.load(path)["best"]
+    assert "floor_distance" not in loaded
+    np.testing.assert_array_equal(loaded["excused"], race["excused"])
+    assert ticks_compact.race_laps(loaded) == ticks_compact.race_laps(race)
+    ticks_compact.update(path, {"nominal": race})
+    assert sorted(ticks_compact.load(path)) == ["best", "nominal"]
+    with np.load(path) as data:  # the members LZMA-compressed, the file a plain npz still
+        assert "best/floor_distance.npy" not in data.zip.namelist()
+        assert data.zip.getinfo("best/excused.npy").compress_type == zipfile.ZIP_LZMA
 
 
 def test_a_record_measured_otherwise_or_named_with_a_slash_is_refused(tmp_path):

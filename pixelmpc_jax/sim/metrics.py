@@ -157,8 +157,9 @@ def excused_ticks(candidates: np.ndarray, distance: np.ndarray, target: np.ndarr
     return excused
 
 
-def visibility_masks(visibility: np.ndarray, pointed: np.ndarray, target: np.ndarray, distance: np.ndarray,
-                     num_ticks: int, target_speed: float, dt: float = CONTROL_DT) -> dict:
+def visibility_masks(visibility: np.ndarray, pointed: np.ndarray, target: np.ndarray, distance: np.ndarray | None,
+                     num_ticks: int, target_speed: float, dt: float = CONTROL_DT,
+                     excused: np.ndarray | None = None) -> dict:
     """The project's visibility measure over one lap's flown ticks, as masks (S,).
 
     A gate's low visibility counts at every tick it is the target, from the tick the previous gate is passed
@@ -179,14 +180,20 @@ def visibility_masks(visibility: np.ndarray, pointed: np.ndarray, target: np.nda
         visibility: (S,) the target's visibility at each state (state 0 is the start).
         pointed: (S,) the target's visibility from a camera at the same position pointed at its centre.
         target: (S,) the target gate's index.
-        distance: (S,) distance to the target gate's centre, m.
+        distance: (S,) distance to the target gate's centre, m (None with ``excused``).
         num_ticks: ticks flown; states past it are not counted.
         target_speed: the race's target speed, m/s (the cap's speed).
+        excused: (S,) bool, the ticks the floor excuses, where a record kept them instead of the distances (this
+            function's own ``excused`` for the same lap; :mod:`~pixelmpc_jax.sim.ticks_compact`); None: from
+            ``distance``.
     """
     counted = flown(num_ticks, len(visibility))
     below_50 = counted & (visibility < 0.5)
     zero = counted & (visibility <= 0.0)
-    excused = excused_ticks(below_50 & (pointed < 0.5), distance, target, target_speed, dt)
+    if excused is None:
+        excused = excused_ticks(below_50 & (pointed < 0.5), distance, target, target_speed, dt)
+    else:
+        excused = np.asarray(excused, bool) & below_50
     return {"below_50": below_50, "zero": zero, "excused": excused, "avoidable": below_50 & ~excused}
 
 
