@@ -412,6 +412,13 @@ def test_each_finished_cell_adds_its_laps_to_the_folders_compact_record(monkeypa
     grid.run_grid([grid.Cell("again_dof", CELLS[1].spec)], tmp_path / "second", laps=2, seed=5, progress=False,
                   reuse=[tmp_path / "first"])
     assert list(ticks_compact.load(tmp_path / "second" / ticks_compact.FILE_NAME)) == ["again_dof"]
+    # a folder brought back with its compact record only (the full per-tick files left where they were flown)
+    (tmp_path / "first" / "ticks_nominal.npz").unlink()
+    grid.run_grid([grid.Cell("again_nominal", CELLS[0].spec)], tmp_path / "third", laps=2, seed=5, progress=False,
+                  reuse=[tmp_path / "first"])
+    copied = ticks_compact.load(tmp_path / "third" / ticks_compact.FILE_NAME)
+    assert list(copied) == ["again_nominal"] and not (tmp_path / "third" / "ticks_again_nominal.npz").exists()
+    assert ticks_compact.race_laps(copied["again_nominal"]) == ticks_compact.race_laps(compact["nominal"])
 
 
 def test_a_tilted_camera_is_a_race_setting_both_controllers_fly_and_the_packaged_pixel_models_refuse():

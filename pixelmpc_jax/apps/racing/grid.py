@@ -167,12 +167,23 @@ def _copy_shared(shared: tuple[Path, str, dict], out: Path, name: str) -> dict:
     return {**done, "shared_from": f"{folder.name}/{shared_name}", "wall_time_s": 0.0}
 
 
-def _add_to_compact_record(out: Path, name: str) -> None:
+def _add_to_compact_record(out: Path, name: str, shared: tuple[Path, str, dict] | None = None) -> None:
     """Add cell ``name``'s per-tick record in ``out`` (``ticks_<name>.npz``, when it has one) to the folder's compact
-    record (:mod:`~pixelmpc_jax.sim.ticks_compact`), the one a result folder commits."""
+    record (:mod:`~pixelmpc_jax.sim.ticks_compact`), the one a result folder commits. A cell copied from ``shared``
+    (:func:`find_shared`) whose full record was not kept there (a folder brought back with its compact record only)
+    takes its part of that folder's compact record."""
     source = out / f"ticks_{name}.npz"
     if source.exists():
         ticks_compact.update(out / ticks_compact.FILE_NAME, {name: ticks_compact.from_record(ticks_lib.load(source))})
+        return
+    if shared is None:
+        return
+    folder, shared_name, _ = shared
+    compact = folder / ticks_compact.FILE_NAME
+    if compact.exists():
+        races = ticks_compact.load(compact)
+        if shared_name in races:
+            ticks_compact.update(out / ticks_compact.FILE_NAME, {name: races[shared_name]})
 
 
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
@@ -212,7 +223,7 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
         if shared is not None:
             results[cell.name] = _copy_shared(shared, out, cell.name)
             write_json_atomic(path, results)
-            _add_to_compact_record(out, cell.name)
+            _add_to_compact_record(out, cell.name, shared)
             if progress:
                 print(f"[{cell.name}] shared from {results[cell.name]['shared_from']}")
             continue
