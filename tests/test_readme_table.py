@@ -127,7 +127,8 @@ def test_every_row_names_a_folder_that_exists_and_says_whether_it_commits_per_ti
     for row in rows:
         assert (ROOT / row.folder).is_dir(), row.folder
         assert row.per_tick in ("yes", "no", "n/a")
-        assert row.per_tick != "yes" or (ROOT / row.folder / ticks_compact.FILE_NAME).is_file()
+        assert (row.per_tick == "yes") == bool(readme_table.compact_records(ROOT / row.folder))
+        assert all(path.is_file() for path in readme_table.compact_records(ROOT / row.folder))
         assert readme_table.ISO_DATE.search(row.measured_on), row
 
 

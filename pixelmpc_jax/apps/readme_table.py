@@ -112,9 +112,20 @@ def stated_date(path: Path) -> str:
     return match.group(0)
 
 
+def compact_records(folder: Path) -> list[Path]:
+    """The compact per-tick records a result folder commits: its own, or else one in each of its course folders
+    (``course_<seed>``, a folder of several courses' frontiers); none when one of those lacks it."""
+    own = folder / ticks_compact.FILE_NAME
+    if own.is_file():
+        return [own]
+    courses = sorted(p for p in folder.glob("course_*") if p.is_dir())
+    records = [course / ticks_compact.FILE_NAME for course in courses]
+    return records if records and all(record.is_file() for record in records) else []
+
+
 def per_tick(folder: Path) -> str:
-    """"yes" when the folder commits its compact per-tick record, else "no"."""
-    return "yes" if (folder / ticks_compact.FILE_NAME).is_file() else "no"
+    """"yes" when the folder commits its compact per-tick record (:func:`compact_records`), else "no"."""
+    return "yes" if compact_records(folder) else "no"
 
 
 def _seeds(first: int, laps: int) -> str:
@@ -294,6 +305,50 @@ def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[
                    f"{cell_row['frontier_avoidable_s']:.2f} s)",
                    "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
                    path, per_tick(root / path))
+
+    return row
+
+
+def _courses_tail(tails: list[dict]) -> str:
+    """The tails of several courses' races (:func:`~pixelmpc_jax.sim.metrics.lap_tail` each) in words: laps finished
+    in all, each course's worst lap against its own median, the laps more than 10 % over their course's median."""
+    finished, flown = sum(t["laps_finished"] for t in tails), sum(t["laps"] for t in tails)
+    over = sum(round(t["share_over_median"] * t["laps_finished"]) for t in tails)
+    worst = ", ".join("-" if t["worst_over_median"] is None else f"{t['worst_over_median']:+.1%}" for t in tails)
+    return (f"{finished}/{flown} laps finished; the worst {worst} over its course's median; {over} more than "
+            f"{metrics.TAIL_OVER_MEDIAN * 100:g} % over")
+
+
+def courses_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
+    """A row of `best`'s paired gain on each generated course of ``folder``: its frontier folders ``course_<seed>``
+    (each course flown from its own file beside them), the gains and the tail of every lap together; the machine is
+    the folder README's ``Device:`` line (the laps were flown where the joining process did not run)."""
+
+    def row(root: Path) -> Row:
+        path = RESULTS / folder
+        courses = sorted(p.name for p in (root / path).iterdir() if p.is_dir() and p.name.startswith("course_"))
+        if not courses:
+            raise ValueError(f"{path} holds no course folder (course_<seed>)")
+        gains, tails, changes, loops = [], [], [], set()
+        for course in courses:
+            record, cell_row, at_target = _frontier(root, path / course, cell)
+            results = _json(root / path / course / "results.json")[cell]
+            paired = cell_row["gains"]["paired"]
+            gains.append(f"{course.removeprefix('course_')}: **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, "
+                         f"{paired['interval'][1]:.2f}]")
+            changes.append(f"{cell_row['lap_time_s'] / at_target['lap_time_s'] - 1:+.1%}")
+            tails.append(metrics.lap_tail(results["laps"]))
+            stem = Path(results["config"]["course"]).stem
+            loops.add(_frontier_loop(root, path / course, record, cell_row).replace(
+                f"course {stem}", f"{len(courses)} generated courses"))
+        if len(loops) != 1:
+            raise ValueError(f"{path}: its courses were flown on different loops or seeds: {sorted(loops)}")
+        preset = flown_preset(_json(root / path / courses[0] / "results.json")[cell]["config"])
+        return Row(claim.format(controller=preset),
+                   f"paired {'; '.join(gains)}; lap time {', '.join(changes)} against nominal MPPI at the same target",
+                   _courses_tail(tails), "not measured (AlphaPilot only)", loops.pop(),
+                   f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}", path,
+                   per_tick(root / path))
 
     return row
 
@@ -646,8 +701,8 @@ ROWS = (
     visibility_at_same_lap_time("best_validation_2200"),
     frontier_gain("best_validation_2200", "PixelMPC ({controller}) against nominal MPPI flown slower: frontier gain, "
                   "nominal's avoidable low-visibility time at the same lap time over ours"),
-    frontier_gain("best_heldout_course_700", "The same ({controller}) on a generated course, made after the preset was "
-                  "chosen"),
+    courses_gain("best_courses_2500", "The same ({controller}) on three generated courses, made after the preset was "
+                 "chosen: paired gain on each"),
     onboard_paired_gain,
     pace_paired_gain,
     paper_main_cell,
