@@ -135,9 +135,10 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert cli.main(["experiment", "table2", "--out", str(out), "--main", *speeds]) == 0
     assert seen["table2"]["main"] and seen["table2"]["frontier_speeds"] == (7.0, 7.5, 8.0, 9.0)
 
-    def run_frontier(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
+    def run_frontier(speeds, cells, out, laps, seed, course=None, camera_tilt_deg=None, reuse=(), loop=None):
         seen["frontier"] = (speeds, [cell.spec.config.pixel_cost for cell in cells], laps, seed, course, reuse)
         seen["frontier_loop"] = loop
+        seen["frontier_tilt"] = camera_tilt_deg
         seen["frontier_cells"] = cells
         (out / "REPORT.md").write_text("frontier\n")
 
@@ -152,6 +153,10 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "none", "--speeds",
                      "8:8.5:0.25"]) == 0
     assert seen["frontier"][:2] == ((8.0, 8.25, 8.5), []) and seen["frontier_cells"] == ()
+    assert seen["frontier_tilt"] is None
+    assert cli.main(["experiment", "frontier", "--out", str(tmp_path / "f"), "--cells", "none", "--camera-tilt",
+                     "30"]) == 0
+    assert seen["frontier_tilt"] == 30.0
     # --cells preset: the best preset and the exact projection flying every other setting of it
     grid_folder = tmp_path / "validation"
     grid_folder.mkdir()

@@ -10,6 +10,7 @@ from pathlib import Path
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.experiments.reproduce import SEED
 from pixelmpc_jax.apps.racing.presets import LOOPS
+from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
 from pixelmpc_jax.arguments import SEED_MAX
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
@@ -210,6 +211,12 @@ def _add_frontier(jobs) -> None:
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
+    p.add_argument("--camera-tilt", type=arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), default=None,
+                   metavar="DEG",
+                   help=f"the camera tilted up on its mount by DEG degrees, in [0, {CAMERA_TILT_MAX_DEG:g}], for every "
+                        "cell, nominal MPPI's too (default: the cells' own, the paper's 0); the packaged learned pixel "
+                        "models are trained for 0, so with a tilt only nominal MPPI's points (--cells none) fly as "
+                        "they should")
     p.add_argument("--loop", choices=tuple(LOOPS), default=None,
                    help="the loop every cell flies, nominal MPPI's too: onboard, only what the drone has (the image "
                         "detector, the ESKF, the gate switch from the estimate, the surveyed map); truth, the "
@@ -262,7 +269,7 @@ def _cmd_frontier(args) -> int:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
     frontier.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps, seed=args.seed,
-                          course=args.course, reuse=tuple(args.reuse), loop=args.loop)
+                          course=args.course, camera_tilt_deg=args.camera_tilt, reuse=tuple(args.reuse), loop=args.loop)
     _print_report(args.out)
     return 0
 
