@@ -1,6 +1,7 @@
 """The README's results table (apps/readme_table.py, `pixelmpc report`): its rows come from the result folders, a
 frontier gain recomputes from a folder's compact per-tick record, and the command rewrites or checks the table."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -60,6 +61,13 @@ def test_a_row_names_the_preset_its_race_flew_and_refuses_another_controller():
     assert readme_table.flown_preset(results["best_v8.5"]["config"]) == "`best` before its tail options"
     with pytest.raises(ValueError, match="'best_projection_v8.5' flew neither"):
         readme_table.flown_preset(results["best_projection_v8.5"]["config"])
+    # today's preset with the exact projection (a tilted camera's race), and nothing else with it
+    course = json.loads((ROOT / "experiments" / "results" / "best_courses_2500" / "course_2501" / "results.json")
+                        .read_text())
+    assert readme_table.flown_preset(course["best_projection_v8.5"]["config"]) == "`best` with the exact projection"
+    other = best.replace(config=dataclasses.replace(best.config, pixel_model="projection", c_pixel=1e6))
+    with pytest.raises(ValueError, match="flew neither"):
+        readme_table.flown_preset(other.record())
 
 
 def test_a_frontier_folder_whose_paired_gain_differs_from_its_per_tick_record_is_refused(tmp_path):
