@@ -153,7 +153,7 @@ def test_the_cli_rejects_bad_arguments_before_writing_anything(tmp_path, args, c
 def test_the_cli_exits_130_on_ctrl_c_and_quick_brackets_the_paper_pace(tmp_path, monkeypatch, capsys):
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
+    def stop(speeds, cells, out, laps, seed, course=None, camera_tilt_deg=None, reuse=(), loop=None):
         seen.update(speeds=speeds, cells=cells, laps=laps)
         raise KeyboardInterrupt
 
@@ -175,7 +175,7 @@ def test_the_partial_cells_fly_best_beside_its_target_from_the_detector_and_noth
 
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
+    def stop(speeds, cells, out, laps, seed, course=None, camera_tilt_deg=None, reuse=(), loop=None):
         seen.update(cells=cells)
         raise KeyboardInterrupt
 
@@ -197,7 +197,7 @@ def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_p
     nominal_6.25 and so on (so a run resumed with other speeds keeps the points already flown)."""
     seen = {}
 
-    def stop(speeds, cells, out, laps, seed, course=None, reuse=(), loop=None):
+    def stop(speeds, cells, out, laps, seed, course=None, camera_tilt_deg=None, reuse=(), loop=None):
         seen.update(speeds=speeds)
         raise KeyboardInterrupt
 
