@@ -781,10 +781,15 @@ def table(root: Path) -> str:
     return "\n".join(lines)
 
 
-def replace_block(text: str, block: str) -> str:
-    """``text`` with what lies between :data:`BEGIN` and :data:`END` replaced by ``block``."""
+def check_markers(text: str) -> None:
+    """A ValueError unless ``text`` holds one :data:`BEGIN` ... :data:`END` block."""
     if text.count(BEGIN) != 1 or text.count(END) != 1 or text.index(BEGIN) > text.index(END):
         raise ValueError(f"the README must hold one {BEGIN} ... {END} block")
+
+
+def replace_block(text: str, block: str) -> str:
+    """``text`` with what lies between :data:`BEGIN` and :data:`END` replaced by ``block``."""
+    check_markers(text)
     head, rest = text.split(BEGIN)
     _, tail = rest.split(END)
     return f"{head}{BEGIN}\n{block}\n{END}{tail}"
@@ -794,6 +799,7 @@ def rewrite_readme(root: Path, check: bool = False) -> tuple[str, str]:
     """(the README as it is, as the table makes it); the README is rewritten unless ``check`` (or it is current)."""
     readme = Path(root) / "README.md"
     old = readme.read_text()
+    check_markers(old)  # refused before the table's seconds of reading
     new = replace_block(old, table(root))
     if new != old and not check:
         readme.write_text(new)
