@@ -55,6 +55,7 @@ def test_the_record_round_trips_and_an_update_keeps_the_other_races(tmp_path):
     ticks_compact.update(path, {"best_v8.5": race})
     loaded = ticks_compact.load(path)
     assert sorted(loaded) == ["best_v8.5", "nominal_8"]
+    assert list(ticks_compact.load(path, ["nominal_8"])) == ["nominal_8"]  # one race read alone
     for field in ticks_compact.FIELDS:
         np.testing.assert_array_equal(loaded["nominal_8"][field], race[field])
     assert loaded["best_v8.5"]["target"].dtype == np.int8 and str(loaded["best_v8.5"]["measure"]) == metrics.MEASURE

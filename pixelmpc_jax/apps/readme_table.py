@@ -200,11 +200,11 @@ def flown_preset(record: dict) -> str:
     (:data:`~pixelmpc_jax.apps.racing.presets.LOOK_AHEAD_BEST`). Any other race is a ValueError: a row names the
     controller its folder flew."""
     config = RaceSpec.from_record({k: v for k, v in record.items() if k != "name"}).config
-    if config == preset("best").config:
+    best = preset("best").config
+    if config == best:
         return "`best`"
     if config == LOOK_AHEAD_BEST:
         return "`best` before its tail options"
-    best = preset("best").config
     as_best = dataclasses.replace(config, pixel_model=best.pixel_model, box_size_limit=best.box_size_limit,
                                   look_ahead_model=best.look_ahead_model)
     if config.pixel_model == "projection" and as_best == best:  # the projection predicts the next gate as the target
@@ -343,7 +343,7 @@ def courses_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[
         courses = sorted(p.name for p in (root / path).iterdir() if p.is_dir() and p.name.startswith("course_"))
         if not courses:
             raise ValueError(f"{path} holds no course folder (course_<seed>)")
-        gains, tails, changes, loops = [], [], [], set()
+        gains, tails, changes, loops, presets_flown = [], [], [], set(), set()
         for course in courses:
             record, cell_row, at_target = _frontier(root, path / course, cell)
             results = _json(root / path / course / "results.json")[cell]
@@ -352,13 +352,14 @@ def courses_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[
                          f"{paired['interval'][1]:.2f}]")
             changes.append(f"{cell_row['lap_time_s'] / at_target['lap_time_s'] - 1:+.1%}")
             tails.append(metrics.lap_tail(results["laps"]))
+            presets_flown.add(flown_preset(results["config"]))
             stem = Path(results["config"]["course"]).stem
             loops.add(_frontier_loop(root, path / course, record, cell_row).replace(
                 f"course {stem}", f"{len(courses)} generated courses"))
-        if len(loops) != 1:
-            raise ValueError(f"{path}: its courses were flown on different loops or seeds: {sorted(loops)}")
-        preset = flown_preset(_json(root / path / courses[0] / "results.json")[cell]["config"])
-        return Row(claim.format(controller=preset),
+        if len(loops) != 1 or len(presets_flown) != 1:
+            raise ValueError(f"{path}: its courses were flown on different loops, seeds or presets: "
+                             f"{sorted(loops | presets_flown)}")
+        return Row(claim.format(controller=presets_flown.pop()),
                    f"paired {'; '.join(gains)}; lap time {', '.join(changes)} against nominal MPPI at the same target",
                    _courses_tail(tails), "not measured (AlphaPilot only)", loops.pop(),
                    f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}", path,
@@ -602,33 +603,58 @@ PACE_BEST = RESULTS / "best_pace_9.1_2200"  # `best` at the 16 m/s label's pace,
 PACE_FRONTIER = (RESULTS / "best_validation_2200", PACE_BEST)  # nominal MPPI flown slower on the same seeds
 
 
+class _RaceAgainstFrontier(NamedTuple):
+    race: RaceSpec
+    laps: list[dict]  # every lap of the race
+    done: list[dict]  # its finished laps
+    at_target: list[dict]  # nominal MPPI's finished laps at the race's target, of the race's seeds
+    gains: dict  # :func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains` against nominal's laps of its seeds
+
+
+def _race_against_frontier(root: Path, path: Path, folders: tuple[Path, ...]) -> _RaceAgainstFrontier:
+    """A `pixelmpc race` of PixelMPC in ``path``'s ``best/`` against nominal MPPI's points of the frontier folders
+    ``folders`` (:func:`_nominal_frontier`, on the race's loop), their laps of other seeds left out; a ValueError when
+    none was flown at the race's target. Every lap is checked against the folders' per-tick records, the race's against
+    ``path``'s (as ``best``)."""
+    metrics_ = _json(root / path / "best" / "metrics.json")["controllers"]["pixelmpc"]
+    laps = metrics_["laps"]
+    race = RaceSpec.from_record(metrics_["race"])
+    seeds = {lap["seed"] for lap in laps}
+    nominal = _nominal_frontier(root, race, folders, others={path: {"best": {"laps": laps}}})
+    at_target = [result for speed, result in nominal if math.isclose(speed, race.speed)]
+    if not at_target:
+        raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
+    gains = _gains(gains_lib.completed_laps({"laps": laps}),
+                   [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
+    return _RaceAgainstFrontier(race, laps, [lap for lap in laps if lap["success"]],
+                                [lap for lap in at_target[0]["laps"] if lap["success"] and lap["seed"] in seeds], gains)
+
+
+def _median_lap(laps: list[dict]) -> float:
+    return statistics.median(lap["lap_time_s"] for lap in laps)
+
+
+def _in_view(laps: list[dict]) -> float:
+    return statistics.mean(lap["share_target_in_view"] for lap in laps)
+
+
 def pace_paired_gain(root: Path) -> Row:
     """`best` at the 16 m/s label's pace on the true state (a `pixelmpc race` in :data:`PACE_BEST`'s ``best/``)
     against nominal MPPI flown slower on the same seeds (the points of :data:`PACE_FRONTIER`, its laps of other seeds
     left out): the paired gain, the joined means and the local fit with their intervals, and the median lap against
     nominal MPPI's at the same target on the same seeds; every lap checked against the folders' per-tick records."""
     path = PACE_BEST
-    metrics_ = _json(root / path / "best" / "metrics.json")["controllers"]["pixelmpc"]
-    laps = metrics_["laps"]
-    race = RaceSpec.from_record(metrics_["race"])
-    seeds = {lap["seed"] for lap in laps}
-    nominal = _nominal_frontier(root, race, PACE_FRONTIER, others={path: {"best": {"laps": laps}}})
-    at_target = [result for speed, result in nominal if math.isclose(speed, race.speed)]
-    if not at_target:
-        raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
-    gains = _gains(gains_lib.completed_laps({"laps": laps}),
-                   [_of_seeds(gains_lib.completed_laps(result), seeds) for _, result in nominal])
-    done = [lap for lap in laps if lap["success"]]
-    nominal_done = [lap["lap_time_s"] for lap in at_target[0]["laps"] if lap["success"] and lap["seed"] in seeds]
-    median_change = statistics.median(lap["lap_time_s"] for lap in done) / statistics.median(nominal_done) - 1
-    in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
+    flown = _race_against_frontier(root, path, PACE_FRONTIER)
+    race = flown.race
+    median_change = _median_lap(flown.done) / _median_lap(flown.at_target) - 1
     label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, race.speed))
     return Row(f"The same ({flown_preset(race.record())}) at the paper's {label:g} m/s label's pace, "
                f"{race.speed:g} m/s; its median lap against nominal MPPI's at the same target",
-               f"{gains_text(gains, len(done))}; in view {in_view:.1%}; median lap {median_change:+.1%}",
-               lap_tail(laps), "not measured (one target speed)",
-               f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, {_seeds(race.seed, len(laps))}; "
-               f"nominal MPPI's laps of those seeds from "
+               f"{gains_text(flown.gains, len(flown.done))}; in view {_in_view(flown.done):.1%}; median lap "
+               f"{median_change:+.1%}",
+               lap_tail(flown.laps), "not measured (one target speed)",
+               f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(flown.laps)} laps, "
+               f"{_seeds(race.seed, len(flown.laps))}; nominal MPPI's laps of those seeds from "
                + " and ".join(f"[{folder.name}]({folder.as_posix()}/)" for folder in PACE_FRONTIER),
                _tables_measured(root, path), path, per_tick(root / path))
 
@@ -643,29 +669,17 @@ def aggressive_paired_gain(root: Path) -> Row:
     the local fit, the share in view, and its median lap against nominal MPPI's at the same target; every lap checked
     against the folder's per-tick record."""
     path = AGGRESSIVE
-    metrics_ = _json(root / path / "best" / "metrics.json")["controllers"]["pixelmpc"]
-    laps = metrics_["laps"]
-    race = RaceSpec.from_record(metrics_["race"])
-    nominal = _nominal_frontier(root, race, (path,), others={path: {"best": {"laps": laps}}})
-    at_target = [result for speed, result in nominal if math.isclose(speed, race.speed)]
-    if not at_target:
-        raise ValueError(f"{path}: no nominal MPPI point at {race.speed:g} m/s")
-    gains = _gains(gains_lib.completed_laps({"laps": laps}),
-                   [gains_lib.completed_laps(result) for _, result in nominal])
-    done = [lap for lap in laps if lap["success"]]
-    median = statistics.median(lap["lap_time_s"] for lap in done)
-    nominal_done = [lap["lap_time_s"] for lap in at_target[0]["laps"] if lap["success"]]
-    in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
-    nominal_in_view = statistics.mean(lap["share_target_in_view"] for lap in at_target[0]["laps"] if lap["success"])
+    flown = _race_against_frontier(root, path, (path,))
+    race, median = flown.race, _median_lap(flown.done)
     return Row(f"Aggressive: PixelMPC ({flown_preset(race.record())}) at the paper's {race.speed:g} m/s target, the "
                f"camera tilted up {race.camera_tilt_deg:g} degrees for both controllers: median lap, paired gain "
                "against nominal MPPI flown at the same lap time, share in view",
-               f"median lap **{median:.2f}** s ({median / statistics.median(nominal_done) - 1:+.1%} against nominal "
-               f"MPPI at the same target); {gains_text(gains, len(done))}; in view {in_view:.1%} (nominal MPPI at "
-               f"the same target {nominal_in_view:.1%})",
-               lap_tail(laps), f"{PAPER['pixelmpc_lap_s'][0]:g} s laps at the same target (the paper's camera)",
+               f"median lap **{median:.2f}** s ({median / _median_lap(flown.at_target) - 1:+.1%} against nominal "
+               f"MPPI at the same target); {gains_text(flown.gains, len(flown.done))}; in view "
+               f"{_in_view(flown.done):.1%} (nominal MPPI at the same target {_in_view(flown.at_target):.1%})",
+               lap_tail(flown.laps), f"{PAPER['pixelmpc_lap_s'][0]:g} s laps at the same target (the paper's camera)",
                f"{_loop(race.estimator, race.record())}, AlphaPilot, camera tilted {race.camera_tilt_deg:g} deg, "
-               f"{len(laps)} laps, {_seeds(race.seed, len(laps))}",
+               f"{len(flown.laps)} laps, {_seeds(race.seed, len(flown.laps))}",
                _tables_measured(root, path), path, per_tick(root / path))
 
 

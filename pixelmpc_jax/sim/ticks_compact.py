@@ -94,14 +94,17 @@ def _savez_lzma(f, arrays: dict) -> None:
                 np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
-def load(path: Path) -> dict[str, dict]:
+def load(path: Path, names=None) -> dict[str, dict]:
     """``{race name: compact record}`` of a file written by :func:`write`, or by a version that kept the distances
-    (``floor_distance``) instead of the excused ticks, which are computed from them."""
+    (``floor_distance``) instead of the excused ticks, which are computed from them; only the races ``names`` (an
+    iterable of race names; None: every race), whose other members are not read."""
     races: dict[str, dict] = {}
+    keep = None if names is None else set(names)
     with np.load(Path(path)) as data:
         for key in data.files:
             name, field = key.rsplit("/", 1)
-            races.setdefault(name, {})[field] = data[key]
+            if keep is None or name in keep:
+                races.setdefault(name, {})[field] = data[key]
     for race in races.values():
         if "floor_distance" in race and "excused" not in race:
             distance = race.pop("floor_distance")

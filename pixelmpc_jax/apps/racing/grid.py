@@ -181,7 +181,7 @@ def _add_to_compact_record(out: Path, name: str, shared: tuple[Path, str, dict] 
     folder, shared_name, _ = shared
     compact = folder / ticks_compact.FILE_NAME
     if compact.exists():
-        races = ticks_compact.load(compact)
+        races = ticks_compact.load(compact, [shared_name])
         if shared_name in races:
             ticks_compact.update(out / ticks_compact.FILE_NAME, {name: races[shared_name]})
 
