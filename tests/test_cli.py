@@ -1,8 +1,10 @@
 """The pixelmpc command: help, version, the demo, and clear errors for bad arguments."""
 
 import dataclasses
+import functools
 import json
 
+import numpy as np
 import pytest
 
 from pixelmpc_jax import cli
@@ -207,6 +209,7 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
         return runner._replace(batch=batch)
 
     monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
+    monkeypatch.setattr(race, "_runner", functools.lru_cache(race._runner.__wrapped__))  # this test's runners only
     spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
                     max_time_s=0.2)  # the interrupted race's above: its one-lane batch is compiled once per run
     results = race.run_laps(spec, batch_size=2, progress=False)
@@ -215,6 +218,29 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
     shapes.clear()
     race.run_laps(spec.replace(laps=1), batch_size=4, progress=False)
     assert [s[0][0] for s in shapes] == [1]  # a run shorter than a batch is not padded
+
+
+def test_races_that_differ_only_in_their_worlds_fly_one_compiled_runner(monkeypatch):
+    """A race at another speed, seed and course (what the world holds) takes the runner an earlier race of its
+    configuration compiled, and flies the laps a runner of its own flies; another configuration builds its own."""
+    from pixelmpc_jax.apps.racing import race
+
+    monkeypatch.setattr(race, "_runner", functools.lru_cache(race._runner.__wrapped__))  # this test's runners only
+    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, seed=4,
+                    max_time_s=0.2)
+    other = spec.replace(speed=9.0, seed=7, course="straight")
+    first = race.prepare(spec)
+    assert race.prepare(other).flight.runner is first.flight.runner
+    assert race.prepare(other, batch_size=2).flight.runner is first.flight.runner  # a batch's shape: jit's own cache
+    assert race.prepare(other.replace(estimator="eskf")).flight.runner is not first.flight.runner
+    fewer = other.replace(config=ControllerConfig(mppi=paper_mppi_config(num_samples=16)))
+    assert race.prepare(fewer).flight.runner is not first.flight.runner
+    faster = spec.replace(speed=11.0, seed=5)
+    shared = race.run_laps(faster, progress=False)
+    race._runner.cache_clear()
+    own = race.run_laps(faster, progress=False)
+    np.testing.assert_array_equal(shared["trajectories"][0], own["trajectories"][0])
+    assert shared["laps"] == own["laps"]
 
 
 def test_race_dof_weights_option(monkeypatch, tmp_path, capsys):

@@ -6,6 +6,7 @@ Laps are run in batches (``vmap`` of the episode); after every batch ``metrics.j
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,11 +16,12 @@ import jax
 import numpy as np
 
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.devices import usable_sample_devices
+from pixelmpc_jax.devices import Execution, usable_sample_devices
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.sim import ticks as ticks_lib
+from pixelmpc_jax.sim.controllers import make_policy
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
@@ -55,14 +57,24 @@ def _prepare_flight(spec: RaceSpec, batch_size: int, dof_params) -> _Flight:
     sample_devices = 1
     if batch_size == 1 and jax.process_count() == 1:
         sample_devices = usable_sample_devices(spec.config.mppi.num_samples)
-    policy = spec.policy(sample_devices=sample_devices)
-    episode_config = spec.episode_config()
+    runner, policy_name = _runner(spec.controller, spec.config, sample_devices, spec.episode_config())
     if dof_params is None:
         dof_params = spec.packaged_dof()
     camera = camera_lib.default_camera(tilt=math.radians(spec.camera_tilt_deg))
     base = env_lib.make_world(track=course_lib.make_course(spec.course), target_speed=spec.speed, dof=dof_params,
                               camera=camera)
-    return _Flight(episode_lib.make_runner(policy, episode_config), base, policy.name, sample_devices)
+    return _Flight(runner, base, policy_name, sample_devices)
+
+
+@functools.lru_cache(maxsize=16)
+def _runner(controller: str, config, sample_devices: int, episode_config: episode_lib.EpisodeConfig
+            ) -> tuple[episode_lib.Runner, str]:
+    """The compiled runner of a controller's configuration and its episode (and the policy's name), one per process:
+    races that differ only in what their worlds hold (the target speed, the course, the DOF weights) or in their
+    seeds and laps fly one compiled program, so a grid's cells at several speeds compile it once. A runner compiles
+    on its first batch (:func:`~pixelmpc_jax.sim.episode.make_runner`), once per batch shape."""
+    policy = make_policy(controller, config, Execution(sample_devices=sample_devices))
+    return episode_lib.make_runner(policy, episode_config), policy.name
 
 
 def fly_batch(race: Race, seeds: list[int]) -> list[tuple]:
