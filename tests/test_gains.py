@@ -124,6 +124,35 @@ def test_the_seed_bootstrap_is_reproducible_and_resamples_whole_seeds():
     assert other["paired"]["interval"] != first["paired"]["interval"]
 
 
+def test_each_bootstrap_draw_gives_three_gains_of_its_own_weights_to_the_last_bit():
+    """The bootstrap computes every draw's weighted means before it reads the draws; each draw's gains must still be
+    :func:`G.three_gains` of that draw's seed counts, bit for bit. Lap times on the control tick's grid put a draw's
+    mean exactly at the edge of the local fit's window, where a rounding would change which laps enter it; one speed
+    has no laps and some draws miss every seed of the cell."""
+    rng = np.random.default_rng(3)
+    grid = lambda n: np.round(rng.uniform(26.0, 36.0, n) / 0.025) * 0.025  # noqa: E731
+    cell = G.laps([0, 0, 1, 4, 4, 4, 5, 6, 7, 7], grid(10), rng.uniform(0.0, 2.0, 10) * (rng.random(10) > 0.3))
+    nominal = [G.laps(rng.integers(0, 9, 12), grid(12), rng.uniform(2.0, 15.0, 12)) for _ in range(5)]
+    nominal.append(G.laps([], [], []))
+    frontier, _ = G.paired_frontier(cell, nominal)
+    draws = 500
+    seeds = np.unique(np.concatenate([cell.seed, *(n.seed for n in nominal)]))
+    drawn = np.random.default_rng(G.BOOTSTRAP_SEED).integers(0, len(seeds), (draws, len(seeds)))
+    values: dict = {name: [] for name in G.CONSTRUCTIONS}
+    for row in drawn:  # seed_intervals' draws, one at a time
+        count = np.bincount(row, minlength=len(seeds)).astype(float)
+        weights = [count[np.searchsorted(seeds, n.seed)] for n in nominal]
+        for name, gain in G.three_gains(cell, nominal, frontier, count[np.searchsorted(seeds, cell.seed)],
+                                        weights).items():
+            if gain is not None:
+                values[name].append(gain)
+    assert 0 < len(values["paired"]) < draws  # some draws hold none of the cell's paired laps
+    tail = 100 * (1 - G.BOOTSTRAP_LEVEL) / 2
+    expected = {name: (float(np.percentile(v, tail)), float(np.percentile(v, 100 - tail))) if len(v) >= draws / 2
+                else None for name, v in values.items()}
+    assert G.seed_intervals(cell, nominal, frontier, draws=draws) == expected
+
+
 def test_completed_laps_take_the_seed_of_the_lap_or_of_its_place_in_the_run():
     result = {"seed": 10, "laps": [
         {"success": True, "lap_time_s": 33.0, "time_vis_avoidable_s": 1.0},

@@ -106,18 +106,43 @@ def _gain(frontier: float, avoidable: float) -> float:
     return float(frontier / max(avoidable, AVOIDABLE_FLOOR_S))
 
 
+def _weighted_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``np.average(values, weights=weights)`` as numpy computes it, to the last bit, without its checks: for each
+    row of ``weights`` (..., L) against ``values`` (L,). Each row is summed alone, as numpy sums a 1-D array
+    (pairwise): a reduction over the rows of a 2-D array adds in another order, and a draw's mean lap time that
+    moved by a rounding could cross the edge of the local fit's window, where lap times on the control tick's grid
+    meet it exactly. A row whose weights sum to 0 gives NaN."""
+    products = np.multiply(values, weights)
+    if weights.ndim == 1:
+        numerator, total = products.sum(), weights.sum()
+    else:
+        rows = (int(np.prod(weights.shape[:-1])), weights.shape[-1])
+        numerator = np.array([row.sum() for row in products.reshape(rows)]).reshape(weights.shape[:-1])
+        total = np.array([row.sum() for row in weights.reshape(rows)]).reshape(weights.shape[:-1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return numerator / total
+
+
 def _paired_gain(frontier: np.ndarray, avoidable: np.ndarray, weights: np.ndarray) -> float | None:
     paired = ~np.isnan(frontier) & (weights > 0)
     if not paired.any():
         return None
-    return _gain(np.average(frontier[paired], weights=weights[paired]),
-                 np.average(avoidable[paired], weights=weights[paired]))
+    return _gain(_weighted_mean(frontier[paired], weights[paired]), _weighted_mean(avoidable[paired], weights[paired]))
 
 
-def _joined_means_gain(lap_time: float, avoidable: float, nominal: list[Laps], weights: list[np.ndarray]
+def _speed_means(nominal: list[Laps], weights: list[np.ndarray], shape: tuple = ()) -> tuple[np.ndarray, np.ndarray]:
+    """Each target speed's weighted mean lap time and avoidable time, ``shape + (K,)`` each for weights
+    ``shape + (P_k,)`` per speed (NaN where a speed's weights sum to 0)."""
+    means = [np.stack([_weighted_mean(getattr(n, field), w) for n, w in zip(nominal, weights)], -1) if nominal
+             else np.zeros((*shape, 0)) for field in ("lap_time", "avoidable")]
+    return means[0], means[1]
+
+
+def _joined_means_gain(lap_time: float, avoidable: float, speed_times: np.ndarray, speed_avoidable: np.ndarray
                        ) -> float | None:
-    points = sorted((np.average(n.lap_time, weights=w), np.average(n.avoidable, weights=w))
-                    for n, w in zip(nominal, weights) if w.sum() > 0)
+    """The gain against nominal's per-speed means (``speed_times``, ``speed_avoidable``: (K,) each, NaN for a speed
+    without laps) joined linearly, read at ``lap_time``."""
+    points = sorted((float(x), float(y)) for x, y in zip(speed_times, speed_avoidable) if not np.isnan(x))
     if len(points) < 2 or not points[0][0] <= lap_time <= points[-1][0]:
         return None
     xs, ys = np.asarray(points).T
@@ -136,9 +161,13 @@ def local_line(lap_time: float, times: np.ndarray, avoidable: np.ndarray, weight
     if near.sum() < LOCAL_FIT_MIN_LAPS or not ((times[near] < lap_time).any() and (times[near] > lap_time).any()):
         return None
     t, y, w = times[near], avoidable[near], weights[near]
-    t_bar, y_bar = np.average(t, weights=w), np.average(y, weights=w)
+    t_bar, y_bar = _weighted_mean(t, w), _weighted_mean(y, w)
     slope = np.sum(w * (t - t_bar) * (y - y_bar)) / np.sum(w * (t - t_bar) ** 2)
     return float(y_bar + slope * (lap_time - t_bar))
+
+
+def _pooled(nominal: list[Laps], field: str) -> np.ndarray:
+    return np.concatenate([getattr(n, field) for n in nominal]) if nominal else np.zeros(0)
 
 
 def three_gains(cell: Laps, nominal: list[Laps], frontier: np.ndarray, cell_weights: np.ndarray | None = None,
@@ -155,13 +184,20 @@ def three_gains(cell: Laps, nominal: list[Laps], frontier: np.ndarray, cell_weig
     nominal_weights = [np.ones(len(n.seed)) for n in nominal] if nominal_weights is None else nominal_weights
     if cell_weights.sum() == 0:
         return dict.fromkeys(CONSTRUCTIONS)
-    lap_time = np.average(cell.lap_time, weights=cell_weights)
-    avoidable = np.average(cell.avoidable, weights=cell_weights)
-    everything = [np.concatenate([getattr(n, field) for n in nominal]) if nominal else np.zeros(0)
-                  for field in ("lap_time", "avoidable")]
-    line = local_line(lap_time, *everything, np.concatenate(nominal_weights) if nominal else np.zeros(0), half_width)
+    lap_time, avoidable = _weighted_mean(cell.lap_time, cell_weights), _weighted_mean(cell.avoidable, cell_weights)
+    pooled_weights = np.concatenate(nominal_weights) if nominal else np.zeros(0)
+    return _three_gains_at(cell, frontier, float(lap_time), float(avoidable), *_speed_means(nominal, nominal_weights),
+                           _pooled(nominal, "lap_time"), _pooled(nominal, "avoidable"), pooled_weights,
+                           cell_weights, half_width)
+
+
+def _three_gains_at(cell: Laps, frontier: np.ndarray, lap_time: float, avoidable: float, speed_times: np.ndarray,
+                    speed_avoidable: np.ndarray, pooled_times: np.ndarray, pooled_avoidable: np.ndarray,
+                    pooled_weights: np.ndarray, cell_weights: np.ndarray, half_width: float) -> dict:
+    """:func:`three_gains` from the weighted means it reads: the cell's, each speed's, and nominal's laps pooled."""
+    line = local_line(lap_time, pooled_times, pooled_avoidable, pooled_weights, half_width)
     return {"paired": _paired_gain(frontier, cell.avoidable, cell_weights),
-            "joined_means": _joined_means_gain(lap_time, avoidable, nominal, nominal_weights),
+            "joined_means": _joined_means_gain(lap_time, avoidable, speed_times, speed_avoidable),
             "local_fit": None if line is None else _gain(line, avoidable)}
 
 
@@ -171,7 +207,11 @@ def seed_intervals(cell: Laps, nominal: list[Laps], frontier: np.ndarray, draws:
     """``{construction: (low, high) or None}``: the percentile bootstrap over seeds of :func:`three_gains`. A draw
     resamples the seeds (the cell's and nominal's together) with replacement and weights every lap by its seed's
     count; draws where a construction has no gain are dropped, and a construction with a gain in fewer than half the
-    draws gets no interval."""
+    draws gets no interval.
+
+    The weighted means every draw reads (the cell's, each speed's) are computed for all draws before the draws are
+    read, each as :func:`three_gains` computes it for one, so each draw's gains are :func:`three_gains`'s to the
+    last bit."""
     seeds = np.unique(np.concatenate([cell.seed, *(n.seed for n in nominal)]))
     if len(cell.seed) == 0 or len(seeds) == 0:
         return dict.fromkeys(CONSTRUCTIONS)
@@ -179,11 +219,17 @@ def seed_intervals(cell: Laps, nominal: list[Laps], frontier: np.ndarray, draws:
     drawn = rng.integers(0, len(seeds), (draws, len(seeds)))
     counts = np.zeros((draws, len(seeds)))
     np.add.at(counts, (np.arange(draws)[:, None], drawn), 1.0)  # (draws, seeds) how often each seed was drawn
-    cell_index = np.searchsorted(seeds, cell.seed)
-    nominal_index = [np.searchsorted(seeds, n.seed) for n in nominal]
+    cell_weights = counts[:, np.searchsorted(seeds, cell.seed)]  # (draws, L)
+    nominal_weights = [counts[:, np.searchsorted(seeds, n.seed)] for n in nominal]  # (draws, P_k) per speed
+    lap_times, avoidables = _weighted_mean(cell.lap_time, cell_weights), _weighted_mean(cell.avoidable, cell_weights)
+    speed_times, speed_avoidable = _speed_means(nominal, nominal_weights, (draws,))  # (draws, K) each
+    pooled_times, pooled_avoidable = _pooled(nominal, "lap_time"), _pooled(nominal, "avoidable")
+    pooled_weights = np.concatenate(nominal_weights, axis=1) if nominal else np.zeros((draws, 0))
     values: dict = {name: [] for name in CONSTRUCTIONS}
-    for count in counts:
-        gains = three_gains(cell, nominal, frontier, count[cell_index], [count[i] for i in nominal_index], half_width)
+    for d in np.flatnonzero(cell_weights.sum(1) > 0):  # a draw without the cell's seeds has no gain
+        gains = _three_gains_at(cell, frontier, float(lap_times[d]), float(avoidables[d]), speed_times[d],
+                                speed_avoidable[d], pooled_times, pooled_avoidable, pooled_weights[d],
+                                cell_weights[d], half_width)
         for name, gain in gains.items():
             if gain is not None:
                 values[name].append(gain)
