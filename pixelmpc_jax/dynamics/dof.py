@@ -260,7 +260,7 @@ def read_checkpoint(path) -> DOFCheckpoint:
     differences = network_weights.architecture_differences(architecture(), found_arch)
     if differences:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(differences))
-    dof_params = network_weights.restore_params(path, init_dof_params(jax.random.key(0)), state, "DOF")
+    dof_params = network_weights.restore_params(path, jax.eval_shape(init_dof_params, jax.random.key(0)), state, "DOF")
     return DOFCheckpoint(dof_params=dof_params, config=config, extra=extra)
 
 

@@ -247,7 +247,8 @@ def read_vdof_checkpoint(path) -> VDOFCheckpoint:
     diffs = network_weights.architecture_differences(architecture(hidden), found)
     if diffs:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(diffs))
-    params = network_weights.restore_params(path, init_vdof_params(jax.random.key(0), hidden), state, "vdof")
+    template = jax.eval_shape(lambda key: init_vdof_params(key, hidden), jax.random.key(0))
+    params = network_weights.restore_params(path, template, state, "vdof")
     return VDOFCheckpoint(params, config, extra)
 
 
