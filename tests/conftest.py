@@ -25,8 +25,15 @@ _MIN_CACHED_COMPILE_S = 0.2
 # steps) is jitted with XLA's default optimisation in the run itself (:func:`jit_as_shipped`). The slow checks
 # (``--runslow``) fly long laps, where a program's speed counts more than its compilation: they compile as a user's
 # run does, as does ``--optimized-xla``.
+#
+# Nor does it hoist what a loop's body computes alike at every iteration out of the loop (XLA's loop-invariant code
+# motion): on an episode, a while loop over ticks around the MPPI step's scans, that pass was a third of the
+# compilation (a PixelMPC episode of 128 samples over 40 steps: 7.3 s -> 4.7 s to compile, 1.6 s to run either way,
+# one core of a 2-core AMD EPYC). The same operations run on the same values, so the laps are the same bit for bit
+# (tests/test_golden_laps.py held against a recording made without the flag).
 FAST_COMPILE_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
-                          "--xla_cpu_parallel_codegen_split_count=1")
+                          "--xla_cpu_parallel_codegen_split_count=1 "
+                          "--xla_disable_hlo_passes=while-loop-invariant-code-motion")
 # The first two flags above set for an optimised program (fusion emitters on, LLVM at its highest level), for the
 # programs the tests compile so although the run compiles at its cheapest (:func:`jit_as_shipped`). A batch rendered
 # so differed from a user's run in one colour value of eight frames: the tests that render compare within a pixel's
