@@ -1,5 +1,7 @@
 """Gate detectors: projection of the true gate, colour segmentation of rendered frames, and their agreement."""
 
+from pathlib import Path
+
 import cv2
 import jax
 import jax.numpy as jnp
@@ -18,6 +20,7 @@ PX = np.array([204.0, 153.0])
 # the gate partly out of view; AMD EPYC 2-core, jax 0.10.2); bounded at about twice that
 FOUND_AGREEMENT = 0.98
 CENTRE_MEDIAN_PX, CENTRE_P95_PX = 0.5, 1.5
+FLOWN_LAP = Path(__file__).resolve().parent / "data" / "detector_lap.npz"  # :func:`record_flown_lap`
 # (gate index, distance, lateral, height, yaw offset, roll): fully visible gates on the AlphaPilot course.
 VISIBLE = (
     (0, 8.0, 0.0, 0.0, 0.0, 0.0),
@@ -164,24 +167,37 @@ def test_the_clipped_detector_takes_a_diagonals_midpoint_when_only_its_two_ends_
         np.testing.assert_allclose(np.asarray(seen.corners)[diagonal].mean(0), seen.centre, atol=1e-6)
 
 
-def test_the_geometric_detector_agrees_with_the_image_detector_on_a_flown_lap(camera, course):
-    """Frames rendered along a short nominal MPPI lap on the AlphaPilot course (the gates in view, partly in view,
-    out of view), each looking for the lap's target gate: the clipped geometric detector finds the gate where the image
-    detector does, with the centre near the image detector's, the gates partly out of view included.
-
-    Tolerances measured on this lap (seed 0, 8.5 m/s, 240 ticks): :data:`FOUND_AGREEMENT`, :data:`CENTRE_MEDIAN_PX`,
-    :data:`CENTRE_P95_PX`."""
+def record_flown_lap() -> None:
+    """Fly the lap :data:`FLOWN_LAP` holds and write it (``python tests/test_detector.py``): nominal MPPI, 128 samples
+    over 40 steps, on the AlphaPilot course at 8.5 m/s, seed 0, for 6 s (240 ticks). The test reads the lap instead of
+    flying it: what it checks is the two detectors on the frames of a flown lap, not the controller, and flying it cost
+    the suite an episode's compilation (7 s on a 2-core AMD EPYC)."""
     from pixelmpc_jax.control.pixelmpc import paper_mppi_config
     from pixelmpc_jax.sim import env as env_lib
     from pixelmpc_jax.sim import episode as episode_lib
     from pixelmpc_jax.sim import policies
 
     policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=128, horizon=40))
-    world = env_lib.make_world(course, target_speed=8.5)
+    world = env_lib.make_world(course_lib.load_course(), target_speed=8.5)
     log = episode_lib.make_runner(policy, episode_lib.EpisodeConfig(max_time_s=6.0)).single(
         world, jax.random.PRNGKey(0))
     n = int(log.num_ticks)
-    agreement = D.image_agreement(course, np.asarray(log.states)[:n], np.asarray(log.target)[:n], camera)
+    FLOWN_LAP.parent.mkdir(exist_ok=True)
+    np.savez_compressed(FLOWN_LAP, states=np.asarray(log.states)[:n], target=np.asarray(log.target)[:n])
+
+
+def test_the_geometric_detector_agrees_with_the_image_detector_on_a_flown_lap(camera, course):
+    """Frames rendered along a short nominal MPPI lap on the AlphaPilot course, recorded in :data:`FLOWN_LAP` (the
+    gates in view, partly in view, out of view), each looking for the lap's target gate: the clipped geometric
+    detector finds the gate where the image detector does, with the centre near the image detector's, the gates
+    partly out of view included.
+
+    Tolerances measured on this lap (seed 0, 8.5 m/s, 240 ticks): :data:`FOUND_AGREEMENT`, :data:`CENTRE_MEDIAN_PX`,
+    :data:`CENTRE_P95_PX`."""
+    with np.load(FLOWN_LAP) as lap:
+        states, targets = lap["states"], lap["target"]
+    n = len(states)
+    agreement = D.image_agreement(course, states, targets, camera)
     found_geometry, found_image = agreement["found_geometry"], agreement["found_image"]
     error, partial = agreement["centre_error_px"], agreement["partial"]
     both = np.isfinite(error)
@@ -294,3 +310,7 @@ def test_the_agreement_command_refuses_a_file_that_is_no_per_tick_record(tmp_pat
     with pytest.raises(SystemExit) as exc:
         cli.main(["experiment", "detector-agreement", str(tmp_path / "other.npz"), "--out", str(tmp_path / "out")])
     assert exc.value.code == 2 and "is not a per-tick record: it lacks target" in capsys.readouterr().err
+
+
+if __name__ == "__main__":
+    record_flown_lap()
