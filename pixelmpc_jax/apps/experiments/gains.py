@@ -107,18 +107,16 @@ def _gain(frontier: float, avoidable: float) -> float:
 
 
 def _weighted_mean(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """``np.average(values, weights=weights)`` as numpy computes it, to the last bit, without its checks: for each
-    row of ``weights`` (..., L) against ``values`` (L,). Each row is summed alone, as numpy sums a 1-D array
-    (pairwise): a reduction over the rows of a 2-D array adds in another order, and a draw's mean lap time that
-    moved by a rounding could cross the edge of the local fit's window, where lap times on the control tick's grid
-    meet it exactly. A row whose weights sum to 0 gives NaN."""
+    """``np.average(values, weights=weights)`` as numpy computes it, to the last bit, without its checks: of one row
+    of weights (L,), or of each row of weights (D, L), against ``values`` (L,). Each row is summed alone, as numpy
+    sums a 1-D array (pairwise): a reduction over the rows of a 2-D array adds in another order, and a draw's mean lap
+    time that moved by a rounding could cross the edge of the local fit's window, where lap times on the control
+    tick's grid meet it exactly. A row whose weights sum to 0 gives NaN."""
     products = np.multiply(values, weights)
     if weights.ndim == 1:
         numerator, total = products.sum(), weights.sum()
     else:
-        rows = (int(np.prod(weights.shape[:-1])), weights.shape[-1])
-        numerator = np.array([row.sum() for row in products.reshape(rows)]).reshape(weights.shape[:-1])
-        total = np.array([row.sum() for row in weights.reshape(rows)]).reshape(weights.shape[:-1])
+        numerator, total = np.array([row.sum() for row in products]), np.array([row.sum() for row in weights])
     with np.errstate(invalid="ignore", divide="ignore"):
         return numerator / total
 
