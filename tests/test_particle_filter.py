@@ -319,12 +319,18 @@ def test_the_config_docstring_names_the_boolean_defaults():
 
 def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera, straight, monkeypatch):
     """At rest before a gate with a biased IMU (the moderate bias of sim/faults.py), detected every tick: after 5 s
-    the filter that carries bias states holds the velocity at under half the paper's drift and the position better,
-    and its particles' bias leans the way of the true one on the axes the gate's corners see (vertical and
-    lateral). A filter's run turns on which particles survive resampling (and so on its float rounding), so the
-    figures are averaged over three seeds: there the velocity errors were 0.36 against 0.83 m/s and the position
-    errors 0.07-0.09 against 0.13-0.14 m under two compilations of the same step (tests/conftest.py). Its 1,200
-    filter steps of 6,400 particles run optimised (:func:`conftest.jit_as_shipped`)."""
+    the filter that carries bias states holds the velocity at under three quarters of the paper's drift and the
+    position within 0.2 m, and its particles' bias leans the way of the true one on the axes the gate's corners see
+    (vertical and lateral).
+
+    A filter's run turns on which particles survive resampling, and so on its float rounding: each processor and
+    compilation flies another draw. The figures are averaged over three seeds, and each bar lies about three
+    standard deviations of that average from its mean over 12 seeds (a 2-core Intel Xeon, 2026-12-02): velocity
+    error 0.33 (per seed 0.10-0.58) against 0.88 m/s (0.73-1.01); position error 0.10 m (0.05-0.17), too close to
+    the plain filter's 0.15 to be compared over three seeds; the learned bias along the true one's (lateral,
+    vertical) direction 0.19 (0.12-0.25) m/s^2, the true 0.22. A filter that did not learn the bias drifts as the
+    plain one does, and its bias stays near zero. Its 1,200 filter steps of 6,400 particles run optimised
+    (:func:`conftest.jit_as_shipped`)."""
     monkeypatch.setattr(PF, "_pf_step_jit", jit_as_shipped(PF._pf_step_jit, static_argnames=("config",)))
     x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
@@ -348,9 +354,9 @@ def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera
                 learned.append((w / w.sum()) @ np.asarray(state.bias))
         errors[std] = np.mean(runs, axis=0)
     plain, biased = errors[(0.0, 0.0)], errors[(0.3, 0.02)]
-    assert biased[0] < 0.5 * plain[0] and biased[1] < 0.8 * plain[1]
-    learned = np.mean(learned, axis=0)
-    assert learned[2] > 0.1 and learned[1] < -0.05  # true: +0.2 up, -0.1 left
+    assert biased[0] < 0.75 * plain[0] and biased[1] < 0.2
+    seen = bias[1:3] / np.linalg.norm(bias[1:3])  # the true bias's lateral and vertical direction
+    assert np.mean(learned, axis=0)[1:3] @ seen > 0.08  # true: 0.22 m/s^2
 
 
 def test_bias_states_are_checked_and_resampled_with_their_particles(camera, straight):
