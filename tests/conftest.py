@@ -98,8 +98,26 @@ def _render_batches_as_shipped() -> None:
     render.render_batch = jit_as_shipped(render.render_batch, static_argnames=("supersample", "chunk"))
 
 
+def _run_computations_inline() -> None:
+    """Have JAX run each CPU computation on the thread that calls it (``jax_cpu_enable_async_dispatch``), in this
+    test process, before its CPU client is made.
+
+    By default JAX hands every computation to a thread of its own and the caller waits for it. The tests run
+    thousands of small programs (an eager operation is one) in two workers on two cores, and there the hand-overs
+    cost them dearly: beside another test process, tests/test_costs.py took 27.6 s, and 12.2 s with each process held
+    to a core of its own. The README's test command took 5:34 and 5:44 in two runs, and 4:20 with the computations
+    inline (2-core Intel Xeon, 2026-12-02; its processor time 10:04-10:22 -> 8:00). What a computation gives is the
+    same (the golden laps hold bit for bit); only when the caller gets it back changes. A race's own time does not
+    change (`pixelmpc race` with nothing cached: 31.6-32.4 s either way, two runs each).
+    The commands the tests start in processes of their own dispatch as a user's run does."""
+    import jax
+
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+
+
 def pytest_configure(config):
-    """One compilation cache for the whole run, made before the first compile.
+    """One compilation cache for the whole run, made before the first compile; computations run inline
+    (:func:`_run_computations_inline`).
 
     The commands under test keep their compiled steps in ``$XDG_CACHE_HOME`` (see
     :func:`pixelmpc_jax.host.compilation_cache_dir`). The first process of the run (the xdist controller, or the
@@ -116,6 +134,7 @@ def pytest_configure(config):
     from pixelmpc_jax.host import use_compilation_cache
 
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
+    _run_computations_inline()
     if _fast_compilation():
         _render_batches_as_shipped()
 

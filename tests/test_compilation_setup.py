@@ -38,3 +38,15 @@ def test_rendered_batches_compile_optimised_where_the_run_compiles_at_its_cheape
             inside_another(poses)
     else:
         assert bool(jnp.isfinite(inside_another(poses)))
+
+
+def test_a_test_process_gets_each_computation_back_finished():
+    """JAX runs the tests' CPU computations on the calling thread (tests/conftest.py), so a result is ready when the
+    call returns. With JAX's default dispatch this product of 1,500 x 1,500 matrices is still running then."""
+    import jax
+    import jax.numpy as jnp
+
+    product = jax.jit(lambda a: a @ a)
+    a = jnp.ones((1500, 1500))
+    product(a).block_until_ready()  # compiled
+    assert product(a).is_ready()
