@@ -128,9 +128,14 @@ def test_each_job_calls_its_library_function_with_the_checked_arguments(tmp_path
     assert cli.main(["experiment", "table4", "--out", str(tmp_path / "t4"), "--quick", "--no-straight", "--estimators",
                      "eskf", "--reuse", *map(str, joined)]) == 0
     assert seen["table4"] == {"laps": 25, "quick": True, "straight": False, "seed": 200, "estimators": ("eskf",),
-                              "reuse": tuple(joined), "who": ("mppi", "paper", "best")}
+                              "reuse": tuple(joined), "who": ("mppi", "paper", "best"), "at_labels": True,
+                              "labels": (14.0, 16.0)}
     assert cli.main(["experiment", "table4", "--out", str(tmp_path / "t4"), "--controllers", "best", "mppi"]) == 0
     assert seen["table4"]["who"] == ("best", "mppi")
+    assert cli.main(["experiment", "table4", "--out", str(tmp_path / "t4"), "--estimators", "onboard",
+                     "--paces-only", "--labels", "14"]) == 0
+    assert seen["table4"]["estimators"] == ("onboard",) and seen["table4"]["at_labels"] is False
+    assert seen["table4"]["labels"] == (14.0,)
     speeds = ["--frontier-speeds", "9", "7:8:0.5", "8"]
     assert cli.main(["experiment", "table2", "--out", str(out), "--main", *speeds]) == 0
     assert seen["table2"]["main"] and seen["table2"]["frontier_speeds"] == (7.0, 7.5, 8.0, 9.0)

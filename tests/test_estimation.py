@@ -45,6 +45,27 @@ def test_cells_cover_the_paper_grid_at_the_labels_and_the_paces():
     assert both[10].name == cells[0].name.replace("_pf", "_eskf")
 
 
+def test_table_iv_on_the_onboard_loop_flies_the_same_races_with_only_what_the_drone_has():
+    """`--estimators onboard --no-labels`: the races of the ESKF's cells at the two paces, on the onboard loop (the
+    image detector, the switch from the estimate, the surveyed map), each named and reported by its loop."""
+    eskf = E.race_cells(estimators=("eskf",), at_labels=False)
+    onboard = E.race_cells(estimators=("onboard",), at_labels=False)
+    assert [c.spec.speed for c in onboard] == [9.1] * 3 + [8.5] * 3
+    assert [E.who_of(c) for c in onboard] == ["mppi", "paper", "best"] * 2
+    assert [c.name for c in onboard] == [c.name.replace("_eskf", "_onboard") for c in eskf]
+    for ours, theirs in zip(onboard, eskf):
+        assert (ours.spec.detector, ours.spec.estimator, ours.spec.gate_switch, ours.spec.map) == \
+            ("image", "eskf", "estimate", "surveyed")
+        assert ours.spec.replace(detector=theirs.spec.detector, map=theirs.spec.map) == theirs.spec
+        assert E.loop_of(ours) == "onboard" and E.loop_of(theirs) == "eskf"
+    assert [c.spec.speed for c in E.race_cells(at_labels=False)] == [9.1] * 3 + [8.5] * 3
+    # a run split by label: each process flies its label's cells, together the table
+    halves = [E.race_cells((label,), estimators=("onboard",), at_labels=False) for label in (16.0, 14.0)]
+    assert [c.name for half in halves for c in half] == [c.name for c in onboard]
+    with pytest.raises(ValueError, match="unknown estimator 'ukf'"):
+        E.race_cells(estimators=("ukf",))
+
+
 def test_a_run_split_by_controller_flies_each_cell_once_in_the_grids_order():
     """`pixelmpc experiment table4 --controllers`: each process flies its controllers' cells of the full grid, in its
     order, and the processes' cells together are the grid; an unknown name is refused before anything flies."""

@@ -2,7 +2,8 @@
 
 With the particle filter in the loop (``estimator="pf"``: the controllers act on its mean, fed by the IMU
 and the detections of the target gate), nominal MPPI against PixelMPC, at two operating points (Table IV also on the
-error-state Kalman filter's estimate, ``estimator="eskf"``, beside the paper's filter):
+error-state Kalman filter's estimate, ``estimator="eskf"``, beside the paper's filter, and on the onboard loop,
+``"onboard"``: the image detector and the ESKF, :data:`~pixelmpc_jax.apps.racing.presets.LOOPS`):
 
 - the paper's labels (14 and 16 m/s): nominal MPPI and the ``paper`` preset (t_f = 1 s, c_pixel = 9e6);
 - the paper's pace (the targets at which our nominal lap matches the paper's, ``presets.PAPER_PACE_SPEEDS``):
@@ -27,7 +28,7 @@ import numpy as np
 from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
 from pixelmpc_jax.apps.racing.grid import Cell, fmt
-from pixelmpc_jax.apps.racing.presets import PAPER_LABEL_SPEEDS, pace_speed, preset
+from pixelmpc_jax.apps.racing.presets import PAPER_LABEL_SPEEDS, pace_speed, preset, with_loop
 from pixelmpc_jax.platform_info import device_line
 
 # Table IV of the paper: (success rate, lap time mean, lap time 2 sigma) per (controller, target speed).
@@ -39,37 +40,50 @@ STRAIGHT_LABEL = PAPER_LABEL_SPEEDS[2]  # 20 m/s
 WHO = ("mppi", "paper", "best")  # nominal MPPI and the two presets
 
 
-ESTIMATORS = ("pf", "eskf")  # Table IV's filters: the paper's particle filter, the error-state Kalman filter
-ESTIMATOR_NAMES = {"pf": "particle filter", "eskf": "ESKF"}
+ESTIMATORS = ("pf", "eskf")  # Table IV's filters by default: the paper's particle filter, the error-state Kalman filter
+# and the loops Table IV can fly: each filter with the clipped detector, and the onboard loop (the image detector and
+# the ESKF, presets.LOOPS["onboard"])
+LOOPS = ESTIMATORS + ("onboard",)
+ESTIMATOR_NAMES = {"pf": "particle filter", "eskf": "ESKF", "onboard": "onboard loop"}
 
 
 def _race(who: str, speed: float, estimator: str = "pf", **changes):
-    """Nominal MPPI (at the ``paper`` preset's MPPI settings) or a preset, at ``speed``, on the filter."""
-    spec = preset("paper" if who == "mppi" else who).replace(speed=speed, estimator=estimator, **changes)
+    """Nominal MPPI (at the ``paper`` preset's MPPI settings) or a preset, at ``speed``, on the filter (``"onboard"``:
+    on the onboard loop)."""
+    spec = preset("paper" if who == "mppi" else who)
+    spec = with_loop(spec, "onboard") if estimator == "onboard" else spec.replace(estimator=estimator)
+    spec = spec.replace(speed=speed, **changes)
     return spec.replace(controller="mppi") if who == "mppi" else spec
 
 
-def _points(labels, quick: bool, who: tuple = WHO) -> list[tuple[float, float, tuple]]:
+def _points(labels, quick: bool, who: tuple = WHO, at_labels: bool = True) -> list[tuple[float, float, tuple]]:
     """(label, our target, who flies it): each label's pace (all three), then each label as the paper named it
-    (nominal and ``paper``), the fastest label first; ``quick``: the pace of the fastest label only. Only the
-    controllers of ``who`` (of :data:`WHO`) fly."""
+    (nominal and ``paper``; not without ``at_labels``), the fastest label first; ``quick``: the pace of the fastest
+    label only. Only the controllers of ``who`` (of :data:`WHO`) fly."""
     unknown = [name for name in who if name not in WHO]
     if unknown:
         raise ValueError(f"unknown controller {unknown[0]!r}; Table IV flies {', '.join(WHO)}")
     labels = sorted(labels, reverse=True)
     paces = [(label, pace_speed(label), WHO) for label in labels[:1 if quick else None]]
-    points = paces if quick else paces + [(label, label, WHO[:2]) for label in labels]
+    points = paces if quick or not at_labels else paces + [(label, label, WHO[:2]) for label in labels]
     return [(label, speed, tuple(name for name in whos if name in who)) for label, speed, whos in points]
 
 
-def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf",), who: tuple = WHO) -> list[Cell]:
-    """Table IV's cells with each filter of ``estimators`` (of :data:`ESTIMATORS`), per operating point, for the
-    controllers of ``who``."""
-    unknown = [e for e in estimators if e not in ESTIMATORS]
+def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf",), who: tuple = WHO,
+               at_labels: bool = True) -> list[Cell]:
+    """Table IV's cells on each loop of ``estimators`` (of :data:`LOOPS`), per operating point, for the controllers
+    of ``who``; without ``at_labels`` at the paces only."""
+    unknown = [e for e in estimators if e not in LOOPS]
     if unknown:
-        raise ValueError(f"unknown estimator {unknown[0]!r}; Table IV flies {', '.join(ESTIMATORS)}")
+        raise ValueError(f"unknown estimator {unknown[0]!r}; Table IV flies {', '.join(LOOPS)}")
     return [Cell(f"{name}_{speed:g}ms_{estimator}", _race(name, speed, estimator))
-            for estimator in estimators for label, speed, whos in _points(labels, quick, who) for name in whos]
+            for estimator in estimators for label, speed, whos in _points(labels, quick, who, at_labels)
+            for name in whos]
+
+
+def loop_of(cell: Cell) -> str:
+    """The loop of :data:`LOOPS` a Table IV cell flies: the last part of its name."""
+    return cell.name.rsplit("_", 1)[1]
 
 
 def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False, who: tuple = WHO) -> list[Cell]:
@@ -113,7 +127,7 @@ def summarise(results: dict, cells: list[Cell]) -> list[dict]:
         rms = [lap["rms_position_error_m"] ** 2 for lap in laps if lap.get("rms_position_error_m") is not None]
         rows.append({
             "cell": cell.name, "who": who, "controller": cell.spec.controller, "speed": cell.spec.speed,
-            "estimator": cell.spec.estimator,
+            "estimator": loop_of(cell),
             "label": label, "point": "label" if label == cell.spec.speed else "pace", "course": cell.spec.course,
             "success_rate": res["aggregate"]["success_rate"], "num_laps": len(laps),
             "lap_time_s": res["aggregate"]["lap_time_s"], "gates_passed": res["aggregate"]["gates_passed"],
@@ -166,10 +180,12 @@ def _straight_lines(rows: list[dict]) -> list[str]:
 
 
 def _smoothness_lines(rows: list[dict]) -> list[str]:
-    lines = ["", "## Fig. 6 with the particle filter: total variation of the attitude per lap", "",
-             "| controller | target | TV roll [rad] | TV pitch [rad] | TV yaw [rad] |", "|---|---|---|---|---|"]
+    lines = ["", "## Fig. 6 with the filter: total variation of the attitude per lap", "",
+             "| controller | filter | target | TV roll [rad] | TV pitch [rad] | TV yaw [rad] |",
+             "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {NAMES[r['who']]} | {r['speed']:g} m/s | {fmt(r['total_variation_roll'])} | "
+        lines.append(f"| {NAMES[r['who']]} | {ESTIMATOR_NAMES[r['estimator']]} | {r['speed']:g} m/s | "
+                     f"{fmt(r['total_variation_roll'])} | "
                      f"{fmt(r['total_variation_pitch'])} | {fmt(r['total_variation_yaw'])} |")
     return lines + ["", "The same figures with ground truth are in the Tables II-III part."]
 
@@ -178,7 +194,9 @@ def markdown_report(race_rows: list[dict], straight_rows: list[dict], device: st
     lines = ["# Table IV, the straight lane, Fig. 6 and Fig. 9: racing on a filter's estimate", "",
              f"Device: {device}. Controllers act on the filter's mean: the paper's particle filter (6,400 particles, "
              "IMU motion update, gate-corner sensor update) and, in Table IV, the error-state Kalman filter (ESKF: "
-             "IMU propagation with bias states, a gated, robustly weighted update per gate corner). At each paper "
+             "IMU propagation with bias states, a gated, robustly weighted update per gate corner); on the onboard "
+             "loop the ESKF is fed by the image detector (each tick's frame rendered and searched by OpenCV). On every "
+             "loop the controller's target moves on when the estimate crosses the map's gate plane. At each paper "
              "label (14, 16 m/s) nominal MPPI and the `paper` preset fly "
              "the label itself and, with the `best` preset, its pace (the target at which our nominal lap matches "
              "the paper's). Lap times are over the successful laps, mean ± 2σ; vis < 50 %, in view (share of flight "
@@ -216,7 +234,7 @@ def plot_fig9(out: Path, cells: list[Cell]) -> list[Path]:
                                                                                               covariances)]
         path = out / f"fig9_{cell.name}.png"
         plot_coloured_trajectories(make_course(cell.spec.course), trajectories, path,
-                                   title=f"{cell.spec.controller} with the {ESTIMATOR_NAMES[cell.spec.estimator]}, "
+                                   title=f"{cell.spec.controller} with the {ESTIMATOR_NAMES[loop_of(cell)]}, "
                                          f"{cell.spec.speed:g} m/s, {len(trajectories)} runs", colour_by=colours,
                                    colour_label="position covariance trace [m²]")
         written.append(path)
@@ -240,23 +258,27 @@ def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
     race_rows = summary["table_iv"]
     if race_rows:
         plot_smoothness([{**r, "label": f"{NAMES[r['who']].replace('`', '')} {r['speed']:g} m/s"
-                                         f"{'' if r['estimator'] == 'pf' else ', ESKF'}"} for r in race_rows],
-                        out / "fig6_pf.png", "Fig. 6 with the particle filter: total variation of the attitude per "
-                        "lap (mean ± 2σ)")
-        text += "\n![Fig. 6 with the particle filter](fig6_pf.png)\n"
+                                         f"{'' if r['estimator'] == 'pf' else ', ' + ESTIMATOR_NAMES[r['estimator']]}"}
+                         for r in race_rows],
+                        out / "fig6_pf.png", "Fig. 6 with the filter: total variation of the attitude per lap "
+                        "(mean ± 2σ)")
+        text += "\n![Fig. 6 with the filter](fig6_pf.png)\n"
     return text + "".join(f"\n![{path.stem}]({path.name})\n" for path in plot_fig9(out, cells))
 
 
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
                           dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
-                          reuse=(), estimators: tuple = ESTIMATORS, who: tuple = WHO) -> dict:
+                          reuse=(), estimators: tuple = ESTIMATORS, who: tuple = WHO, at_labels: bool = True,
+                          labels: tuple = RACE_LABELS) -> dict:
     """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
     into ``out``, laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`;
     cells a folder in ``reuse`` holds are copied, not flown. With ``run=False`` only the report of the cells already
-    finished in ``out`` is written. Table IV flies on each filter of ``estimators``; the straight lane on the
-    particle filter (the paper's figures it answers are the particle filter's). Only the controllers of ``who``
-    fly: a run split over processes by controller joins with ``reuse``."""
-    cells = race_cells(quick=quick, estimators=estimators, who=who)
+    finished in ``out`` is written. Table IV flies on each loop of ``estimators`` (of :data:`LOOPS`: a filter, or the
+    onboard loop); the straight lane on the particle filter (the paper's figures it answers are the particle
+    filter's). Table IV flies the paper's ``labels`` (of :data:`RACE_LABELS`) at their paces and, with ``at_labels``,
+    at their own targets. Only the controllers of ``who`` fly: a run split over processes by controller or by label
+    joins with ``reuse``."""
+    cells = race_cells(labels, quick=quick, estimators=estimators, who=who, at_labels=at_labels)
     lanes = straight_cells(quick=quick, who=who) if straight else []
     experiment = Experiment(
         tuple(cells + lanes),
