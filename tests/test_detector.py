@@ -247,6 +247,28 @@ def test_partly_visible_gate(rendered, course, camera):
     assert err.max() < 2.0
 
 
+def test_a_sliver_of_opening_at_the_image_border_gives_no_false_corner(course, camera):
+    """A frame of a flown lap (the `paper` preset on the onboard loop, 2.6 s in): gate 0 at the top of the image, its
+    opening a sliver between the frame's bottom bar and the image's top border. The opening's 4-gon has a vertex in
+    the middle of that bar, where the outline runs straight; the image detector once reported it as the bottom-right
+    corner, 10 px from that corner's projection, and the Kalman filter followed it 1.8 m. Every corner reported is the
+    geometry's, within 1 px; the bottom-right one, 0.4 px inside the border, is not."""
+    state = jnp.asarray([17.370054, -8.827042, 6.0462513, 0.5428202, -0.17202003, 0.25113127, 0.7827441,
+                         -0.24827197, 8.98472, 0.4692008], jnp.float32)
+    frame = R.render_batch(course, state[None], camera, supersample=1)
+    seen = D.detect_from_image(np.asarray(frame.rgb[0]), 0, camera)
+    ideal = D.detect_from_geometry(course.gate(0), state, camera, gate_id=0)
+    visible = np.asarray(seen.corners_visible)
+    assert bool(seen.found) and visible.tolist() == [False, False, False, True]
+    error = np.hypot(*((np.asarray(seen.corners)[visible] - np.asarray(ideal.corners)[visible]) * PX).T)
+    assert error.max() < 1.0
+    # the vertex on the bar: its two sides meet at nearly 180 degrees
+    sliver = np.array([[131.5, 0.5], [150.5, 0.5], [142.5, 2.5], [131.5, 4.5]])
+    assert D._interior_angles_deg(sliver)[2] > 170.0
+    np.testing.assert_allclose(D._interior_angles_deg(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])),
+                               90.0)
+
+
 def test_image_detector_takes_a_frame_and_misses_absent_gates(rendered, camera):
     _, _, frames = rendered
     frame = jax.tree_util.tree_map(lambda a: a[0], frames)

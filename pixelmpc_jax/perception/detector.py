@@ -23,6 +23,9 @@ from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 
 _CORNER_ANGLES = np.radians([-135.0, -45.0, 45.0, 135.0])  # image-frame directions of TL, TR, BR, BL
+# A vertex of the opening's 4-gon whose sides meet at more than this (degrees) is no corner: the outline runs straight
+# through it. A sliver of opening cut by the image border gets such a vertex, since the 4-gon must have four.
+_MAX_CORNER_ANGLE_DEG = 160.0
 
 
 @struct.dataclass
@@ -340,7 +343,8 @@ def detect_from_image(
     Segments the gate's hue, keeps the largest frame component, and takes the opening as the largest
     hole of the frame (or, when the opening runs off the image, the part of the frame's convex hull not
     covered by the frame). Opening corners come from lines fitted to its sides; a corner counts as
-    visible if it lies 2 px or more inside the image and the frame surrounds it on the outside.
+    visible if the outline turns there (by 20 degrees or more), it lies 2 px or more inside the image and the frame
+    surrounds it on the outside.
 
     Centre: all 4 corners -> the diagonals' intersection (the exact image of the gate centre); a
     diagonal's two ends only -> its midpoint; otherwise the centre of the frame's box.
@@ -422,10 +426,20 @@ def _opening_corners(opening: np.ndarray, mask: np.ndarray, width: int, height: 
             if len(quad) == 4:
                 quad = _refine_quad(contour, _cyclic_from_top_left(quad))
                 reference = contour.mean(0)
-                for slot, point in _label_corners(quad, reference):
+                turning = quad[_interior_angles_deg(quad) <= _MAX_CORNER_ANGLE_DEG]
+                for slot, point in _label_corners(turning, reference):
                     if _is_true_corner(point, reference, mask, width, height):
                         corners[slot], visible[slot] = point, True
     return corners, visible
+
+
+def _interior_angles_deg(quad: np.ndarray) -> np.ndarray:
+    """The angle (4,) in degrees between the two sides that meet at each vertex of ``quad`` (4, 2): 180 where the
+    outline runs straight through it."""
+    before, after = np.roll(quad, 1, axis=0) - quad, np.roll(quad, -1, axis=0) - quad
+    cosine = np.sum(before * after, axis=1) / np.maximum(
+        np.linalg.norm(before, axis=1) * np.linalg.norm(after, axis=1), 1e-9)
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
 
 def _gate_centre(corners: np.ndarray, visible: np.ndarray, bbox_px: np.ndarray) -> np.ndarray:
