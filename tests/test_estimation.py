@@ -46,7 +46,7 @@ def test_cells_cover_the_paper_grid_at_the_labels_and_the_paces():
 
 
 def test_table_iv_on_the_onboard_loop_flies_the_same_races_with_only_what_the_drone_has():
-    """`--estimators onboard --no-labels`: the races of the ESKF's cells at the two paces, on the onboard loop (the
+    """`--estimators onboard --paces-only`: the races of the ESKF's cells at the two paces, on the onboard loop (the
     image detector, the switch from the estimate, the surveyed map), each named and reported by its loop."""
     eskf = E.race_cells(estimators=("eskf",), at_labels=False)
     onboard = E.race_cells(estimators=("onboard",), at_labels=False)
@@ -58,6 +58,7 @@ def test_table_iv_on_the_onboard_loop_flies_the_same_races_with_only_what_the_dr
             ("image", "eskf", "estimate", "surveyed")
         assert ours.spec.replace(detector=theirs.spec.detector, map=theirs.spec.map) == theirs.spec
         assert E.loop_of(ours) == "onboard" and E.loop_of(theirs) == "eskf"
+    assert {E.loop_of(c) for c in E.race_cells(estimators=E.ESTIMATORS) + E.straight_cells()} == {"pf", "eskf"}
     assert [c.spec.speed for c in E.race_cells(at_labels=False)] == [9.1] * 3 + [8.5] * 3
     # a run split by label: each process flies its label's cells, together the table
     halves = [E.race_cells((label,), estimators=("onboard",), at_labels=False) for label in (16.0, 14.0)]

@@ -28,6 +28,7 @@ import numpy as np
 from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.skeleton import Experiment, failure_counts
 from pixelmpc_jax.apps.racing.grid import Cell, fmt
+from pixelmpc_jax.apps.racing.presets import LOOPS as RACE_LOOPS
 from pixelmpc_jax.apps.racing.presets import PAPER_LABEL_SPEEDS, pace_speed, preset, with_loop
 from pixelmpc_jax.platform_info import device_line
 
@@ -82,8 +83,10 @@ def race_cells(labels=RACE_LABELS, quick: bool = False, estimators: tuple = ("pf
 
 
 def loop_of(cell: Cell) -> str:
-    """The loop of :data:`LOOPS` a Table IV cell flies: the last part of its name."""
-    return cell.name.rsplit("_", 1)[1]
+    """The loop of :data:`LOOPS` a Table IV cell flies: ``"onboard"`` where its race flies every setting of the
+    onboard loop, else its filter."""
+    onboard = all(getattr(cell.spec, field) == value for field, value in RACE_LOOPS["onboard"].items())
+    return "onboard" if onboard else cell.spec.estimator
 
 
 def straight_cells(label: float = STRAIGHT_LABEL, quick: bool = False, who: tuple = WHO) -> list[Cell]:
