@@ -38,13 +38,17 @@ CELL_LOST = F.pixel_cell("dof", "l1")
 CELLS = (CELL_IN, CELL_OUT, CELL_ZERO, CELL_LOST)
 
 
-def hand_made():
+def hand_made_results():
     results = nominal_results()
     results[CELL_IN.name] = {"laps": [lap(35.0, 4.0, 2.5), lap(37.0, 4.0, 2.5)]}  # lap 36 s, avoidable 1.5 s
     results[CELL_OUT.name] = {"laps": [lap(45.0, 4.0, 3.0)]}  # slower than every nominal lap
     results[CELL_ZERO.name] = {"laps": [lap(34.0, 2.0, 2.0)]}  # nothing avoidable
     results[CELL_LOST.name] = {"laps": [lap(33.0, 5.0, 2.0), lap(None, 1.0, 0.5, success=False)]}
-    return F.build(results, (6.0, 8.0, 10.0), CELLS, laps=2, seed=0)
+    return results
+
+
+def hand_made():
+    return F.build(hand_made_results(), (6.0, 8.0, 10.0), CELLS, laps=2, seed=0)
 
 
 def by_name(frontier):
@@ -296,3 +300,19 @@ def test_a_frontier_on_the_onboard_loop_flies_every_cell_nominal_mppi_included_o
         for field, value in LOOPS["onboard"].items():
             assert getattr(cell.spec, field) == value, (cell.name, field)
         assert cell.spec.replace(**{field: getattr(own.spec, field) for field in LOOPS["onboard"]}) == own.spec
+
+
+def test_the_report_names_the_state_every_point_flew_nominal_mppi_included():
+    """A frontier whose nominal points and cells all flew the ESKF says so, with no true state in it; points
+    recorded without an estimator (nominal MPPI's, before frontiers flew other loops) read as the true state."""
+    results = hand_made_results()
+    for result in results.values():
+        result["config"] = {"estimator": "eskf"}
+    frontier = F.build(results, (6.0, 8.0, 10.0), CELLS, laps=2, seed=0)
+    for cell in frontier["cells"]:
+        cell["estimator"] = "eskf"
+    assert {p["estimator"] for p in frontier["nominal"]} == {"eskf"}
+    assert "laps per point (seeds 0-1), eskf state, on " in F.report(frontier)
+    for point in frontier["nominal"]:
+        del point["estimator"]
+    assert "laps per point (seeds 0-1), eskf and ground-truth state, on " in F.report(frontier)

@@ -262,7 +262,9 @@ def build(results: dict, nominal_speeds, cells, laps: int, seed: int, max_time_s
         if cell.name not in results:
             missing.append(cell.name)
             continue
-        nominal.append({"name": cell.name, "speed": float(speed), **summarise(results[cell.name])})
+        nominal.append({"name": cell.name, "speed": float(speed),
+                        "estimator": results[cell.name].get("config", {}).get("estimator", "truth"),
+                        **summarise(results[cell.name])})
         nominal_laps.append(gains_lib.completed_laps(results[cell.name]))
     nominal.sort(key=lambda p: p["speed"])
     nominal_results = [results[nominal_cell(v, max_time_s).name] for v in nominal_speeds
@@ -468,8 +470,9 @@ def report(frontier: dict) -> str:
         label = f"nominal {p['speed']:g} m/s" if p["name"].startswith("nominal_") else p["name"]
         lines.append(f"| {label} | " + " | ".join(_f((p.get("phases") or {}).get(k)) for k in PHASES) + " |")
     m, d = frontier["measured"], frontier["measured"]["device"]
+    # a point recorded before its estimator was (nominal MPPI's, flown on the true state then) reads as the truth
     states = sorted({"ground-truth" if c.get("estimator", "truth") == "truth" else c["estimator"]
-                     for c in frontier["cells"]} | {"ground-truth"})
+                     for c in frontier["cells"] + frontier["nominal"]})
     lines += ["", "## How it was measured", "",
               f"{m['laps']} laps per point (seeds {m['seeds'][0]}-{m['seeds'][1]}), "
               f"{' and '.join(states)} state, on "
