@@ -303,18 +303,27 @@ def gains_text(gains: dict, finished: int) -> str:
 def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
     """A row of `best`'s frontier gain in a frontier folder: the paired gain [interval] at its lap time against
     nominal MPPI flown slower, beside the joined means and the local fit (the bars apply to the smallest of the
-    three); the tail of its laps and its worst lap's avoidable time beside nominal's at the same lap time. ``claim``
-    names the controller as ``{controller}``, filled from what the folder's race flew (:func:`flown_preset`)."""
+    three), and its share of time with the target in view beside nominal's at its lap time; the tail of its laps
+    and its worst lap's avoidable time beside nominal's at the same lap time. Every nominal point must be nominal
+    MPPI on the loop the cell flew (a ValueError otherwise). ``claim`` names the controller as ``{controller}``,
+    filled from what the folder's race flew (:func:`flown_preset`)."""
 
     def row(root: Path) -> Row:
+        from pixelmpc_jax.apps.racing import grid
+
         path = RESULTS / folder
         record, cell_row, at_target = _frontier(root, path, cell)
-        results = _json(root / path / "results.json")[cell]
+        every = _json(root / path / "results.json")
+        results = every[cell]
+        for point in record["nominal"]:  # the gain compares laps of one loop
+            _check_nominal(path, grid.recorded_race(results), point, every[point["name"]])
         laps = [lap for lap in results["laps"] if lap["success"]]
         worst = max(lap["time_vis_avoidable_s"] for lap in laps)
         lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
         return Row(claim.format(controller=flown_preset(results["config"])),
-                   f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time",
+                   f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time; in view "
+                   f"{cell_row['share_target_in_view']:.1%} (nominal at the cell's lap time "
+                   f"{cell_row['frontier_share_target_in_view']:.1%})",
                    f"{lap_tail(results['laps'])}; worst lap {worst:.2f} s avoidable (nominal at the cell's lap time "
                    f"{cell_row['frontier_avoidable_s']:.2f} s)",
                    "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
@@ -522,22 +531,27 @@ def _nominal_frontier(root: Path, race: RaceSpec, folders: tuple[Path, ...],
     against its folder's per-tick record (which holds the races of ``others[folder]`` too, ``{race: {"laps": [...]}}``)
     and to be nominal MPPI as every frontier flies it (the paper's settings) on the loop ``race`` flew (a ValueError
     otherwise); a point named in an earlier folder is read from that one."""
-    from pixelmpc_jax.apps.racing import grid
-    from pixelmpc_jax.control.pixelmpc import ControllerConfig
-
     points: dict[str, tuple[float, dict]] = {}
     for folder in folders:
         record, results = _json(root / folder / "frontier.json"), _json(root / folder / "results.json")
         check_compact_record(root / folder, {**results, **(others or {}).get(folder, {})})
         for point in record["nominal"]:
-            result = results[point["name"]]
-            baseline = race.replace(controller="mppi", config=ControllerConfig(), speed=point["speed"],
-                                    laps=len(result["laps"]), seed=result["seed"])
-            if grid.recorded_race(result).key() != baseline.key():
-                raise ValueError(f"{folder}: {point['name']} is not nominal MPPI on the loop "
-                                 f"{flown_preset(race.record())} flew")
-            points.setdefault(point["name"], (point["speed"], result))
+            _check_nominal(folder, race, point, results[point["name"]])
+            points.setdefault(point["name"], (point["speed"], results[point["name"]]))
     return sorted(points.values(), key=lambda point: point[0])
+
+
+def _check_nominal(folder: Path, race: RaceSpec, point: dict, result: dict) -> None:
+    """A ValueError unless the frontier point ``point`` of ``folder`` (its results ``result``) is nominal MPPI as
+    every frontier flies it (the paper's settings) on the loop, course and camera ``race`` flew."""
+    from pixelmpc_jax.apps.racing import grid
+    from pixelmpc_jax.control.pixelmpc import ControllerConfig
+
+    baseline = race.replace(controller="mppi", config=ControllerConfig(), speed=point["speed"],
+                            laps=len(result["laps"]), seed=result["seed"])
+    if grid.recorded_race(result).key() != baseline.key():
+        raise ValueError(f"{folder}: {point['name']} is not nominal MPPI on the loop {flown_preset(race.record())} "
+                         "flew")
 
 
 def _gains(cell: gains_lib.Laps, nominal: list[gains_lib.Laps]) -> dict:
@@ -560,43 +574,10 @@ def _of_seeds(laps: gains_lib.Laps, seeds: set[int]) -> gains_lib.Laps:
     return gains_lib.Laps(*(field[keep] for field in laps))
 
 
-ONBOARD_BEST = RESULTS / "look_ahead_from_plan_onboard_2000"
-# its per-tick record's races -> the folder of each race's metrics.json; `best` flew the first two
-ONBOARD_BEST_RACES = {"both_options_2000": "both_options_2000", "both_options_2010": "both_options_2010",
-                      "look_ahead_from_plan_2000": "plan_2000", "look_ahead_from_plan_2010": "plan_2010"}
-ONBOARD_FRONTIER = RESULTS / "best_onboard_2000"  # nominal MPPI flown slower on the onboard loop, the same seeds
-
-
-def onboard_paired_gain(root: Path) -> Row:
-    """`best` on the onboard loop against nominal MPPI flown slower on that loop: the laps of the races of
-    :data:`ONBOARD_BEST` that flew the preset (`pixelmpc race --loop onboard`), each paired with its seed's nominal
-    laps in :data:`ONBOARD_FRONTIER`, whose races must be nominal MPPI as every frontier flies it (the paper's
-    settings) on the same loop (a ValueError otherwise); the gains and their intervals of
-    :func:`~pixelmpc_jax.apps.experiments.gains.frontier_gains`, every lap checked against both folders' per-tick
-    records."""
-    path = ONBOARD_BEST
-    race_metrics = {name: _json(root / path / folder / "metrics.json") for name, folder in ONBOARD_BEST_RACES.items()}
-    check_compact_record(root / path, {name: {"laps": m["controllers"]["pixelmpc"]["laps"]}
-                                       for name, m in race_metrics.items()})
-    best = preset("best").config
-    flown = {name: m for name, m in race_metrics.items() if RaceSpec.from_record(m["race"]).config == best}
-    if not flown:
-        raise ValueError(f"{path}: no race flew the best preset")
-    race = RaceSpec.from_record(next(iter(flown.values()))["race"])
-    laps = [lap for m in flown.values() for lap in m["controllers"]["pixelmpc"]["laps"]]
-    nominal = _nominal_frontier(root, race, (ONBOARD_FRONTIER,))
-    gains = _gains(gains_lib.completed_laps({"laps": laps}),
-                   [gains_lib.completed_laps(result) for _, result in nominal])
-    done = [lap for lap in laps if lap["success"]]
-    in_view = statistics.mean(lap["share_target_in_view"] for lap in done)
-    seeds = sorted(lap["seed"] for lap in laps)
-    return Row(f"The same ({flown_preset(race.record())}) on the onboard loop (the image detector, the ESKF, the gate "
-               "switch from the estimate, the surveyed map), nominal MPPI flown slower on that loop too",
-               f"{gains_text(gains, len(done))}; in view {in_view:.1%}",
-               lap_tail(laps), "not measured (one target speed)",
-               f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(laps)} laps, seeds {seeds[0]}-{seeds[-1]}; "
-               f"nominal MPPI's laps from [{ONBOARD_FRONTIER.name}]({ONBOARD_FRONTIER.as_posix()}/)",
-               _tables_measured(root, path), path, per_tick(root / path))
+ONBOARD_FRONTIER = "best_onboard_2740"  # `best` and nominal MPPI flown slower, every point on the onboard loop
+onboard_gain = frontier_gain(ONBOARD_FRONTIER, "The same ({controller}) on the onboard loop (the image detector, the "
+                             "ESKF, the gate switch from the estimate, the surveyed map), nominal MPPI flown slower on "
+                             "that loop too")
 
 
 PACE_BEST = RESULTS / "best_pace_9.1_2200"  # `best` at the 16 m/s label's pace, and nominal MPPI at that target
@@ -683,32 +664,33 @@ def aggressive_paired_gain(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-ONBOARD_PACE = RESULTS / "onboard_16ms_pace"
+ONBOARD_PACE = RESULTS / "onboard_16ms_pace_2760"
 # each controller's races in the folder (a `pixelmpc race` each, named for its folder), flown on consecutive seeds
-ONBOARD_PACE_RACES = {"mppi": ("nominal",), "pixelmpc": ("best_2100", "best_2120")}
+ONBOARD_PACE_RACES = {"mppi": ("nominal",), "pixelmpc": ("best_2760", "best_2780")}
 
 
-def _onboard_pace_races(root: Path) -> tuple[dict, dict]:
-    """:data:`ONBOARD_PACE`'s races, each controller's joined in order: the first race's record and every lap. Each
-    race must fly its controller on the loop, course and target the folder's first race flew, and a controller's races
-    must follow one another in seed (a ValueError otherwise)."""
-    path = root / ONBOARD_PACE
-    metrics = {name: _json(path / name / "metrics.json") for races in ONBOARD_PACE_RACES.values() for name in races}
+def _onboard_pace_races(root: Path, folder: Path, races: dict[str, tuple[str, ...]]) -> tuple[dict, dict]:
+    """The races of ``folder`` (``races``: each controller's, by the folder its metrics.json is in), each controller's
+    joined in order: the first race's record and every lap. Each race must fly its controller on the loop, course and
+    target the folder's first race flew, and a controller's races must follow one another in seed (a ValueError
+    otherwise)."""
+    path = root / folder
+    metrics = {name: _json(path / name / "metrics.json") for names in races.values() for name in names}
     check_compact_record(path, {name: {"laps": metrics[name]["controllers"][controller]["laps"]}
-                                for controller, races in ONBOARD_PACE_RACES.items() for name in races})
+                                for controller, names in races.items() for name in names})
     flown = {name: metrics[name]["controllers"][controller]["race"]
-             for controller, races in ONBOARD_PACE_RACES.items() for name in races}
+             for controller, names in races.items() for name in names}
     first = RaceSpec.from_record(next(iter(flown.values())))
     records, laps = {}, {}
-    for controller, races in ONBOARD_PACE_RACES.items():
+    for controller, names in races.items():
         seed = None
-        for name in races:
+        for name in names:
             race = RaceSpec.from_record(flown[name])
             loop = first.replace(controller=race.controller, config=race.config, seed=race.seed, laps=race.laps)
             if race.controller != controller or race.key() != loop.key():
-                raise ValueError(f"{ONBOARD_PACE / name}: not {controller} on the loop of the folder's other races")
+                raise ValueError(f"{folder / name}: not {controller} on the loop of the folder's other races")
             if seed is not None and race.seed != seed:
-                raise ValueError(f"{ONBOARD_PACE / name}: its first seed is {race.seed}, the race before ended at "
+                raise ValueError(f"{folder / name}: its first seed is {race.seed}, the race before ended at "
                                  f"{seed - 1}")
             seed = race.seed + race.laps
             records.setdefault(controller, flown[name])
@@ -716,31 +698,35 @@ def _onboard_pace_races(root: Path) -> tuple[dict, dict]:
     return records, laps
 
 
-def onboard_pace(root: Path) -> Row:
-    """Laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: the `pixelmpc
-    race --loop onboard` runs of :data:`ONBOARD_PACE_RACES` (the metrics.json of a folder named for each), every lap
-    checked against the per-tick record."""
-    path = ONBOARD_PACE
-    records, laps = _onboard_pace_races(root)
-    finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
-    intervals = [wilson_interval(finished[name], len(laps[name])) for name in ONBOARD_PACE_RACES]
-    failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
-                         for cause, count in sorted(failure_counts(laps["mppi"]).items(), key=str))
-    done = [lap["lap_time_s"] for lap in laps["pixelmpc"] if lap["success"]]
-    race = records["pixelmpc"]
-    speed = race["speed"]
-    label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
-    return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
-               f"PixelMPC ({flown_preset(race)})",
-               f"{_share(finished['mppi'], len(laps['mppi']))} -> "
-               f"**{_share(finished['pixelmpc'], len(laps['pixelmpc']))}** "
-               f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
-               f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
-               f"failures: {failures or 'none'}",
-               "not measured (particle filter only)",
-               f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, "
-               f"{len(laps['pixelmpc'])} laps a controller, {_seeds(race['seed'], len(laps['pixelmpc']))}",
-               _tables_measured(root, path), path, per_tick(root / path))
+def onboard_pace(folder: Path = ONBOARD_PACE,
+                 races: dict[str, tuple[str, ...]] = ONBOARD_PACE_RACES) -> Callable[[Path], Row]:
+    """A row of laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: the
+    `pixelmpc race --loop onboard` runs ``races`` of ``folder`` (the metrics.json of a folder named for each, a
+    controller's races on consecutive seeds), every lap checked against the per-tick record."""
+
+    def row(root: Path) -> Row:
+        records, laps = _onboard_pace_races(root, folder, races)
+        finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
+        intervals = [wilson_interval(finished[name], len(laps[name])) for name in races]
+        failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
+                             for cause, count in sorted(failure_counts(laps["mppi"]).items(), key=str))
+        done = [lap["lap_time_s"] for lap in laps["pixelmpc"] if lap["success"]]
+        race = records["pixelmpc"]
+        speed = race["speed"]
+        label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
+        return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
+                   f"PixelMPC ({flown_preset(race)})",
+                   f"{_share(finished['mppi'], len(laps['mppi']))} -> "
+                   f"**{_share(finished['pixelmpc'], len(laps['pixelmpc']))}** "
+                   f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
+                   f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
+                   f"failures: {failures or 'none'}",
+                   "not measured (particle filter only)",
+                   f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, "
+                   f"{len(laps['pixelmpc'])} laps a controller, {_seeds(race['seed'], len(laps['pixelmpc']))}",
+                   _tables_measured(root, folder), folder, per_tick(root / folder))
+
+    return row
 
 
 def real_time(root: Path) -> Row:
@@ -767,13 +753,13 @@ ROWS = (
                   "nominal's avoidable low-visibility time at the same lap time over ours"),
     courses_gain("best_courses_2500", "The same ({controller}) on three generated courses, made after the preset was "
                  "chosen: paired gain on each"),
-    onboard_paired_gain,
+    onboard_gain,
     pace_paired_gain,
     aggressive_paired_gain,
     paper_main_cell,
     table_iv_filter,
     table_iv_eskf,
-    onboard_pace,
+    onboard_pace(),
     nominal_lap,
     dof_accuracy,
     real_time,
