@@ -235,7 +235,9 @@ def frontier_row_from_compact(folder: Path, cell: str) -> dict:
 
 def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
     """(the frontier's record, the cell's row, the nominal point at the cell's target) of a frontier folder; the row
-    recomputed from the compact per-tick record where the folder commits one (and checked against the record's).
+    recomputed from the compact per-tick record where the folder commits one (and checked against the record's), and
+    every nominal point checked to be nominal MPPI on the loop, course and camera the cell flew (a ValueError
+    otherwise: the gain compares laps of one loop).
     Read once while the folder's files stay as they are (several rows read one folder; the gains' bootstrap over
     100 seeds takes seconds); the returned dicts are shared, not to be changed."""
     files = [Path(root) / folder / name for name in ("frontier.json", "results.json", ticks_compact.FILE_NAME)]
@@ -246,10 +248,14 @@ def _frontier(root: Path, folder: Path, cell: str) -> tuple[dict, dict, dict]:
 @functools.lru_cache(maxsize=16)
 def _read_frontier(root: Path, folder: Path, cell: str, stamp: tuple) -> tuple[dict, dict, dict]:
     """:func:`_frontier` of the folder's files as they were at ``stamp`` (their modification times)."""
-    record = _json(root / folder / "frontier.json")
+    from pixelmpc_jax.apps.racing import grid
+
+    record, results = _json(root / folder / "frontier.json"), _json(root / folder / "results.json")
     row = next(r for r in record["cells"] if r["name"] == cell)
+    for point in record["nominal"]:
+        _check_nominal(folder, grid.recorded_race(results[cell]), point, results[point["name"]])
     if per_tick(root / folder) == "yes":
-        check_compact_record(root / folder, _json(root / folder / "results.json"))
+        check_compact_record(root / folder, results)
         recomputed = frontier_row_from_compact(root / folder, cell)
         for key in ("frontier_gain", "lap_time_s", "avoidable_s"):
             if not _same(recomputed[key], row[key]):
@@ -304,19 +310,14 @@ def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[
     """A row of `best`'s frontier gain in a frontier folder: the paired gain [interval] at its lap time against
     nominal MPPI flown slower, beside the joined means and the local fit (the bars apply to the smallest of the
     three), and its share of time with the target in view beside nominal's at its lap time; the tail of its laps
-    and its worst lap's avoidable time beside nominal's at the same lap time. Every nominal point must be nominal
-    MPPI on the loop the cell flew (a ValueError otherwise). ``claim`` names the controller as ``{controller}``,
-    filled from what the folder's race flew (:func:`flown_preset`)."""
+    and its worst lap's avoidable time beside nominal's at the same lap time (every nominal point nominal MPPI on
+    the cell's loop, :func:`_frontier`). ``claim`` names the controller as ``{controller}``, filled from what the
+    folder's race flew (:func:`flown_preset`)."""
 
     def row(root: Path) -> Row:
-        from pixelmpc_jax.apps.racing import grid
-
         path = RESULTS / folder
         record, cell_row, at_target = _frontier(root, path, cell)
-        every = _json(root / path / "results.json")
-        results = every[cell]
-        for point in record["nominal"]:  # the gain compares laps of one loop
-            _check_nominal(path, grid.recorded_race(results), point, every[point["name"]])
+        results = _json(root / path / "results.json")[cell]
         laps = [lap for lap in results["laps"] if lap["success"]]
         worst = max(lap["time_vis_avoidable_s"] for lap in laps)
         lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1

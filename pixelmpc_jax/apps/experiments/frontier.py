@@ -470,7 +470,7 @@ def report(frontier: dict) -> str:
         label = f"nominal {p['speed']:g} m/s" if p["name"].startswith("nominal_") else p["name"]
         lines.append(f"| {label} | " + " | ".join(_f((p.get("phases") or {}).get(k)) for k in PHASES) + " |")
     m, d = frontier["measured"], frontier["measured"]["device"]
-    # a point recorded before its estimator was (nominal MPPI's, flown on the true state then) reads as the truth
+    # a point whose record names no estimator (nominal MPPI's, before frontiers flew other loops) flew the truth
     states = sorted({"ground-truth" if c.get("estimator", "truth") == "truth" else c["estimator"]
                      for c in frontier["cells"] + frontier["nominal"]})
     lines += ["", "## How it was measured", "",
