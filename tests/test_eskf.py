@@ -13,10 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax import timing
+from pixelmpc_jax import devices, timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import eskf as E
+from pixelmpc_jax.perception.estimator import EstimatorParams
 from pixelmpc_jax.sim import faults as faults_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
@@ -50,15 +51,33 @@ def _flight(flights, i):
     return jax.tree_util.tree_map(lambda a: a[i], flights)
 
 
+@functools.cache
+def _filter(config: E.ESKFConfig = CONFIG, spread: tuple = SPREAD) -> devices.CompiledEstimator:
+    """The filter compiled once per configuration and spread."""
+    return devices.compile_estimator(E.make_eskf(config, spread))
+
+
+def _init(x0, config=CONFIG, spread=SPREAD):
+    return _filter(config, spread).init(jax.random.PRNGKey(0), x0)
+
+
+def _step(state, imu, detection, delay_ticks, track, camera, config=CONFIG):
+    """One compiled tick. -> (the whole ``ESKFEstimate``, state, info)."""
+    params = EstimatorParams(gates=track.gates, camera=camera, delay_ticks=delay_ticks)
+    _, state, info = _filter(config).step(state, imu, detection, params)
+    return info.estimate, state, info
+
+
 def _run(imu, detections, delays, x0, track, camera, config=CONFIG):
-    """The filter over a replay: ``eskf_step`` per tick in a scan. -> (estimates, infos), leading axis T+1."""
+    """The filter over a replay: its pure ``step`` per tick in a scan. -> (estimates, infos), leading axis T+1."""
+    eskf = E.make_eskf(config, SPREAD)
 
     def tick(state, inputs):
         imu_k, detection_k, delay_k = inputs
-        state, estimate, info = E.eskf_step(state, imu_k, detection_k, delay_k, track, camera, config)
-        return state, (estimate, info)
+        _, state, info = eskf.step(state, imu_k, detection_k, EstimatorParams(track.gates, camera, delay_k))
+        return state, (info.estimate, info)
 
-    return jax.lax.scan(tick, E.eskf_init(x0, config, SPREAD), (imu, detections, delays))[1]
+    return jax.lax.scan(tick, eskf.init(jax.random.PRNGKey(0), x0), (imu, detections, delays))[1]
 
 
 _replay = jax.jit(_run)  # every replay has the same shapes: one compilation
@@ -145,10 +164,11 @@ def test_the_alignment_at_rest_learns_the_gyro_bias_and_the_accelerometers_along
     the two together explain the reading. Without the bias the same readings leave the belief's mean alone."""
     config = dataclasses.replace(CONFIG, align_s=2.0)
     x0 = jnp.asarray([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], jnp.float32)
-    state = E.eskf_init(x0, config, SPREAD)
+    eskf = E.make_eskf(config, SPREAD)
+    state = eskf.init(jax.random.PRNGKey(0), x0)
     accel_bias, gyro_bias = np.asarray(ACCEL_BIAS, np.float32), np.asarray(GYRO_BIAS, np.float32)
     accel = np.asarray([0.0, 0.0, config.gravity], np.float32) + accel_bias
-    aligned = E.eskf_align(state, accel, gyro_bias, config)
+    aligned = jax.jit(eskf.align)(state, accel, gyro_bias)
     for leaf, anchor_leaf in zip(jax.tree_util.tree_leaves(aligned.latest), jax.tree_util.tree_leaves(aligned.anchor)):
         np.testing.assert_array_equal(np.asarray(leaf), np.asarray(anchor_leaf))  # the window starts aligned
     belief = aligned.latest
@@ -167,26 +187,25 @@ def test_the_alignment_at_rest_learns_the_gyro_bias_and_the_accelerometers_along
     assert np.sqrt(cov[9, 9]) < 0.9 * config.accel_bias_std and cov[9, 7] != 0.0  # tied to the tilt, learnt in part
     kept = [0, 1, 2, 7, 8, 9]  # position and velocity: no reading at rest tells them (nor their prior ties them)
     np.testing.assert_array_equal(np.asarray(belief.x)[kept], np.asarray(x0)[kept])
-    unbiased = E.eskf_align(state, np.asarray([0.0, 0.0, config.gravity], np.float32), np.zeros(3, np.float32),
-                            config).latest
+    unbiased = jax.jit(eskf.align)(state, np.asarray([0.0, 0.0, config.gravity], np.float32),
+                                   np.zeros(3, np.float32)).latest
     np.testing.assert_allclose(np.asarray(unbiased.x), np.asarray(x0), atol=1e-6)
     np.testing.assert_allclose(np.asarray(unbiased.bias), 0.0, atol=1e-6)
-    with pytest.raises(ValueError, match="align_s > 0") as error:
-        E.eskf_align(state, accel, gyro_bias, CONFIG)
-    assert "\n" not in str(error.value)
+    assert E.make_eskf(CONFIG).align is None  # no readings on the pad: nothing to align on
 
 
 def test_bad_inputs_raise_one_line(course):
     track, camera = course
     with pytest.raises(ValueError, match="x0 must have shape") as error:
-        E.eskf_init(jnp.zeros(9))
+        _init(jnp.zeros(9))
     assert "\n" not in str(error.value)
-    state = E.eskf_init(track.start, CONFIG)
+    state = _init(track.start)
     with pytest.raises(ValueError, match="delay_ticks must lie in") as error:
-        E.eskf_step(state, None, None, CONFIG.max_delay_ticks + 1, track, camera, CONFIG)
+        _step(state, None, None, CONFIG.max_delay_ticks + 1, track, camera)
     assert "\n" not in str(error.value)
     with pytest.raises(ValueError, match="max_delay_ticks=1"):
-        E.eskf_step(state, None, None, 0, track, camera, dataclasses.replace(CONFIG, max_delay_ticks=1))
+        E.make_eskf(dataclasses.replace(CONFIG, max_delay_ticks=1)).check(
+            state, None, None, EstimatorParams(track.gates, camera))
 
 
 def test_at_rest_the_state_stays_and_the_covariance_grows_by_hand(course):
@@ -200,8 +219,8 @@ def test_at_rest_the_state_stays_and_the_covariance_grows_by_hand(course):
     track, camera = course
     x0 = quadrotor.hover_state((1.0, 2.0, 3.0), yaw=0.6)
     imu = plant_lib.hover_tick_imu(timing.CONTROL_DT)
-    state = E.eskf_init(x0, CONFIG, spread=(0.0, 0.0, 0.0))
-    state, estimate, _ = E.eskf_step(state, imu, None, 0, track, camera, CONFIG)
+    state = _init(x0, spread=(0.0, 0.0, 0.0))
+    estimate, state, _ = _step(state, imu, None, 0, track, camera)
     T, c = timing.CONTROL_DT, CONFIG
     R = np.asarray(quadrotor.rotation_matrix(x0[3:7]))
     accel = T * T * c.accel_bias_std**2 + c.accel_noise_density**2 * T  # the accelerometer's share of P_vv
@@ -220,7 +239,7 @@ def test_at_rest_the_state_stays_and_the_covariance_grows_by_hand(course):
     np.testing.assert_allclose(cov / scale, expected / scale, atol=2e-5)
     traces = []
     for _ in range(80):
-        state, estimate, info = E.eskf_step(state, imu, None, 0, track, camera, CONFIG)
+        estimate, state, info = _step(state, imu, None, 0, track, camera)
         traces.append(float(info.position_cov_trace))
     np.testing.assert_allclose(estimate.mean, x0, atol=2e-5)
     np.testing.assert_array_equal(estimate.bias, 0.0)
@@ -309,12 +328,12 @@ def test_one_step_jit_equals_no_jit(course, flights):
     track, camera = course
     flight = _flight(flights, 0)
     tick = _informative_tick(flight, 300)
-    state = E.eskf_init(flight.states[tick - 2], CONFIG, SPREAD)
-    state, _, _ = E.eskf_step(state, _at(flight.imu, tick - 1), None, 0, track, camera, CONFIG)
-    args = (state, _at(flight.imu, tick), _at(flight.detections, tick - 1), 1, track, camera, CONFIG)
-    jitted = E.eskf_step(*args)
+    state = _init(flight.states[tick - 2])
+    _, state, _ = _step(state, _at(flight.imu, tick - 1), None, 0, track, camera)
+    args = (state, _at(flight.imu, tick), _at(flight.detections, tick - 1), 1, track, camera)
+    jitted = _step(*args)
     with jax.disable_jit():
-        plain = E.eskf_step(*args)
+        plain = _step(*args)
     assert int(np.sum(jitted[2].accepted)) >= 2
     for a, b in zip(jax.tree_util.tree_leaves(jitted), jax.tree_util.tree_leaves(plain)):
         np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-4, atol=1e-6)
@@ -323,12 +342,12 @@ def test_one_step_jit_equals_no_jit(course, flights):
 def test_no_recompilation_across_steps(course, flights):
     track, camera = course
     flight = _flight(flights, 1)
-    state = E.eskf_init(flight.states[0], CONFIG, SPREAD)
-    state, _, _ = E.eskf_step(state, _at(flight.imu, 0), _at(flight.detections, 0), 0, track, camera, CONFIG)
-    before = E._eskf_step_jit._cache_size()
+    state = _init(flight.states[0])
+    _, state, _ = _step(state, _at(flight.imu, 0), _at(flight.detections, 0), 0, track, camera)
+    before = _filter().num_compilations()
     for k in range(1, 4):
-        state, _, _ = E.eskf_step(state, _at(flight.imu, k), _at(flight.detections, k), k - 1, track, camera, CONFIG)
-    assert E._eskf_step_jit._cache_size() == before
+        _, state, _ = _step(state, _at(flight.imu, k), _at(flight.detections, k), k - 1, track, camera)
+    assert _filter().num_compilations() == before
 
 
 # --------------------------------------------------------------------------------------------------
@@ -461,8 +480,9 @@ def test_a_map_sigma_adds_the_gates_offset_to_the_corners_noise_and_moves_the_es
     runs = {}
     for name, config in (("exact", CONFIG), ("map", dataclasses.replace(CONFIG, map_sigma_m=sigma)),
                          ("tiny", dataclasses.replace(CONFIG, map_sigma_m=1e-4))):
-        state = E.eskf_init(x0, config, (0.05, 0.01, 0.1))
-        runs[name] = E.eskf_step(state, None, detection, 0, track, camera, config)[1:]
+        state = _init(x0, config, (0.05, 0.01, 0.1))
+        estimate, _, info = _step(state, None, detection, 0, track, camera, config)
+        runs[name] = estimate, info
     (exact, exact_info), (mapped, map_info), (tiny, _) = runs["exact"], runs["map"], runs["tiny"]
     assert np.all(exact_info.accepted) and np.all(map_info.accepted)
     _, H, _ = E.reproject_corners(x0, gate.corners(), camera)

@@ -3,6 +3,7 @@ the fault off; the levers against them; a short closed loop under every fault at
 named end; a race's faults travel in its spec and the ``--fault`` flag refuses a bad entry in one line."""
 
 import dataclasses
+import functools
 import json
 import math
 
@@ -11,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pixelmpc_jax import cli
+from pixelmpc_jax import cli, devices
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.commands import EXIT_USAGE
 from pixelmpc_jax.commands.race import race_spec
@@ -21,6 +22,7 @@ from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
+from pixelmpc_jax.perception.estimator import EstimatorParams
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import faults as F
 from pixelmpc_jax.sim import plant as plant_lib
@@ -228,11 +230,19 @@ def test_a_map_error_moves_every_gate_by_its_size_and_the_world_flies_the_moved_
 # --------------------------------------------------------------------------------------------------
 
 PF = pf_lib.PFConfig(num_particles=256)
+PF_SPREAD = (0.05, 0.005, 0.05)
+PF_PARAMS = EstimatorParams(gates=COURSE.gates, camera=CAMERA)
 
 
 def _filter(x, offset=(0.0, 0.0, 0.0)):
     x = x.at[:3].add(jnp.asarray(offset, jnp.float32))
-    return pf_lib.pf_init(jax.random.PRNGKey(4), x, PF, spread=(0.05, 0.005, 0.05))
+    return jax.jit(pf_lib.make_particle_filter(PF, PF_SPREAD).init)(jax.random.PRNGKey(4), x)
+
+
+@functools.cache
+def _guarded(guards: guards_lib.GuardConfig) -> devices.CompiledEstimator:
+    """The filter with ``guards``, compiled once per guards."""
+    return devices.compile_estimator(guards_lib.make_guarded_particle_filter(PF, guards, PF_SPREAD))
 
 
 def test_the_detection_gate_keeps_the_gate_where_the_particles_see_it_and_rejects_a_made_up_box():
@@ -243,9 +253,9 @@ def test_the_detection_gate_keeps_the_gate_where_the_particles_see_it_and_reject
     assert not bool(guards_lib.detection_accepted(state, box, COURSE.gates, CAMERA, 30.0))
     assert bool(guards_lib.detection_accepted(state, _not_found(box), COURSE.gates, CAMERA, 30.0))
     imu = plant_lib.hover_tick_imu(CONTROL_DT)
-    *_, info = guards_lib.guarded_pf_step(state, imu, box, COURSE, CAMERA, PF,
-                                          guards_lib.GuardConfig(detection_gate_px=30.0))
-    assert not bool(info.accepted) and not bool(info.recovered)
+    estimate, _, info = _guarded(guards_lib.GuardConfig(detection_gate_px=30.0)).step(state, imu, box, PF_PARAMS)
+    assert not bool(info.guards.accepted) and not bool(info.guards.recovered)
+    assert not bool(estimate.detection.found)  # the loop is told the rejected detection as none
 
 
 def test_recovery_respreads_a_filter_whose_particles_explain_no_detection():
@@ -253,13 +263,14 @@ def test_recovery_respreads_a_filter_whose_particles_explain_no_detection():
     imu, guards = plant_lib.hover_tick_imu(CONTROL_DT), guards_lib.GuardConfig(recover_error_px=120.0)
     for offset, diverged in (((0.0, 2.5, 0.0), True), ((0.0, 0.0, 0.0), False)):
         state = guards_lib.init_guards(_filter(x, offset), guards)
-        state, estimate, _, info = guards_lib.guarded_pf_step(state, imu, seen, COURSE, CAMERA, PF, guards)
+        _, state, info = _guarded(guards).step(state, imu, seen, PF_PARAMS)
+        info = info.guards
         assert bool(info.recovered) == diverged and bool(info.accepted) and int(state.unexplained) == 0
     spread = guards_lib.respread(_filter(x), (1.0, 0.05, 0.5), jax.random.PRNGKey(0))
     assert np.std(np.asarray(spread.particles[:, 1])) == pytest.approx(1.0, rel=0.15)
     np.testing.assert_allclose(np.exp(spread.log_weights), 1.0 / PF.num_particles, rtol=1e-5)
     with pytest.raises(ValueError, match="init_guards"):  # a state without the count cannot recover
-        guards_lib.guarded_pf_step(_filter(x), imu, seen, COURSE, CAMERA, PF, guards)
+        _guarded(guards).step(_filter(x), imu, seen, PF_PARAMS)
 
 
 def test_recovery_waits_for_unexplained_detections_in_a_row():
@@ -271,11 +282,11 @@ def test_recovery_waits_for_unexplained_detections_in_a_row():
     state = guards_lib.init_guards(_filter(x, (0.0, 2.5, 0.0)), guards)
     for detection, count, recovered in ((seen, 1, False), (_not_found(seen), 1, False), (seen, 2, False),
                                         (seen, 0, True)):
-        state, _, _, info = guards_lib.guarded_pf_step(state, imu, detection, COURSE, CAMERA, PF, guards)
-        assert (int(state.unexplained), bool(info.recovered)) == (count, recovered)
+        _, state, info = _guarded(guards).step(state, imu, detection, PF_PARAMS)
+        assert (int(state.unexplained), bool(info.guards.recovered)) == (count, recovered)
     near = guards_lib.init_guards(_filter(x), guards).replace(unexplained=jnp.asarray(2, jnp.int32))
-    near, _, _, info = guards_lib.guarded_pf_step(near, imu, seen, COURSE, CAMERA, PF, guards)
-    assert int(near.unexplained) == 0 and not bool(info.recovered)  # explained: the row is broken
+    _, near, info = _guarded(guards).step(near, imu, seen, PF_PARAMS)
+    assert int(near.unexplained) == 0 and not bool(info.guards.recovered)  # explained: the row is broken
     with pytest.raises(ValueError, match="recover_after_ticks must be an integer >= 1"):
         guards_lib.GuardConfig(recover_after_ticks=0)
 
@@ -283,8 +294,8 @@ def test_recovery_waits_for_unexplained_detections_in_a_row():
 def test_without_guards_the_guarded_step_is_the_filters_step():
     x, seen = _seen_gate()
     imu = plant_lib.hover_tick_imu(CONTROL_DT)
-    plain = pf_lib.pf_step(_filter(x), imu, seen, COURSE, CAMERA, PF)
-    guarded = guards_lib.guarded_pf_step(_filter(x), imu, seen, COURSE, CAMERA, PF, guards_lib.GuardConfig())[:3]
+    plain = devices.compile_estimator(pf_lib.make_particle_filter(PF, PF_SPREAD)).step(_filter(x), imu, seen, PF_PARAMS)
+    guarded = _guarded(guards_lib.GuardConfig()).step(_filter(x), imu, seen, PF_PARAMS)
     jax.tree_util.tree_map(np.testing.assert_array_equal, guarded, plain)
     with pytest.raises(ValueError, match="detection_gate_px must be a positive"):
         guards_lib.GuardConfig(detection_gate_px=0.0)
@@ -374,10 +385,10 @@ def test_every_fault_at_once_gives_finite_commands_and_a_named_end(faulty_loop):
 # --------------------------------------------------------------------------------------------------
 
 
-def test_a_fault_free_race_records_and_keys_as_before_the_faults():
+def test_a_race_records_its_faults_and_keys_by_them():
     spec = RaceSpec("pixelmpc", speed=8.5, estimator="pf")
     record = spec.record()
-    assert "faults" not in record and "guards" not in record and "model_latency_ticks" not in record["config"]
+    assert RaceSpec.from_record(record) == spec and record["faults"] == dataclasses.asdict(F.Faults())
     windy = spec.replace(faults=F.fault_level("wind", "moderate"), guards=guards_lib.GuardConfig(30.0))
     assert windy.key() != spec.key()
     assert RaceSpec.from_record(json.loads(json.dumps(windy.record()))).key() == windy.key()

@@ -1,6 +1,7 @@
 """The particle filter: equations, transformations (jit, vmap, keys), and behaviour (convergence, growth)."""
 
 import dataclasses
+import functools
 import math
 import re
 
@@ -12,9 +13,11 @@ from conftest import jit_as_shipped
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as D
 from pixelmpc_jax.perception import particle_filter as PF
+from pixelmpc_jax.perception.estimator import EstimatorParams
 from pixelmpc_jax.sim.plant import IMU
 from pixelmpc_jax.world import camera as C
 from pixelmpc_jax.world import course as course_lib
@@ -23,6 +26,22 @@ from pixelmpc_jax.world import render as R
 # One small configuration for most tests, so they share one compilation.
 SMALL = PF.PFConfig(num_particles=768)
 HOVER_IMU = (jnp.asarray([0.0, 0.0, 9.81], jnp.float32), jnp.zeros(3, jnp.float32))
+SPREAD = (0.5, 0.05, 0.5)  # make_particle_filter's default
+
+
+@functools.cache
+def _filter(config: PF.PFConfig = SMALL, spread: tuple = SPREAD) -> devices.CompiledEstimator:
+    """The filter compiled once per configuration and spread (the step does not depend on the spread)."""
+    return devices.compile_estimator(PF.make_particle_filter(config, spread))
+
+
+def _init(key, x0, config=SMALL, spread=SPREAD):
+    return _filter(config, spread).init(key, x0)
+
+
+def _step(state, imu, detection, track, camera, config=SMALL):
+    """One compiled tick on ``track``'s gates. -> (estimate, state, info)."""
+    return _filter(config).step(state, imu, detection, EstimatorParams(gates=track.gates, camera=camera))
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +66,7 @@ def _run(state, track, camera, detection, config, ticks):
     """``ticks`` steps at rest with the same detection each tick (a static pose, a noise-free detector)."""
     estimates, infos = [], []
     for _ in range(ticks):
-        state, est, info = PF.pf_step(state, _hover_imu(), detection, track, camera, config)
+        est, state, info = _step(state, _hover_imu(), detection, track, camera, config)
         estimates.append(est)
         infos.append(info)
     return state, estimates, infos
@@ -126,7 +145,7 @@ def test_estimate_quaternion_mean_sign_blind():
     particles = jnp.stack([x, x.at[3:7].set(-q), x.at[0].set(2.0)])
     state = PF.PFState(particles=particles, log_weights=jnp.log(jnp.asarray([0.25, 0.25, 0.5])),
                        key=jax.random.PRNGKey(0))
-    est = PF.pf_estimate(state)
+    est = PF.weighted_estimate(state)
     np.testing.assert_allclose(est.mean[3:7], q, atol=1e-5)
     np.testing.assert_allclose(est.mean[0], 1.0, atol=1e-6)
     np.testing.assert_allclose(est.position_cov[0, 0], 1.0, atol=1e-5)  # 0.5 * 1^2 + 0.5 * 1^2
@@ -138,12 +157,13 @@ def test_config_and_shape_errors(camera, straight):
     with pytest.raises(ValueError, match="resample_threshold"):
         PF.PFConfig(resample_threshold=1.5)
     with pytest.raises(ValueError, match="x0 must have shape"):
-        PF.pf_init(jax.random.PRNGKey(0), jnp.zeros(9), SMALL)
-    state = PF.pf_init(jax.random.PRNGKey(0), straight.start, SMALL)
+        _init(jax.random.PRNGKey(0), jnp.zeros(9), SMALL)
+    state = _init(jax.random.PRNGKey(0), straight.start, SMALL)
+    params = EstimatorParams(gates=straight.gates, camera=camera)
     with pytest.raises(ValueError, match="P=6400"):
-        PF.pf_predict(state, _hover_imu(), PF.PFConfig())
+        PF.make_particle_filter(PF.PFConfig()).check(state, _hover_imu(), None, params)
     with pytest.raises(ValueError, match="imu.gyro"):
-        PF.pf_predict(state, IMU(jnp.zeros(3), jnp.zeros(4)), SMALL)
+        PF.make_particle_filter(SMALL).check(state, IMU(jnp.zeros(3), jnp.zeros(4)), None, params)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -158,7 +178,7 @@ def test_converges_to_true_pose(camera, straight):
     at this range; the covariance shrinks from the initial spread to the single-update posterior's."""
     x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
-    state = PF.pf_init(jax.random.PRNGKey(1), x_true.at[0].add(-0.5).at[1].add(0.6), SMALL, spread=(0.7, 0.03, 0.1))
+    state = _init(jax.random.PRNGKey(1), x_true.at[0].add(-0.5).at[1].add(0.6), SMALL, spread=(0.7, 0.03, 0.1))
     _, estimates, infos = _run(state, straight, camera, det, SMALL, 12)
     assert np.mean([_position_error(e, x_true) for e in estimates[-4:]]) < 0.3
     assert float(infos[-1].position_cov_trace) < 0.5 * 3 * 0.7**2
@@ -170,13 +190,13 @@ def test_converges_on_alphapilot_course_6400(camera):
     course = course_lib.load_course()
     x_true = R.pose_before_gate(course.gate(2), 6.0, 0.3, 0.2)
     config = PF.PFConfig()  # the paper's 6,400 particles
-    state = PF.pf_init(jax.random.PRNGKey(2), x_true.at[:3].add(jnp.asarray([0.5, -0.5, 0.3])), config,
+    state = _init(jax.random.PRNGKey(2), x_true.at[:3].add(jnp.asarray([0.5, -0.5, 0.3])), config,
                        spread=(0.7, 0.03, 0.1))
     track = course
     estimates = []
     for k in range(6):
         det = D.detect_from_geometry(course.gate(2), x_true, camera, jax.random.PRNGKey(k), 0.5, 0.0, 2)
-        state, est, _ = PF.pf_step(state, _hover_imu(), det, track, camera, config)
+        est, state, _ = _step(state, _hover_imu(), det, track, camera, config)
         estimates.append(est)
     assert _position_error(estimates[-1], x_true) < 0.3
     quat_err = 1.0 - abs(float(jnp.dot(estimates[-1].mean[3:7], x_true[3:7])))
@@ -187,7 +207,7 @@ def test_converges_with_one_corner_missing(camera, straight):
     x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
     det = det.replace(corners_visible=det.corners_visible.at[1].set(False), corners=det.corners.at[1].set(0.0))
-    state = PF.pf_init(jax.random.PRNGKey(3), x_true.at[0].add(-0.5).at[1].add(0.6), SMALL, spread=(0.7, 0.03, 0.1))
+    state = _init(jax.random.PRNGKey(3), x_true.at[0].add(-0.5).at[1].add(0.6), SMALL, spread=(0.7, 0.03, 0.1))
     _, estimates, infos = _run(state, straight, camera, det, SMALL, 12)
     assert np.mean([_position_error(e, x_true) for e in estimates[-4:]]) < 0.35
     assert not any(bool(i.degenerate) for i in infos)
@@ -200,7 +220,7 @@ def test_covariance_grows_without_detections(camera, straight, per_second, growt
     x_true = quadrotor.hover_state((14.0, 0.0, 3.0), yaw=math.pi)  # facing away from every gate
     nothing = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
     assert not bool(nothing.found)
-    state = PF.pf_init(jax.random.PRNGKey(4), x_true, config, spread=(0.1, 0.01, 0.05))
+    state = _init(jax.random.PRNGKey(4), x_true, config, spread=(0.1, 0.01, 0.05))
     _, _, infos = _run(state, straight, camera, nothing, config, 10)
     trace = np.asarray([float(i.position_cov_trace) for i in infos])
     assert trace[-1] > 1.5 * trace[0]
@@ -219,16 +239,16 @@ def test_position_noise_std():
 def test_degenerate_weights_handled(camera, straight):
     x_true = quadrotor.hover_state((14.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
-    state = PF.pf_init(jax.random.PRNGKey(6), x_true, SMALL)
+    state = _init(jax.random.PRNGKey(6), x_true, SMALL)
     for bad in (-jnp.inf, jnp.nan):
         dead = state.replace(log_weights=jnp.full((SMALL.num_particles,), bad))
-        new, est, info = PF.pf_step(dead, _hover_imu(), det, straight, camera, SMALL)
+        est, new, info = _step(dead, _hover_imu(), det, straight, camera, SMALL)
         assert bool(info.degenerate)
         assert np.isfinite(np.asarray(est.mean)).all() and np.isfinite(np.asarray(new.log_weights)).all()
         np.testing.assert_allclose(jax.nn.logsumexp(new.log_weights), 0.0, atol=1e-4)
     # A NaN particle gets weight zero: it leaks into neither the estimate nor the resampled set.
     poisoned = state.replace(particles=state.particles.at[0].set(jnp.nan))
-    new, est, info = PF.pf_step(poisoned, _hover_imu(), det, straight, camera, SMALL)
+    est, new, info = _step(poisoned, _hover_imu(), det, straight, camera, SMALL)
     assert not bool(info.degenerate) and bool(info.resampled)
     assert np.isfinite(np.asarray(est.mean)).all() and np.isfinite(np.asarray(new.particles)).all()
 
@@ -236,8 +256,8 @@ def test_degenerate_weights_handled(camera, straight):
 def test_negative_gate_id_leaves_weights(camera, straight):
     x_true = quadrotor.hover_state((14.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=-1)
-    state = PF.pf_init(jax.random.PRNGKey(7), x_true, SMALL)
-    new, _, info = PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
+    state = _init(jax.random.PRNGKey(7), x_true, SMALL)
+    _, new, info = _step(state, _hover_imu(), det, straight, camera, SMALL)
     np.testing.assert_allclose(new.log_weights, state.log_weights, atol=1e-6)
     assert float(info.max_log_likelihood) == 0.0 and not bool(info.resampled) and not bool(info.degenerate)
 
@@ -250,63 +270,42 @@ def test_negative_gate_id_leaves_weights(camera, straight):
 def _one_step_inputs(key, camera, straight):
     x_true = quadrotor.hover_state((14.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
-    return PF.pf_init(key, x_true.at[1].add(0.4), SMALL), det
+    return _init(key, x_true.at[1].add(0.4), SMALL), det
 
 
 def _one_step(key, camera, straight):
     state, det = _one_step_inputs(key, camera, straight)
-    return PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
+    return _step(state, _hover_imu(), det, straight, camera, SMALL)
 
 
 def test_same_key_same_estimate_different_key_differs(camera, straight):
-    _, a, _ = _one_step(jax.random.PRNGKey(8), camera, straight)
-    _, b, _ = _one_step(jax.random.PRNGKey(8), camera, straight)
-    _, c, _ = _one_step(jax.random.PRNGKey(9), camera, straight)
+    a, _, _ = _one_step(jax.random.PRNGKey(8), camera, straight)
+    b, _, _ = _one_step(jax.random.PRNGKey(8), camera, straight)
+    c, _, _ = _one_step(jax.random.PRNGKey(9), camera, straight)
     np.testing.assert_array_equal(a.mean, b.mean)
     assert float(jnp.max(jnp.abs(a.mean - c.mean))) > 1e-4
 
 
 def test_jit_matches_no_jit(camera, straight):
     state, det = _one_step_inputs(jax.random.PRNGKey(10), camera, straight)
-    state_j, est_j, info_j = PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
+    est_j, state_j, info_j = _step(state, _hover_imu(), det, straight, camera, SMALL)
     with jax.disable_jit():
-        state_n, est_n, info_n = PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
+        est_n, state_n, info_n = _step(state, _hover_imu(), det, straight, camera, SMALL)
     np.testing.assert_allclose(est_j.mean, est_n.mean, atol=1e-4)
-    np.testing.assert_allclose(est_j.position_cov, est_n.position_cov, atol=1e-4)
+    np.testing.assert_allclose(info_j.position_cov, info_n.position_cov, atol=1e-4)
     np.testing.assert_allclose(state_j.particles, state_n.particles, atol=1e-4)
     np.testing.assert_allclose(info_j.ess, info_n.ess, rtol=1e-3)
     assert bool(info_j.resampled) == bool(info_n.resampled)
 
 
-def test_vmap_matches_loop(camera, straight):
-    poses = jnp.stack([quadrotor.hover_state((14.0, y, 3.0)) for y in (-0.3, 0.0, 0.4)])
-    keys = jax.random.split(jax.random.PRNGKey(11), 3)
-    states = jax.vmap(lambda k, x: PF.pf_init(k, x, SMALL))(keys, poses)
-    dets = jax.vmap(lambda x: D.detect_from_geometry(straight.gate(0), x, camera, gate_id=0))(poses)
-    imu = _hover_imu()
-
-    def step(s, d):
-        return PF.pf_step(s, imu, d, straight, camera, SMALL)
-
-    b_state, b_est, b_info = jax.jit(jax.vmap(step))(states, dets)
-    for i in range(3):
-        s_i = jax.tree_util.tree_map(lambda a, i=i: a[i], states)
-        d_i = jax.tree_util.tree_map(lambda a, i=i: a[i], dets)
-        state, est, info = step(s_i, d_i)
-        np.testing.assert_allclose(b_est.mean[i], est.mean, atol=1e-4)
-        np.testing.assert_allclose(b_state.particles[i], state.particles, atol=1e-4)
-        np.testing.assert_allclose(b_info.ess[i], info.ess, rtol=1e-3)
-        assert bool(b_info.degenerate[i]) == bool(info.degenerate)
-
-
 def test_no_recompilation_across_steps(camera, straight):
-    state, _, _ = _one_step(jax.random.PRNGKey(12), camera, straight)
-    before = PF._pf_step_jit._cache_size()
+    _, state, _ = _one_step(jax.random.PRNGKey(12), camera, straight)
+    before = _filter(SMALL).num_compilations()
     x_true = quadrotor.hover_state((14.5, 0.1, 3.0))
     det = D.detect_from_geometry(straight.gate(1), x_true, camera, gate_id=1)
     for _ in range(2):
-        state, _, _ = PF.pf_step(state, _hover_imu(), det, straight, camera, SMALL)
-    assert PF._pf_step_jit._cache_size() == before
+        _, state, _ = _step(state, _hover_imu(), det, straight, camera, SMALL)
+    assert _filter(SMALL).num_compilations() == before
 
 
 def test_the_config_docstring_names_the_boolean_defaults():
@@ -317,7 +316,7 @@ def test_the_config_docstring_names_the_boolean_defaults():
             assert entry and f"{field.default} (default)" in entry.group(1), field.name
 
 
-def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera, straight, monkeypatch):
+def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera, straight):
     """At rest before a gate with a biased IMU (the moderate bias of sim/faults.py), detected every tick: after 5 s
     the filter that carries bias states holds the velocity at under three quarters of the paper's drift and the
     position within 0.2 m, and its particles' bias leans the way of the true one on the axes the gate's corners see
@@ -331,7 +330,7 @@ def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera
     vertical) direction 0.19 (0.12-0.25) m/s^2, the true 0.22. A filter that did not learn the bias drifts as the
     plain one does, and its bias stays near zero. Its 1,200 filter steps of 6,400 particles run optimised
     (:func:`conftest.jit_as_shipped`)."""
-    monkeypatch.setattr(PF, "_pf_step_jit", jit_as_shipped(PF._pf_step_jit, static_argnames=("config",)))
+    params = EstimatorParams(gates=straight.gates, camera=camera)
     x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
     bias = np.asarray([0.1, -0.1, 0.2, 0.01, -0.01, 0.01], np.float32)
@@ -339,13 +338,15 @@ def test_bias_states_learn_a_constant_imu_bias_the_plain_filter_drifts_on(camera
     errors, learned = {}, []
     for std in ((0.0, 0.0), (0.3, 0.02)):
         config = PF.PFConfig(imu_bias_std=std, imu_bias_walk=tuple(0.1 * s for s in std))
+        pf = PF.make_particle_filter(config, spread=(0.1, 0.01, 0.05))
+        step = jit_as_shipped(jax.jit(pf.step))
         runs = []
         for seed in (1, 2, 3):
-            state = PF.pf_init(jax.random.PRNGKey(seed), x_true, config, spread=(0.1, 0.01, 0.05))
+            state = jax.jit(pf.init)(jax.random.PRNGKey(seed), x_true)
             assert (state.bias is None) == (std == (0.0, 0.0))
             velocity, position = [], []
             for _ in range(200):
-                state, est, _ = PF.pf_step(state, imu, det, straight, camera, config)
+                est, state, _ = step(state, imu, det, params)
                 velocity.append(float(jnp.linalg.norm(est.mean[7:])))
                 position.append(_position_error(est, x_true))
             runs.append((np.mean(velocity[-40:]), np.mean(position[-40:])))
@@ -364,12 +365,12 @@ def test_bias_states_are_checked_and_resampled_with_their_particles(camera, stra
         PF.PFConfig(imu_bias_std=(0.3,))
     config = PF.PFConfig(num_particles=768, imu_bias_std=(0.3, 0.02), resample_threshold=1.0)
     x_true = quadrotor.hover_state((15.0, 0.0, 3.0))
-    state = PF.pf_init(jax.random.PRNGKey(2), x_true, config)
+    state = _init(jax.random.PRNGKey(2), x_true, config)
     with pytest.raises(ValueError, match="PFState.bias must be"):
-        PF.pf_step(state.replace(bias=None), _hover_imu(), None, straight, camera, config)
+        _step(state.replace(bias=None), _hover_imu(), None, straight, camera, config)
     tagged = state.replace(particles=state.particles.at[:, 0].set(jnp.arange(768.0)),
                            bias=state.bias.at[:, 0].set(jnp.arange(768.0)))
     det = D.detect_from_geometry(straight.gate(0), x_true, camera, gate_id=0)
-    after, _, info = PF.pf_step(tagged, None, det, straight, camera, config)
+    _, after, info = _step(tagged, None, det, straight, camera, config)
     assert bool(info.resampled)  # every particle's bias followed it through the resampling
     np.testing.assert_array_equal(np.asarray(after.bias[:, 0]), np.asarray(after.particles[:, 0]))

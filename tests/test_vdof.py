@@ -214,9 +214,9 @@ def test_rows_are_finite_differences_of_the_detector(world):
     track, camera = world
     states, w_flown, target = _hand_made_lap(track)
     rows = vdof_data.lap_rows(track, camera, states, w_flown, target)
-    p, found, box_size = [], [], jax.jit(vdof.box_size)
+    p, found, box_size, detect = [], [], jax.jit(vdof.box_size), jax.jit(detector_lib.detect_from_geometry)
     for x, gate_id in zip(states, target, strict=True):
-        det = detector_lib.detect_from_geometry(track.gate(int(gate_id)), jnp.asarray(x), camera)
+        det = detect(track.gate(int(gate_id)), jnp.asarray(x), camera)
         p.append(np.r_[np.asarray(det.centre), float(box_size(det.corners))])
         found.append(bool(det.found))
     p, found = np.asarray(p), np.asarray(found)

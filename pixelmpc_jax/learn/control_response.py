@@ -240,11 +240,11 @@ def sample_control_sequences(key: jax.Array, plan: jax.Array, mppi_config) -> ja
 def _ranking_starts(laps: list[Lap], track, camera, stride: int, initial) -> list[tuple[Lap, int, jax.Array]]:
     """``(lap, tick, p0)`` of every ``stride``-th tick whose target is detected with its centre in the image; p0
     the pixel model's state of the detection (``initial(detection, gate)``)."""
-    starts = []
+    starts, detect = [], jax.jit(detector_lib.detect_from_geometry)
     for lap in laps:
         for s in range(0, lap.u.shape[0], int(stride)):
             gate = track.gate(int(lap.target[s]))
-            det = detector_lib.detect_from_geometry(gate, jnp.asarray(lap.states[s]), camera)
+            det = detect(gate, jnp.asarray(lap.states[s]), camera)
             if bool(det.found) and bool(camera_lib.in_image(det.centre)):
                 starts.append((lap, s, initial(det, gate)))
     return starts

@@ -87,7 +87,6 @@ def _sensor_noise(key: jax.Array, pixel_noise_px, dropout, uv: jax.Array, centre
     return uv, centre, jax.random.uniform(key_dropout, (), uv.dtype) >= dropout
 
 
-@jax.jit
 def detect_from_geometry(
     gate,
     x_robot: jax.Array,
@@ -194,7 +193,6 @@ def _frame_box(gate, x_robot: jax.Array, camera: camera_lib.Camera) -> tuple[jax
     return jnp.where(jnp.any(seen), jnp.concatenate([low, high]), 0.0), jnp.any(seen)
 
 
-@jax.jit
 def detect_in_view(gate, x_robot: jax.Array, camera: camera_lib.Camera, key: jax.Array | None = None,
                    pixel_noise_px: float | jax.Array = 0.0, dropout: float | jax.Array = 0.0,
                    gate_id: int | jax.Array = -1) -> Detection:

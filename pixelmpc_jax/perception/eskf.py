@@ -1,9 +1,9 @@
 """An error-state Kalman filter (ESKF) on the tick's preintegrated IMU and the detected gate's corners.
 
 An alternative to the particle filter of Section V-D (:mod:`~pixelmpc_jax.perception.particle_filter`), fed the
-same way, one :func:`eskf_step` per control tick: the IMU of the tick that led to now (``sim.plant.TickIMU``) and
-the detection of the target gate (``detector.Detection``, its corners reprojected through the map and the
-camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU's biases.
+same way, one :func:`tick` per control tick (the estimator of :func:`make_eskf`): the IMU of the tick that led to now
+(``sim.plant.TickIMU``) and the detection of the target gate (``detector.Detection``, its corners reprojected
+through the map and the camera). It estimates the robot state ``x = [p, q(wxyz), v]`` (10,) and the IMU's biases.
 
 - State. The nominal state holds position, velocity, attitude (``q``, body to world) and the accelerometer
   (m/s^2) and gyro (rad/s) biases (:class:`ESKFBelief`); the error state is 15-dimensional, ``dx = [dp, dv,
@@ -75,7 +75,8 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, STATE_DIM, VEL
-from pixelmpc_jax.perception.particle_filter import GRAVITY, checked_prior, propagate_preintegrated
+from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorParams, checked_spread, checked_x0
+from pixelmpc_jax.perception.particle_filter import GRAVITY, propagate_preintegrated
 from pixelmpc_jax.world import camera as camera_lib
 
 ERROR_DIM = 15  # [dp, dv, dtheta, dba, dbg]
@@ -138,7 +139,7 @@ class ESKFConfig:
             minus that with respect to the gate's), in the gate, the weights and the update alike. The offset is
             taken afresh at each detection (not kept as a state), so a gate seen for long still pulls the
             estimate onto itself, more slowly.
-        align_s: s of IMU readings at rest before the lap that :func:`eskf_align` averages (0: none, the default; the
+        align_s: s of IMU readings at rest before the lap that :func:`align` averages (0: none, the default; the
             lap's first tick is the filter's first input). On the pad the vehicle neither moves nor turns, so the mean
             gyro reading is the gyro bias and the mean accelerometer reading is gravity's specific force plus the
             accelerometer bias: one update with the readings' own noise over that time (``density^2 / align_s``)
@@ -297,6 +298,7 @@ class ESKFInfo(NamedTuple):
         dropped: () bool, the detection was later than ``max_delay_ticks`` (or earlier than now) and was dropped.
         noise_scale: () the newest belief's scale of the corners' noise variance (1 unless
             ``ESKFConfig.noise_adapt_rate`` > 0).
+        estimate: the filter's whole estimate at now (:class:`ESKFEstimate`: its biases and error covariance too).
     """
 
     position_cov_trace: jax.Array
@@ -310,6 +312,7 @@ class ESKFInfo(NamedTuple):
     delay_ticks: jax.Array
     dropped: jax.Array
     noise_scale: jax.Array
+    estimate: ESKFEstimate
 
 
 # --------------------------------------------------------------------------------------------------
@@ -626,25 +629,44 @@ def _step(state: ESKFState, imu: ImuInput, imu_valid, detection: CornerInput, de
     drop_first = functools.partial(jax.tree_util.tree_map, lambda a: a[1:])
     state = ESKFState(anchor=anchor, imu=drop_first(imus), imu_valid=valid[1:], detections=drop_first(detections),
                       latest=latest)
+    estimate = _estimate(latest)
     info = ESKFInfo(position_cov_trace=jnp.trace(latest.cov[0:3, 0:3]), **report._asdict(), delay_ticks=delay,
-                    dropped=~in_window, noise_scale=latest.noise_scale)
-    return state, _estimate(latest), info
+                    dropped=~in_window, noise_scale=latest.noise_scale, estimate=estimate)
+    return state, estimate, info
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def _eskf_step_jit(state, imu, detection, delay_ticks, gates, camera, config):
-    """The compiled tick on raw inputs: ``imu`` the IMU's ``(delta_q, delta_v, delta_p, dt)`` or None, ``detection``
-    its ``(corners, corners_visible, found, gate_id)`` or None. Their conversions run here, in the compiled call:
-    done eagerly on the host they cost about as much as the filter itself."""
+def tick(state: ESKFState, imu, detection, delay_ticks, gates, camera: camera_lib.Camera, config: ESKFConfig):
+    """One control tick: append the tick's IMU, file the detection at the tick it was captured, replay the window.
+
+    Args:
+        state: the filter.
+        imu: the IMU over the tick that led to now (``sim.plant.TickIMU``: ``delta_q``, ``delta_v``, ``delta_p``,
+            ``dt``), or None: no motion update this tick.
+        detection: the target gate's ``Detection`` delivered now (``found=False`` or a negative ``gate_id``: nothing
+            detected), or None.
+        delay_ticks: () int, how many ticks before now the detection's image was taken (0: on time); at most
+            ``config.max_delay_ticks`` (a traced later one is dropped and reported in ``info.dropped``).
+        gates: the map's ``Gate`` batch (G leading axis): the known corners.
+        camera: the onboard camera.
+
+    Returns:
+        state: the filter after the tick.
+        estimate: ``ESKFEstimate`` at now.
+        info: ``ESKFInfo``.
+
+    The inputs' conversions run here, in the caller's compiled call: done eagerly on the host they cost about as
+    much as the filter itself.
+    """
     dtype = state.latest.x.dtype
     if imu is None:
         imu_input, imu_valid = _no_imu(dtype), jnp.asarray(False)
     else:
-        imu_input, imu_valid = ImuInput(*(jnp.asarray(field, dtype) for field in imu)), jnp.asarray(True)
+        imu_input = ImuInput(*(jnp.asarray(getattr(imu, name), dtype) for name in IMU_FIELDS))
+        imu_valid = jnp.asarray(True)
     if detection is None:
         corners = _no_corners(dtype)
     else:
-        corners_xy, corners_visible, found, gate_id = detection
+        corners_xy, corners_visible, found, gate_id = (getattr(detection, name) for name in DETECTION_FIELDS)
         gate_id = jnp.asarray(gate_id, jnp.int32)
         detected = jnp.asarray(corners_visible, bool) & jnp.asarray(found, bool) & (gate_id >= 0)
         corners = CornerInput(corners=jnp.asarray(corners_xy, dtype), detected=detected, gate_id=gate_id)
@@ -661,35 +683,33 @@ def _check_state(state: ESKFState, config: ESKFConfig) -> None:
     shapes = (jnp.shape(state.latest.x), jnp.shape(state.latest.cov), jnp.shape(state.imu_valid))
     if shapes != ((STATE_DIM,), (ERROR_DIM, ERROR_DIM), (D,)):
         raise ValueError(f"ESKFState for one filter (vmap batches) with max_delay_ticks={D} needs x ({STATE_DIM},), "
-                         f"cov ({ERROR_DIM}, {ERROR_DIM}) and a window of {D} ticks; got {shapes} (from eskf_init "
-                         f"with another config?)")
+                         f"cov ({ERROR_DIM}, {ERROR_DIM}) and a window of {D} ticks; got {shapes} (from the init of "
+                         f"another config?)")
 
 
 IMU_FIELDS = {"delta_q": (4,), "delta_v": (3,), "delta_p": (3,), "dt": ()}
 DETECTION_FIELDS = {"corners": (NUM_CORNERS, 2), "corners_visible": (NUM_CORNERS,), "found": (), "gate_id": ()}
 
 
-def _imu_fields(imu) -> tuple | None:
-    """The tick's IMU as its raw fields, shapes checked (None: no IMU)."""
+def _check_imu(imu) -> None:
+    """The tick's IMU's fields and shapes (None: no IMU)."""
     if imu is None:
-        return None
+        return
     for name, shape in IMU_FIELDS.items():
         if not hasattr(imu, name) or jnp.shape(getattr(imu, name)) != shape:
             raise ValueError(f"imu must be one tick's preintegrated IMU (sim.plant.TickIMU) with delta_q (4,), "
                              f"delta_v (3,), delta_p (3,), dt (); {name} is "
                              f"{jnp.shape(getattr(imu, name)) if hasattr(imu, name) else 'missing'}")
-    return tuple(getattr(imu, name) for name in IMU_FIELDS)
 
 
-def _detection_fields(detection) -> tuple | None:
-    """The detection as its raw fields, shapes checked (None: nothing delivered)."""
+def _check_detection(detection) -> None:
+    """The detection's fields and shapes (None: nothing delivered)."""
     if detection is None:
-        return None
+        return
     shapes = tuple(jnp.shape(getattr(detection, name, None)) for name in DETECTION_FIELDS)
     if shapes != tuple(DETECTION_FIELDS.values()):
         raise ValueError(f"detection must be one detector.Detection with corners (4, 2), corners_visible (4,), "
                          f"found () and gate_id (); got shapes {shapes}")
-    return tuple(getattr(detection, name) for name in DETECTION_FIELDS)
 
 
 def _check_delay(delay_ticks, config: ESKFConfig) -> None:
@@ -701,12 +721,16 @@ def _check_delay(delay_ticks, config: ESKFConfig) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# Public API.
+# The first state, the alignment on the pad, the estimator.
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("config", "spread"))
-def _eskf_init_jit(x0, bias0, config: ESKFConfig, spread):
+def init_belief(x0: jax.Array, bias0: jax.Array, config: ESKFConfig, spread: tuple) -> ESKFState:
+    """The filter at ``x0`` (10,) ``[p, q, v]`` and IMU biases ``bias0`` (6,) ``[b_a, b_g]``, with an empty window.
+
+    ``spread``: prior std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, per axis, in
+    the order of the particle filter's; the biases' prior stds are the config's.
+    """
     dtype = x0.dtype
     x0 = x0.at[QUAT].set(quadrotor.normalize_quat(x0[QUAT]))
     position_std, attitude_std, velocity_std = spread
@@ -718,25 +742,21 @@ def _eskf_init_jit(x0, bias0, config: ESKFConfig, spread):
                      detections=_no_corners(dtype, (D,)), latest=belief)
 
 
-def eskf_init(x0: jax.Array, config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=None) -> ESKFState:
-    """The filter at ``x0`` (10,) ``[p, q, v]`` with an empty window.
+def align(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
+    """The filter before its first step, after ``config.align_s`` seconds at rest (``ESKFConfig.align_s``).
 
     Args:
-        x0: (10,) initial estimate.
-        config: filter configuration (bias prior stds, window length).
-        spread: prior std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, per axis,
-            in the order of ``pf_init``'s.
-        bias0: (6,) initial bias estimate ``[b_a, b_g]`` (None: zeros); its prior std is the config's.
+        state: the filter from its ``init`` (no step taken yet).
+        accel_mean: (3,) m/s^2, the accelerometer's mean reading at rest (body frame, its bias included).
+        gyro_mean: (3,) rad/s, the gyro's mean reading at rest.
+        config: the filter's configuration; its ``align_s`` > 0 is the readings' time.
+
+    Returns:
+        the filter with one Kalman update of its attitude and biases by those readings.
     """
-    x0, spread = checked_prior(x0, spread)
-    bias0 = jnp.zeros(6, jnp.float32) if bias0 is None else jnp.asarray(bias0, jnp.float32)
-    if bias0.shape != (6,):
-        raise ValueError(f"bias0 must have shape (6,) = [b_a, b_g], got {bias0.shape}")
-    return _eskf_init_jit(x0, bias0, config, spread)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _eskf_align_jit(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
+    for name, value in (("accel_mean", accel_mean), ("gyro_mean", gyro_mean)):
+        if jnp.shape(value) != (3,):
+            raise ValueError(f"{name} must have shape (3,), got {jnp.shape(value)}")
     belief = state.latest
     dtype = belief.x.dtype
     P = belief.cov
@@ -757,56 +777,60 @@ def _eskf_align_jit(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig)
     return state.replace(anchor=aligned, latest=aligned)
 
 
-def eskf_align(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
-    """The filter before its first step, after ``config.align_s`` seconds at rest (``ESKFConfig.align_s``).
-
-    Args:
-        state: the filter from :func:`eskf_init` (no step taken yet).
-        accel_mean: (3,) m/s^2, the accelerometer's mean reading at rest (body frame, its bias included).
-        gyro_mean: (3,) rad/s, the gyro's mean reading at rest.
-        config: the filter's configuration; its ``align_s`` > 0 is the readings' time.
-
-    Returns:
-        the filter with one Kalman update of its attitude and biases by those readings.
-    """
-    if not config.align_s > 0:
-        raise ValueError(f"eskf_align needs config.align_s > 0 (the seconds of readings), got {config.align_s!r}")
-    _check_state(state, config)
-    for name, value in (("accel_mean", accel_mean), ("gyro_mean", gyro_mean)):
-        if jnp.shape(value) != (3,):
-            raise ValueError(f"{name} must have shape (3,), got {jnp.shape(value)}")
-    return _eskf_align_jit(state, accel_mean, gyro_mean, config)
-
-
-def eskf_step(state: ESKFState, imu, detection, delay_ticks, track, camera: camera_lib.Camera,
-              config: ESKFConfig = ESKFConfig()):
-    """One control tick: append the tick's IMU, file the detection at the tick it was captured, replay the window.
-
-    Args:
-        state: the filter.
-        imu: the IMU over the tick that led to now (``sim.plant.TickIMU``: ``delta_q``, ``delta_v``, ``delta_p``,
-            ``dt``), or None: no motion update this tick.
-        detection: the target gate's ``Detection`` delivered now (``found=False`` or a negative ``gate_id``: nothing
-            detected), or None.
-        delay_ticks: () int, how many ticks before now the detection's image was taken (0: on time); at most
-            ``config.max_delay_ticks`` (a traced later one is dropped and reported in ``info.dropped``).
-        track: the ``Track`` (its gates give the known corners), or its ``Gate`` batch.
-        camera: the onboard camera.
-
-    Returns:
-        state: the filter after the tick.
-        estimate: ``ESKFEstimate`` at now.
-        info: ``ESKFInfo``.
-    """
-    _check_state(state, config)
-    _check_delay(delay_ticks, config)
-    gates = getattr(track, "gates", track)
-    return _eskf_step_jit(state, _imu_fields(imu), _detection_fields(detection), delay_ticks, gates, camera, config)
-
-
 def eskf_estimate(state: ESKFState) -> ESKFEstimate:
     """The estimate (:class:`ESKFEstimate`) at the newest tick."""
     return _estimate(state.latest)
+
+
+def _as_gated(detection, info: ESKFInfo):
+    """``detection`` as the loop should use it: none (``found`` and ``corners_visible`` cleared) when the filter's
+    gate rejected every corner it could use."""
+    if detection is None:
+        return None
+    usable = info.corner_mahalanobis2 > 0
+    rejected = jnp.any(usable) & ~jnp.any(info.accepted)
+    return detection.replace(found=detection.found & ~rejected, corners_visible=detection.corners_visible & ~rejected)
+
+
+def make_eskf(config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=None) -> Estimator:
+    """The error-state Kalman filter as an :class:`~pixelmpc_jax.perception.estimator.Estimator`.
+
+    Args:
+        config: the filter's configuration (noises, gates, window length, ``align_s``).
+        spread: prior std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, per axis.
+        bias0: (6,) initial bias estimate ``[b_a, b_g]`` (None: zeros); its prior std is the config's.
+
+    ``init(key, x0)``: :func:`init_belief` (``key`` unused: the filter draws nothing). ``step(state, imu, detection,
+    params)``: :func:`tick` with ``params.delay_ticks``, ``params.gates``, ``params.camera``; its ``info`` is
+    :class:`ESKFInfo` (``info.estimate`` the whole :class:`ESKFEstimate`), its estimate's detection none when the
+    gate rejected every usable corner. ``align``: :func:`align` when ``config.align_s`` > 0, else None.
+    """
+    spread = checked_spread(spread)
+    bias0 = jnp.zeros(6, jnp.float32) if bias0 is None else jnp.asarray(bias0, jnp.float32)
+    if bias0.shape != (6,):
+        raise ValueError(f"bias0 must have shape (6,) = [b_a, b_g], got {bias0.shape}")
+
+    def init(key: jax.Array, x0: jax.Array) -> ESKFState:
+        del key
+        return init_belief(checked_x0(x0), bias0, config, spread)
+
+    def step(state: ESKFState, imu, detection, params: EstimatorParams):
+        state, estimate, info = tick(state, imu, detection, params.delay_ticks, params.gates, params.camera, config)
+        return (Estimate(mean=estimate.mean, position_cov_trace=info.position_cov_trace,
+                         detection=_as_gated(detection, info)), state, info)
+
+    def check(state: ESKFState, imu, detection, params: EstimatorParams):
+        _check_state(state, config)
+        _check_delay(params.delay_ticks, config)
+        _check_imu(imu)
+        _check_detection(detection)
+        return state, imu, detection, params
+
+    def align_on_pad(state: ESKFState, accel_mean, gyro_mean) -> ESKFState:
+        return align(state, accel_mean, gyro_mean, config)
+
+    return Estimator(init=init, step=step, check=check, config=config,
+                     align=align_on_pad if config.align_s > 0 else None)
 
 
 def nees(estimate: ESKFEstimate, x_true: jax.Array) -> jax.Array:

@@ -16,8 +16,9 @@
   (``PFConfig.imu_bias_std``; :func:`filter_config` gives the filter's configuration with them), walking by
   :data:`BIAS_WALK_SHARE` of their spread per square-root second.
 
-:func:`guarded_pf_step` is :func:`~pixelmpc_jax.perception.particle_filter.pf_step` with the guards between the
-motion and the sensor update; with no guard on it is ``pf_step`` itself.
+:func:`guarded_tick` is :func:`~pixelmpc_jax.perception.particle_filter.tick` with the guards between the motion
+and the sensor update; :func:`make_guarded_particle_filter` the filter with its guards as an
+:class:`~pixelmpc_jax.perception.estimator.Estimator` (with no guard on, the plain filter's).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import jax.numpy as jnp
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, VEL
 from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorParams, checked_spread, checked_x0
 from pixelmpc_jax.world import camera as camera_lib
 
 GATE_MIN_SHARE = 0.01  # the weight share of particles that must place the gate near a detection to keep it
@@ -144,12 +146,12 @@ def _error_log_likelihood(error_px: float, config: pf_lib.PFConfig) -> float:
     return -0.5 * scaled * scaled if config.likelihood == "gaussian" else -scaled
 
 
-def _recover(state: pf_lib.PFState, detection, track, camera, config: pf_lib.PFConfig, guards: GuardConfig):
+def _recover(state: pf_lib.PFState, detection, gates, camera, config: pf_lib.PFConfig, guards: GuardConfig):
     """``(state, recovered)``: the predicted filter, re-spread when no particle has explained ``detection`` nor the
     informative detections before it, ``guards.recover_after_ticks`` in a row (the count in ``state.unexplained``)."""
     key, key_spread = jax.random.split(state.key)
     state = state.replace(key=key)
-    _, _, max_ll = pf_lib.pf_update(state, detection, track.gates, camera, config)
+    _, _, max_ll = pf_lib.update(state, detection, gates, camera, config)
     informative = jnp.asarray(detection.found, bool) & (jnp.asarray(detection.gate_id) >= 0)
     unexplained = informative & (max_ll < _error_log_likelihood(guards.recover_error_px, config))
     count = jnp.where(unexplained, state.unexplained + 1, jnp.where(informative, 0, state.unexplained))
@@ -159,27 +161,69 @@ def _recover(state: pf_lib.PFState, detection, track, camera, config: pf_lib.PFC
     return state.replace(unexplained=jnp.where(diverged, 0, count)), diverged
 
 
-def guarded_pf_step(state: pf_lib.PFState, imu, detection, track, camera: camera_lib.Camera,
-                    config: pf_lib.PFConfig, guards: GuardConfig):
-    """One control tick of the filter with its guards: predict with ``imu``, gate ``detection``, re-spread a
-    diverged cloud, then update, estimate and resample (:func:`~pixelmpc_jax.perception.particle_filter.pf_step`).
+class GuardedInfo(NamedTuple):
+    """Diagnostics of one guarded tick: the filter's (``PFInfo``) and its guards' (``GuardInfo``)."""
 
-    Returns ``(state, estimate, info, GuardInfo)``; the detection as the loop should use it is the given one with
-    ``found`` and ``corners_visible`` masked by ``GuardInfo.accepted``."""
-    if not guards.active:
-        state, estimate, info = pf_lib.pf_step(state, imu, detection, track, camera, config)
-        return state, estimate, info, GuardInfo(jnp.asarray(True), jnp.asarray(False))
-    state = pf_lib.pf_predict(state, imu, config)
+    filter: pf_lib.PFInfo
+    guards: GuardInfo
+
+
+def guarded_tick(state: pf_lib.PFState, imu, detection, gates, camera: camera_lib.Camera, config: pf_lib.PFConfig,
+                 guards: GuardConfig):
+    """One control tick of the filter with its guards on (``guards.active``): predict with ``imu``, gate
+    ``detection``, re-spread a diverged cloud, then update, estimate and resample
+    (:func:`~pixelmpc_jax.perception.particle_filter.tick`).
+
+    Returns ``(state, estimate, info, GuardInfo, detection)``, the detection as the loop should use it: the given one
+    with ``found`` and ``corners_visible`` masked by ``GuardInfo.accepted``."""
+    state = pf_lib.predict(state, imu, config)
     accepted = jnp.asarray(True)
     if guards.detection_gate_px is not None:
-        accepted = detection_accepted(state, detection, track.gates, camera, guards.detection_gate_px)
+        accepted = detection_accepted(state, detection, gates, camera, guards.detection_gate_px)
         detection = detection.replace(found=detection.found & accepted,
                                       corners_visible=detection.corners_visible & accepted)
     recovered = jnp.asarray(False)
     if guards.recover_error_px is not None:
         if state.unexplained is None:
             raise ValueError("the divergence recovery counts unexplained detections in the filter's state: start it "
-                             "with init_guards(pf_init(...), guards)")
-        state, recovered = _recover(state, detection, track, camera, config, guards)
-    state, estimate, info = pf_lib.pf_step(state, None, detection, track, camera, config)
-    return state, estimate, info, GuardInfo(accepted, recovered)
+                             "with init_guards(state, guards) (make_guarded_particle_filter's init does)")
+        state, recovered = _recover(state, detection, gates, camera, config, guards)
+    state, estimate, info = pf_lib.tick(state, None, detection, gates, camera, config)
+    return state, estimate, info, GuardInfo(accepted, recovered), detection
+
+
+def make_guarded_particle_filter(config: pf_lib.PFConfig, guards: GuardConfig = GuardConfig(),
+                                 spread=(0.5, 0.05, 0.5)) -> Estimator:
+    """The particle filter with its guards as an :class:`~pixelmpc_jax.perception.estimator.Estimator`.
+
+    The filter runs on :func:`filter_config` (``config`` with the guards' IMU bias states). With no guard on
+    (``guards.active`` False) it is :func:`~pixelmpc_jax.perception.particle_filter.make_particle_filter`'s filter;
+    otherwise ``init`` also starts what the guards carry (:func:`init_guards`), ``step`` is :func:`guarded_tick`,
+    its ``info`` a :class:`GuardedInfo` and its estimate's detection the one the detection gate let through.
+
+    Args:
+        config: the filter's configuration.
+        guards: the guards (their IMU bias states, detection gate and divergence recovery).
+        spread: Gaussian std of the initial cloud (position m, attitude rad, velocity m/s).
+    """
+    pf_config = filter_config(config, guards)
+    if not guards.active:
+        return pf_lib.make_particle_filter(pf_config, spread)
+    spread = checked_spread(spread)
+
+    def init(key: jax.Array, x0: jax.Array) -> pf_lib.PFState:
+        return init_guards(pf_lib.init_particles(key, checked_x0(x0), pf_config, spread), guards)
+
+    def step(state: pf_lib.PFState, imu, detection, params: EstimatorParams):
+        state, estimate, info, guard, detection = guarded_tick(state, imu, detection, params.gates, params.camera,
+                                                               pf_config, guards)
+        return (Estimate(mean=estimate.mean, position_cov_trace=info.position_cov_trace, detection=detection), state,
+                GuardedInfo(filter=info, guards=guard))
+
+    def check(state: pf_lib.PFState, imu, detection, params: EstimatorParams):
+        if imu is None or detection is None:
+            raise ValueError("the guarded filter's step needs the tick's imu and detection (None given)")
+        pf_lib.check_inputs(state, imu, detection, pf_config)
+        return state, imu, detection, params
+
+    return Estimator(init=init, step=step, check=check, config=pf_config)

@@ -1,9 +1,10 @@
 """The paper's particle filter (Section V-D): IMU motion update, gate-corner sensor update, 6,400 particles.
 
 The filter tracks the robot state ``x = [p, q(wxyz), v]`` (10,) of ``dynamics/quadrotor.py`` with P
-particles. One control tick (``dt = 1/40`` s) is :func:`pf_step`: predict with the tick's IMU, update with
+particles. One control tick (``dt = 1/40`` s) is :func:`tick`: predict with the tick's IMU, update with
 the tick's detection of the target gate, resample when the effective sample size falls below a fraction
-of P. Everything is written for one filter and vmapped over particles; batch filters with ``jax.vmap``.
+of P. Everything is written for one filter and vmapped over particles; batch filters with ``jax.vmap``. The
+filter as an estimator (pure ``init`` and ``step``; the caller compiles them) is :func:`make_particle_filter`.
 
 Choices where the paper leaves one open:
 
@@ -63,7 +64,6 @@ Choices where the paper leaves one open:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from typing import NamedTuple
 
@@ -74,6 +74,7 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, STATE_DIM, VEL
+from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorParams, checked_spread, checked_x0
 from pixelmpc_jax.world import camera as camera_lib
 
 GRAVITY = 9.81
@@ -199,6 +200,7 @@ class PFInfo(NamedTuple):
         degenerate: () bool, no finite weight was left; particles kept, weights reset to uniform.
         resampled: () bool, the particles were resampled this step.
         max_log_likelihood: () the best particle's log-likelihood of the detection (0 without an update).
+        position_cov: (3, 3) m^2, the estimate's position covariance.
     """
 
     ess: jax.Array
@@ -206,6 +208,7 @@ class PFInfo(NamedTuple):
     degenerate: jax.Array
     resampled: jax.Array
     max_log_likelihood: jax.Array
+    position_cov: jax.Array
 
 
 # --------------------------------------------------------------------------------------------------
@@ -253,8 +256,14 @@ def _small_rotation(rotvec: jax.Array) -> jax.Array:
     return quadrotor.quat_exp(rotvec, 1.0)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "spread"))
-def _pf_init(key, x0, config: PFConfig, spread):
+def init_particles(key: jax.Array, x0: jax.Array, config: PFConfig, spread: tuple) -> PFState:
+    """P particles around ``x0`` (10,) with uniform weights (and, with ``config.estimates_bias``, their IMU biases).
+
+    Args:
+        key: PRNG key; the filter keeps a split of it.
+        x0: (10,) initial state ``[p, q, v]``.
+        spread: Gaussian std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, floats.
+    """
     P = config.num_particles
     key, key_pos, key_att, key_vel = jax.random.split(key, 4)
     position_std, attitude_std, velocity_std = spread
@@ -271,30 +280,6 @@ def _pf_init(key, x0, config: PFConfig, spread):
         bias = std * jax.random.normal(jax.random.fold_in(key_pos, _BIAS_STREAM), (P, 6), jnp.float32)
     return PFState(particles=particles, log_weights=log_weights, key=key, bias=bias)
 
-
-def pf_init(key: jax.Array, x0: jax.Array, config: PFConfig = PFConfig(), spread=(0.5, 0.05, 0.5)) -> PFState:
-    """P particles around ``x0`` (10,) with uniform weights.
-
-    Args:
-        key: PRNG key; the filter keeps a split of it.
-        x0: (10,) initial state ``[p, q, v]``.
-        config: filter configuration (``num_particles``).
-        spread: Gaussian std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``.
-    """
-    x0, spread = checked_prior(x0, spread)
-    return _pf_init(key, x0, config, spread)
-
-
-def checked_prior(x0, spread) -> tuple[jax.Array, tuple[float, float, float]]:
-    """An estimator's first state ``x0`` (10,) as float32 and its prior ``spread`` (position m, attitude rad,
-    velocity m/s) as floats; a ValueError naming what is wrong, before anything runs."""
-    x0 = jnp.asarray(x0, jnp.float32)
-    if x0.shape != (STATE_DIM,):
-        raise ValueError(f"x0 must have shape ({STATE_DIM},) = [p, q(wxyz), v], got {x0.shape}")
-    spread = tuple(float(s) for s in spread)
-    if len(spread) != 3 or not all(math.isfinite(s) and s >= 0 for s in spread):
-        raise ValueError(f"spread must be 3 finite stds >= 0 (position, attitude, velocity), got {spread}")
-    return x0, spread
 
 
 # --------------------------------------------------------------------------------------------------
@@ -339,7 +324,13 @@ def propagate_preintegrated(x: jax.Array, imu, accel_noise: jax.Array, gyro_nois
     return jnp.concatenate([p_next, q_next, v_next])
 
 
-def _predict(state: PFState, imu, config: PFConfig) -> PFState:
+def predict(state: PFState, imu, config: PFConfig) -> PFState:
+    """Motion update: every particle integrates the IMU with its own noise draw (module docstring).
+
+    ``imu``: the tick's samples preintegrated (``sim.plant.TickIMU``, what the closed loop feeds), or one mean
+    sample: anything with ``accel`` (3,) body specific force (m/s^2, +9.81 on body z at rest) and ``gyro``
+    (3,) body rates (rad/s), e.g. ``sim.plant.IMU``, integrated over ``config.dt``.
+    """
     P = config.num_particles
     key, key_accel, key_gyro, key_pos = jax.random.split(state.key, 4)
     accel_noise = math.sqrt(config.accel_noise_variance) * jax.random.normal(key_accel, (P, 3), jnp.float32)
@@ -367,23 +358,6 @@ def _predict(state: PFState, imu, config: PFConfig) -> PFState:
         walk = jnp.repeat(jnp.asarray(config.imu_bias_walk, jnp.float32), 3) * jnp.sqrt(dt)
         bias = bias + walk * jax.random.normal(jax.random.fold_in(key_pos, _BIAS_STREAM), (P, 6), jnp.float32)
     return state.replace(particles=particles, key=key, bias=bias)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _pf_predict_jit(state, imu, config):
-    return _predict(state, imu, config)
-
-
-def pf_predict(state: PFState, imu, config: PFConfig = PFConfig()) -> PFState:
-    """Motion update: every particle integrates the IMU with its own noise draw (module docstring).
-
-    ``imu``: the tick's samples preintegrated (``sim.plant.TickIMU``, what the closed loop feeds), or one mean
-    sample: anything with ``accel`` (3,) body specific force (m/s^2, +9.81 on body z at rest) and ``gyro``
-    (3,) body rates (rad/s), e.g. ``sim.plant.IMU``, integrated over ``config.dt``.
-    """
-    _check_state(state, config)
-    _check_imu(imu)
-    return _pf_predict_jit(state, imu, config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -429,7 +403,20 @@ def _normalise(log_weights: jax.Array):
     return jnp.where(degenerate, uniform, lw - lse), degenerate
 
 
-def _update(state: PFState, detection, gates, camera, config: PFConfig):
+def update(state: PFState, detection, gates, camera: camera_lib.Camera, config: PFConfig):
+    """Sensor update with one detection of one gate (module docstring for the model).
+
+    Args:
+        state: the filter.
+        detection: a single ``detector.Detection``; its ``gate_id`` names the gate (negative: no update).
+        gates: the map's ``Gate`` batch (G leading axis), ``track.gates``.
+        camera: the onboard camera.
+
+    Returns:
+        state: new log weights (particles unchanged).
+        degenerate: () bool, no finite weight was left and the weights were reset to uniform.
+        max_log_likelihood: () the best particle's log-likelihood.
+    """
     num_gates = gates.centre.shape[0]
     gate_id = jnp.asarray(detection.gate_id, jnp.int32)
     informative = gate_id >= 0
@@ -446,30 +433,6 @@ def _update(state: PFState, detection, gates, camera, config: PFConfig):
     log_weights, degenerate = _normalise(state.log_weights + log_lik)
     max_ll = jnp.max(log_lik)  # -inf when no particle explains the detection
     return state.replace(log_weights=log_weights), degenerate, max_ll
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _pf_update_jit(state, detection, gates, camera, config):
-    return _update(state, detection, gates, camera, config)
-
-
-def pf_update(state: PFState, detection, track_gates, camera: camera_lib.Camera, config: PFConfig = PFConfig()):
-    """Sensor update with one detection of one gate (module docstring for the model).
-
-    Args:
-        state: the filter.
-        detection: a single ``detector.Detection``; its ``gate_id`` names the gate (negative: no update).
-        track_gates: the track's ``Gate`` batch (G leading axis), ``track.gates``.
-        camera: the onboard camera.
-
-    Returns:
-        state: new log weights (particles unchanged).
-        degenerate: () bool, no finite weight was left and the weights were reset to uniform.
-        max_log_likelihood: () the best particle's log-likelihood.
-    """
-    _check_state(state, config)
-    _check_detection(detection)
-    return _pf_update_jit(state, detection, track_gates, camera, config)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -509,7 +472,8 @@ def _maybe_resample(state: PFState, config: PFConfig):
     return state.replace(particles=particles, log_weights=log_weights, key=key, bias=bias), ess, resample
 
 
-def _estimate(state: PFState) -> PFEstimate:
+def weighted_estimate(state: PFState) -> PFEstimate:
+    """Weighted mean state (10,) (Markley quaternion mean, ``qw >= 0``) and position covariance (3, 3)."""
     w = jnp.exp(state.log_weights)
     w = w / jnp.sum(w)
     particles = jnp.where(w[:, None] > 0, state.particles, 0.0)  # a weightless NaN particle must not leak
@@ -526,55 +490,23 @@ def _estimate(state: PFState) -> PFEstimate:
     return PFEstimate(mean=jnp.concatenate([p_mean, q_mean, v_mean]), position_cov=cov)
 
 
-@jax.jit
-def _pf_estimate_jit(state):
-    return _estimate(state)
-
-
-def pf_estimate(state: PFState) -> PFEstimate:
-    """Weighted mean state (10,) (Markley quaternion mean, ``qw >= 0``) and position covariance (3, 3)."""
-    if jnp.ndim(state.particles) != 2 or jnp.shape(state.particles)[-1] != STATE_DIM:
-        raise ValueError(f"state.particles must be (P, {STATE_DIM}) for one filter, got {jnp.shape(state.particles)}")
-    return _pf_estimate_jit(state)
-
-
 # --------------------------------------------------------------------------------------------------
 # One tick.
 # --------------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def _pf_step_jit(state, imu, detection, gates, camera, config):
-    if imu is not None:
-        state = _predict(state, imu, config)
-    if detection is not None:
-        state, degenerate, max_ll = _update(state, detection, gates, camera, config)
-    else:
-        log_weights, degenerate = _normalise(state.log_weights)
-        state, max_ll = state.replace(log_weights=log_weights), jnp.asarray(0.0, jnp.float32)
-    estimate = _estimate(state)
-    state, ess, resampled = _maybe_resample(state, config)
-    info = PFInfo(
-        ess=ess,
-        position_cov_trace=jnp.trace(estimate.position_cov),
-        degenerate=degenerate,
-        resampled=resampled,
-        max_log_likelihood=max_ll,
-    )
-    return state, estimate, info
 
 
-def pf_step(state: PFState, imu, detection, track, camera: camera_lib.Camera, config: PFConfig = PFConfig()):
+def tick(state: PFState, imu, detection, gates, camera: camera_lib.Camera, config: PFConfig):
     """One control tick: predict with ``imu``, update with ``detection``, resample if ESS < threshold * P.
 
     Args:
         state: the filter.
         imu: the IMU over the tick that led to now (a ``sim.plant.TickIMU``, or one mean sample with
-            ``accel`` (3,), ``gyro`` (3,); see :func:`pf_predict`), or None to skip the motion update (the
-            first tick).
+            ``accel`` (3,), ``gyro`` (3,); see :func:`predict`), or None to skip the motion update (the first tick).
         detection: the target gate's ``Detection`` now (``found=False``: nothing detected; the weights are
             left alone unless ``config.penalise_undetected_target``), or None to skip the sensor update.
-        track: the ``Track`` (its gates give the known corners).
+        gates: the map's ``Gate`` batch (G leading axis): the known corners.
         camera: the onboard camera.
 
     Returns:
@@ -582,9 +514,63 @@ def pf_step(state: PFState, imu, detection, track, camera: camera_lib.Camera, co
         estimate: ``PFEstimate`` of the weighted particles after the update (before resampling).
         info: ``PFInfo``.
     """
+    if imu is not None:
+        state = predict(state, imu, config)
+    if detection is not None:
+        state, degenerate, max_ll = update(state, detection, gates, camera, config)
+    else:
+        log_weights, degenerate = _normalise(state.log_weights)
+        state, max_ll = state.replace(log_weights=log_weights), jnp.asarray(0.0, jnp.float32)
+    estimate = weighted_estimate(state)
+    state, ess, resampled = _maybe_resample(state, config)
+    info = PFInfo(
+        ess=ess,
+        position_cov_trace=jnp.trace(estimate.position_cov),
+        degenerate=degenerate,
+        resampled=resampled,
+        max_log_likelihood=max_ll,
+        position_cov=estimate.position_cov,
+    )
+    return state, estimate, info
+
+
+def check_inputs(state: PFState, imu, detection, config: PFConfig) -> None:
+    """The shapes of a tick's inputs (outside jit; shapes are static, so this also runs while tracing)."""
     _check_state(state, config)
     if imu is not None:
         _check_imu(imu)
     if detection is not None:
         _check_detection(detection)
-    return _pf_step_jit(state, imu, detection, track.gates, camera, config)
+
+
+# --------------------------------------------------------------------------------------------------
+# The estimator.
+# --------------------------------------------------------------------------------------------------
+
+
+def make_particle_filter(config: PFConfig = PFConfig(), spread=(0.5, 0.05, 0.5)) -> Estimator:
+    """The particle filter as an :class:`~pixelmpc_jax.perception.estimator.Estimator` (pure ``init``, ``step``).
+
+    Args:
+        config: the filter's configuration.
+        spread: Gaussian std of the initial cloud about ``x0``: ``(position m, attitude rad (body-frame rotation
+            vector), velocity m/s)``.
+
+    ``init(key, x0)``: :func:`init_particles`. ``step(state, imu, detection, params)``: :func:`tick` on
+    ``params.gates`` and ``params.camera``; its ``info`` is :class:`PFInfo`, the detection passes as given.
+    """
+    spread = checked_spread(spread)
+
+    def init(key: jax.Array, x0: jax.Array) -> PFState:
+        return init_particles(key, checked_x0(x0), config, spread)
+
+    def step(state: PFState, imu, detection, params: EstimatorParams):
+        state, estimate, info = tick(state, imu, detection, params.gates, params.camera, config)
+        estimated = Estimate(mean=estimate.mean, position_cov_trace=info.position_cov_trace, detection=detection)
+        return estimated, state, info
+
+    def check(state: PFState, imu, detection, params: EstimatorParams):
+        check_inputs(state, imu, detection, config)
+        return state, imu, detection, params
+
+    return Estimator(init=init, step=step, check=check, config=config)

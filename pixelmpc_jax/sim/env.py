@@ -34,6 +34,7 @@ from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import eskf as eskf_lib
+from pixelmpc_jax.perception import estimator as estimator_lib
 from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.sim import faults as faults_lib
@@ -222,7 +223,7 @@ class SimState(NamedTuple):
         mismatch_ticks: () int32 ticks in a row that ``target_est`` has differed from ``target``.
         progress_s: () m, the true position's progress along the desired path.
         progress_est_s: () m, the estimate's progress (follows ``progress_s`` with the "truth" estimator).
-        filter: the filter's state with the "pf" or "eskf" estimator, else a () placeholder.
+        filter: the estimator's state (:func:`make_estimator`'s ``init``; a () placeholder for the truth).
         imu: the last tick's IMU samples, preintegrated (the filter's next input).
         end_cause: () int32, 0 while flying or once finished, else a key of ``END_NAMES``.
         done: () bool, the episode has ended (finished, crashed, missed a gate or timed out).
@@ -238,7 +239,7 @@ class SimState(NamedTuple):
     mismatch_ticks: jax.Array
     progress_s: jax.Array
     progress_est_s: jax.Array
-    filter: Any
+    filter: pf_lib.PFState | eskf_lib.ESKFState | jax.Array
     imu: plant_lib.TickIMU
     end_cause: jax.Array
     done: jax.Array
@@ -351,78 +352,55 @@ def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, s
     return detection, fault_state
 
 
-def _pf_config(config: EnvConfig) -> pf_lib.PFConfig:
-    """The filter's configuration with the guards' IMU bias states, if any."""
-    return guards_lib.filter_config(config.pf, config.guards)
-
-
-def _init_filter(config: EnvConfig, key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams):
-    """The estimator's first state about ``x0``: the particle filter's cloud, with what its guards carry, the
-    Kalman filter's prior (aligned on the IMU's readings at rest before the lap when ``config.eskf.align_s`` > 0:
-    the vehicle's own IMU, its faults included), or a () placeholder on the true state."""
+def make_estimator(config: EnvConfig) -> estimator_lib.Estimator:
+    """The estimator ``config.estimator`` names, built once: the truth, the particle filter with its guards
+    (:func:`~pixelmpc_jax.perception.filter_guards.make_guarded_particle_filter`; without a guard on, the plain
+    filter), or the error-state Kalman filter, each about the true start with ``config.pf_initial_spread``."""
     if config.estimator == "eskf":
-        state = eskf_lib.eskf_init(x0, config.eskf, config.pf_initial_spread)
-        if config.eskf.align_s > 0:
-            pad_key = jax.random.fold_in(key, _PAD_STREAM)
-            pad = faults_lib.corrupt_imu(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
-                                         config.faults, pad_key)
-            state = eskf_lib.eskf_align(state, pad.accel, pad.gyro, config.eskf)
-        return state
+        return eskf_lib.make_eskf(config.eskf, config.pf_initial_spread)
     if config.estimator == "pf":
-        return guards_lib.init_guards(pf_lib.pf_init(key, x0, _pf_config(config), config.pf_initial_spread),
-                                      config.guards)
-    return jnp.zeros(())
-
-
-def _eskf_estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
-    """The Kalman filter's step: the detection filed at the tick it was captured (the faults' delay), and passed
-    on as none when the filter's gate rejected every corner it could use. -> (filter state, x_est, position
-    covariance trace, detection)."""
-    filter_state, estimate, info = eskf_lib.eskf_step(state.filter, state.imu, detection,
-                                                      config.faults.detection_delay_ticks, world.track,
-                                                      world.camera, config.eskf)
-    usable = info.corner_mahalanobis2 > 0
-    rejected = jnp.any(usable) & ~jnp.any(info.accepted)
-    detection = detection.replace(found=detection.found & ~rejected,
-                                  corners_visible=detection.corners_visible & ~rejected)
-    return filter_state, estimate.mean, info.position_cov_trace, detection
-
-
-def _pf_estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
-    """The particle filter's step, with its guards when on (a detection their gate rejects is passed on as none).
-    -> (filter state, mean, position covariance trace, detection)."""
-    pf_config = _pf_config(config)
-    if config.guards.active:
-        filter_state, estimate, filter_info, guard = guards_lib.guarded_pf_step(
-            state.filter, state.imu, detection, world.track, world.camera, pf_config, config.guards)
-        detection = detection.replace(found=detection.found & guard.accepted,
-                                      corners_visible=detection.corners_visible & guard.accepted)
-    else:
-        filter_state, estimate, filter_info = pf_lib.pf_step(state.filter, state.imu, detection, world.track,
-                                                             world.camera, pf_config)
-    return filter_state, estimate.mean, filter_info.position_cov_trace, detection
-
-
-def _estimate(config: EnvConfig, world: World, state: SimState, detection: detector_lib.Detection):
-    """The estimator's update with the last tick's IMU and ``detection``: ``(filter state, x_est, position
-    covariance trace, progress of the estimate, the detection as the loop uses it)``. A detection the filter
-    rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's own gate) reaches the
-    controller as none."""
-    x = state.plant.x
-    if config.estimator == "truth":
-        return state.filter, x, jnp.asarray(0.0), state.progress_s, detection
-    update = _eskf_estimate if config.estimator == "eskf" else _pf_estimate
-    filter_state, mean, cov_trace, detection = update(config, world, state, detection)
-    x_est = mean.astype(x.dtype)
-    progress_est = _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
-    return filter_state, x_est, cov_trace, progress_est, detection
+        return guards_lib.make_guarded_particle_filter(config.pf, config.guards, config.pf_initial_spread)
+    return estimator_lib.make_truth()
 
 
 def make_env(config: EnvConfig = EnvConfig()) -> Env:
     """The environment's ``reset``, ``observe`` and ``step`` for ``config`` (pure; jit and vmap them). The
     configured faults (``config.faults``) act in the world only: the estimator and the controller are given the
-    map (``world.track``) and the nominal vehicle."""
+    map (``world.track``) and the nominal vehicle. The estimator is built here, once (:func:`make_estimator`)."""
     faults = config.faults
+    estimator = make_estimator(config)
+
+    def init_filter(key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams):
+        """The estimator's first state about ``x0``, aligned on the IMU's readings at rest before the lap where it
+        aligns (the Kalman filter with ``config.eskf.align_s`` > 0: the vehicle's own IMU, its faults included)."""
+        state = estimator.init(key, x0)
+        if estimator.align is not None:
+            pad_key = jax.random.fold_in(key, _PAD_STREAM)
+            pad = faults_lib.corrupt_imu(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
+                                         faults, pad_key)
+            state = estimator.align(state, pad.accel, pad.gyro)
+        return state
+
+    def estimate(world: World, state: SimState, detection: detector_lib.Detection):
+        """The estimator's step with the last tick's IMU and ``detection``: ``(filter state, x_est, position
+        covariance trace, progress of the estimate, the detection as the loop uses it)``. A detection the filter
+        rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's own gate) reaches
+        the controller as none."""
+        x = state.plant.x
+        params = estimator_lib.EstimatorParams(gates=world.track.gates, camera=world.camera,
+                                               delay_ticks=faults.detection_delay_ticks, x_true=x)
+        estimated, filter_state, _ = estimator.step(state.filter, state.imu, detection, params)
+        x_est = estimated.mean.astype(x.dtype)
+        return filter_state, x_est, estimated.position_cov_trace, progress_of(world, state, x_est), estimated.detection
+
+    if config.estimator == "truth":
+        def progress_of(world: World, state: SimState, x_est: jax.Array) -> jax.Array:
+            """() m, the true progress (tracked on the course flown): the truth's estimate is the true state."""
+            return state.progress_s
+    else:
+        def progress_of(world: World, state: SimState, x_est: jax.Array) -> jax.Array:
+            """() m, the estimate's progress along the map's desired path, searched around the last."""
+            return _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
 
     def reset(world: World, key: jax.Array) -> SimState:
         """The vehicle at rest at the course's start, level, with the motors at hover speed; ``key`` draws
@@ -435,7 +413,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             target=jnp.asarray(0, jnp.int32), target_est=jnp.asarray(0, jnp.int32), position_est=x0[quadrotor.POS],
             mismatch_ticks=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=_init_filter(config, key, x0, faults_lib.plant_params(world.plant_params, faults)),
+            filter=init_filter(key, x0, faults_lib.plant_params(world.plant_params, faults)),
             imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
             faults=faults_lib.init_fault_state(faults, key, _course(world).gates, hover),
@@ -454,7 +432,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             detection = detect(track.gate(steered), x, world.camera, key, world.detector_noise_px,
                                world.detector_dropout, steered)
         detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
-        filter_state, x_est, cov_trace, progress_est, detection = _estimate(config, world, state, detection)
+        filter_state, x_est, cov_trace, progress_est, detection = estimate(world, state, detection)
         visibility = target_visibility(world, state)
         state = state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state)
         if config.switches_on_estimate:
