@@ -13,7 +13,6 @@ from typing import NamedTuple
 
 SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
 TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
-T_F_MAX_S = 2.0  # the race controller's horizon: 80 steps of 0.025 s (a longer pixel-cost horizon t_f acts as 2 s)
 MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
 
 
@@ -31,6 +30,13 @@ def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
         return value
 
     return parse
+
+
+def float_range(setting_range):
+    """An argparse type from a setting's one range (a :class:`~pixelmpc_jax.control.mppi_checks.Range`: ``lo``,
+    ``hi``, ``lo_open``, ``unit``), the range its configuration checks: the flag and the configuration refuse the
+    same values."""
+    return float_in(setting_range.lo, setting_range.hi, lo_open=setting_range.lo_open, unit=setting_range.unit)
 
 
 def int_in(lo: int, hi: int, *, odd: bool = False):

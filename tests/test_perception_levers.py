@@ -75,7 +75,7 @@ def test_bad_pixel_cost_options_are_rejected():
     with pytest.raises(ValueError, match="heading_weight"):
         costs.RacingCostConfig(heading_weight=1.5)
     with pytest.raises(ValueError, match="noise_exponent"):
-        mppi_lib.MPPIConfig(noise_exponent=-1.0)
+        mppi_lib.MPPIConfig(noise_sigma=(1.0,), noise_exponent=-1.0)
 
 
 def test_heading_weight_frees_the_heading_but_keeps_the_tilt():

@@ -271,12 +271,13 @@ def test_an_update_that_overflows_float32_keeps_the_last_finite_plan():
 @pytest.mark.parametrize(
     "field, value, message",
     [
-        ("t_f", float("inf"), "t_f must be a finite number >= 0 seconds"),
+        ("t_f", float("inf"), r"ControllerConfig.t_f must be a finite number in \[0, 2\] s, got inf"),
+        ("t_f", 3.0, r"t_f must be a finite number in \[0, 2\] s, got 3.0"),  # the command line's range too
         ("t_f", float("nan"), "t_f must be a finite number"),
         ("t_f", -1.0, "t_f must be a finite number"),
-        ("c_pixel", float("nan"), "c_pixel must be a finite number >= 0 with c_pixel"),
+        ("c_pixel", float("nan"), r"c_pixel must be a finite number in \[0, 1e\+30\]"),
         ("c_pixel", float("inf"), "c_pixel must be a finite number"),
-        ("c_pixel", 1e40, r"c_pixel \* pixel_cost_scale <= 1e\+30"),
+        ("c_pixel", 1e40, r"c_pixel must be a finite number in \[0, 1e\+30\], got 1e\+40"),
         ("pixel_cost_scale", float("nan"), "pixel_cost_scale must be a finite number"),
     ],
 )
@@ -494,3 +495,138 @@ def test_an_interrupted_grid_keeps_its_finished_cells_and_raises(tmp_path, monke
     with pytest.raises(KeyboardInterrupt, match="interrupted in cell fast: 1 finished cell"):
         grid.run_grid(cells, tmp_path, laps=2, batch_size=1, progress=False)
     assert list(strict_loads((tmp_path / "results.json").read_text())) == ["slow"]
+
+
+# --------------------------------------------------------------------------------------------------
+# The step's input (issue 76): shapes refused when traced, under a plain jit too; values flagged in
+# info.input_rejected (the carried plan's first control sent) and raised by the checked execution.
+# --------------------------------------------------------------------------------------------------
+
+
+def _tiny_double_integrator():
+    config = MPPIConfig(num_samples=16, horizon=5, dt=DT, noise_sigma=(1.0, 1.0))
+    return make_mppi(config, double_integrator, goal_cost)
+
+
+@pytest.mark.parametrize("where", ["state", "goal"])
+def test_a_nan_in_the_state_or_the_goal_is_flagged_and_the_carried_plan_flown(where):
+    from pixelmpc_jax.devices import Execution
+
+    ctrl = _tiny_double_integrator()
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.asarray([0.5, -0.25]))
+    x0, goal = jnp.zeros(4), jnp.asarray([1.0, 0.0])
+    _, _, info = jax.jit(ctrl.step)(state, x0, goal)
+    assert not bool(info.input_rejected)
+    x0, goal = (x0.at[1].set(jnp.nan), goal) if where == "state" else (x0, goal.at[0].set(jnp.nan))
+    for step in (jax.jit(ctrl.step), compile_controller(ctrl).step):
+        u0, new_state, info = step(state, x0, goal)
+        assert bool(info.input_rejected)
+        np.testing.assert_array_equal(np.asarray(u0), [0.5, -0.25])  # the fallback: the carried plan's first control
+        np.testing.assert_array_equal(np.asarray(new_state.plan), np.asarray(state.plan))  # not updated, shifted on
+    message = r"x0 must hold finite numbers" if where == "state" else r"params must hold no NaN"
+    with pytest.raises(ValueError, match=message):
+        compile_controller(ctrl, Execution(checked=True)).step(state, x0, goal)
+    with pytest.raises(ValueError, match=message):
+        ctrl.check(state, x0, goal, values=True)
+
+
+def test_an_integer_or_list_state_steps_under_a_plain_jit_as_the_float_state():
+    ctrl = _tiny_double_integrator()
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    x = [1, 0, -2, 1]
+    u_float, _, _ = jax.jit(ctrl.step)(state, jnp.asarray(x, jnp.float32), jnp.zeros(2))
+    u_int, _, _ = jax.jit(ctrl.step)(state, jnp.asarray(x, jnp.int32), jnp.zeros(2))  # was "carry types differ"
+    u_list, _, _ = jax.jit(ctrl.step)(state, x, jnp.zeros(2))
+    np.testing.assert_array_equal(u_int, u_float)
+    np.testing.assert_array_equal(u_list, u_float)
+
+
+def test_a_state_of_the_wrong_width_is_refused_when_traced():
+    ctrl = _tiny_double_integrator()
+    state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"x0 has shape \(3,\) but the dynamics map it to shape"):
+        jax.jit(ctrl.step)(state, jnp.zeros(3), jnp.zeros(2))
+
+
+def test_a_generic_config_names_no_vehicle():
+    """No quadrotor default: noise_sigma is required and gives m; a two-input problem without it is told so."""
+    with pytest.raises(TypeError, match="noise_sigma"):
+        MPPIConfig(num_samples=16, horizon=5, u_min=(-1.0, -1.0), u_max=(1.0, 1.0))
+    config = MPPIConfig(noise_sigma=(1.0, 1.0), u_min=(-1.0, -1.0), u_max=(1.0, 1.0))
+    assert config.control_dim == 2
+
+
+@pytest.fixture(scope="module")
+def tiny_pixelmpc():
+    """PixelMPC at 16 samples x 8 steps (t_f = 0.1 s: 4 pixel steps, the projection pixel model), its params, X0."""
+    from pixelmpc_jax.control import costs
+    from pixelmpc_jax.control import pixelmpc as PM
+    from pixelmpc_jax.world import camera, course
+
+    config = PM.ControllerConfig(mppi=PM.paper_mppi_config(num_samples=16, horizon=8), t_f=0.1,
+                                 pixel_model="projection")
+    track = course.load_course()
+    params = PM.PixelMPCParams(
+        racing=costs.racing_params(track, jnp.linspace(0.0, 5.0, 8), 8.0, config.racing), dof=None,
+        target_active=jnp.asarray(True), target_centre=track.gates.centre[0], target_normal=track.gates.normal[0],
+        camera=camera.default_camera())
+    X0 = jnp.concatenate([track.start, jnp.asarray([0.52, 0.47])])
+    ctrl = PM.make_pixelmpc(config)
+    return ctrl, ctrl.init(jax.random.PRNGKey(0), Q.hover_control(Q.QuadParams())), params, X0, track, config
+
+
+def test_pixelmpc_refuses_a_progress_array_of_the_wrong_length_and_a_state_of_the_wrong_width(tiny_pixelmpc):
+    from pixelmpc_jax.control import costs
+
+    ctrl, state, params, X0, track, config = tiny_pixelmpc
+    short = params.replace(racing=costs.racing_params(track, jnp.zeros(5), 8.0, config.racing))
+    with pytest.raises(ValueError, match=r"RacingParams.expected_s must have shape \(T,\) = \(8,\).*got shape \(5,\)"):
+        jax.jit(ctrl.step)(state, X0, short)  # was: every sample non-finite, hover flown
+    with pytest.raises(ValueError, match=r"PixelMPC state X0 must have shape \(12,\) = \[x \(10,\); target \[u, v\]\]"):
+        jax.jit(ctrl.step)(state, X0[:11], params)
+
+
+@pytest.mark.parametrize("bad", ["zero quaternion", "pixel in pixels", "nan goal"])
+def test_pixelmpc_flags_input_it_cannot_fly_and_the_checked_step_names_it(tiny_pixelmpc, bad):
+    from pixelmpc_jax.devices import Execution
+
+    ctrl, state, params, X0, _, _ = tiny_pixelmpc
+    compiled = compile_controller(ctrl)
+    _, _, info = compiled.step(state, X0, params)
+    assert not bool(info.input_rejected)
+    if bad == "zero quaternion":
+        X0, message = X0.at[3:7].set(0.0), r"quaternion \[qw, qx, qy, qz\] \(x\[3:7\]\) must be a rotation"
+    elif bad == "pixel in pixels":
+        X0, message = X0.at[10:12].set(jnp.asarray([333.0, 226.0])), r"target pixel X0\[10:12\] must be normalised"
+    else:
+        params = params.replace(target_centre=params.target_centre.at[0].set(jnp.nan))
+        message = r"params\.target_centre must hold no NaN"
+    u0, new_state, info = compiled.step(state, X0, params)
+    assert bool(info.input_rejected)
+    np.testing.assert_array_equal(np.asarray(u0), np.asarray(state.plan[0]))  # the fallback: the carried plan's
+    with pytest.raises(ValueError, match=message):
+        compile_controller(ctrl, Execution(checked=True)).step(state, X0, params)
+
+
+def test_a_setting_has_one_range_from_python_and_the_command_line(capsys):
+    from pixelmpc_jax.control.pixelmpc import T_F_RANGE, ControllerConfig
+
+    with pytest.raises(ValueError, match=r"t_f must be a finite number in \[0, 2\] s, got 3.0"):
+        ControllerConfig(t_f=3.0)
+    code, err = _run_cli(["race", "--t-f", "3"], capsys)
+    assert code == 2 and f"must be a finite number in {T_F_RANGE.interval}, got 3" in err
+
+
+def test_a_tilted_camera_is_refused_only_where_a_learned_pixel_model_flies():
+    """`pixelmpc race --camera-tilt 30 --controller mppi` flies no pixel model: it is not refused (it was); PixelMPC
+    with the packaged learned weights still is, before anything runs."""
+    from pixelmpc_jax import cli
+    from pixelmpc_jax.commands import race as race_command
+
+    parser = cli.build_parser()
+    race_command._check_race(parser.parse_args(["race", "--camera-tilt", "30", "--controller", "mppi"]))
+    with pytest.raises(ValueError, match="trained for the untilted camera"):
+        race_command._check_race(parser.parse_args(["race", "--camera-tilt", "30", "--controller", "pixelmpc",
+                                                    "--pixel-model", "dof"]))
+    race_command._check_race(parser.parse_args(["race", "--camera-tilt", "30", "--controller", "pixelmpc",
+                                                "--pixel-model", "projection"]))

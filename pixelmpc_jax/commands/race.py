@@ -18,13 +18,19 @@ from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, LOOPS, PRESETS, pre
 from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
 from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
-from pixelmpc_jax.control.mppi_checks import FLOAT32_MAX, TEMPERATURE_MIN
+from pixelmpc_jax.control.costs import HEADING_WEIGHT_RANGE, VEHICLE_RADIUS_RANGE
+from pixelmpc_jax.control.mppi_checks import NOISE_EXPONENT_RANGE, TEMPERATURE_RANGE
 from pixelmpc_jax.control.pixelmpc import (
+    BORDER_MARGIN_RANGE,
+    C_PIXEL_RANGE,
+    DISTURBANCE_TIME_CONSTANT_RANGE,
     LOOK_AHEAD_FROM,
     LOOK_AHEAD_MODELS,
+    LOOK_AHEAD_RANGE,
     PARTIAL_TARGETS,
     PIXEL_COSTS,
     PIXEL_MODELS,
+    T_F_RANGE,
     TARGET_PRIORS,
 )
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
@@ -61,10 +67,10 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
     FieldFlag("--pixel-model", "config.pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, the "
               "learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
               "known gate", {"choices": PIXEL_MODELS}),
-    FieldFlag("--t-f", "config.t_f", f"PixelMPC pixel-cost horizon t_f, s, in [0, {arg.T_F_MAX_S:g}] (the MPC "
-              "horizon)", {"type": arg.float_in(0.0, arg.T_F_MAX_S, unit="s")}),
-    FieldFlag("--c-pixel", "config.c_pixel", "PixelMPC pixel-cost weight, in [0, 1e30]",
-              {"type": arg.float_in(0.0, 1e30)}),
+    FieldFlag("--t-f", "config.t_f", f"PixelMPC pixel-cost horizon t_f, in {T_F_RANGE.interval} (the MPC "
+              "horizon)", {"type": arg.float_range(T_F_RANGE)}),
+    FieldFlag("--c-pixel", "config.c_pixel", f"PixelMPC pixel-cost weight, in {C_PIXEL_RANGE.interval}",
+              {"type": arg.float_range(C_PIXEL_RANGE)}),
     FieldFlag("--pixel-cost", "config.pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image "
               "centre, or border, a barrier on the image border that charges only a gate leaving the view",
               {"choices": PIXEL_COSTS}),
@@ -77,7 +83,7 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "map, the gate projected from the map and the estimate", {"choices": PARTIAL_TARGETS}),
     FieldFlag("--look-ahead", "config.look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's "
               "pixel cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, "
-              "the paper's", {"type": arg.float_in(0.0, 1e3)}),
+              f"the paper's; in {LOOK_AHEAD_RANGE.interval}", {"type": arg.float_range(LOOK_AHEAD_RANGE)}),
     FieldFlag("--look-ahead-model", "config.look_ahead_model", "what predicts the next gate's pixel along the horizon "
               "with the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
               "through each predicted pose (map-aided)", {"choices": LOOK_AHEAD_MODELS}),
@@ -86,16 +92,18 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
               "escapes it); plan, from there or from the step the current plan passes it, the earlier",
               {"choices": LOOK_AHEAD_FROM}),
     FieldFlag("--border-margin", "config.border_margin", "where the border cost starts, as a fraction of the image "
-              "inside the border, in (0, 0.5]", {"type": arg.float_in(0.0, 0.5, lo_open=True)}),
+              f"inside the border, in {BORDER_MARGIN_RANGE.interval}", {"type": arg.float_range(BORDER_MARGIN_RANGE)}),
     FieldFlag("--noise-exponent", "config.mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
-              "horizon, beta in [0, 4] (0: white, the paper's)", {"type": arg.float_in(0.0, 4.0)}),
+              f"horizon, beta in {NOISE_EXPONENT_RANGE.interval} (0: white, the paper's)",
+              {"type": arg.float_range(NOISE_EXPONENT_RANGE)}),
     FieldFlag("--heading-weight", "config.racing.heading_weight", "share of the racing cost's attitude term that pins "
-              "the heading to the path, in [0, 1] (1: the paper's)", {"type": arg.float_in(0.0, 1.0)}),
+              f"the heading to the path, in {HEADING_WEIGHT_RANGE.interval} (1: the paper's)",
+              {"type": arg.float_range(HEADING_WEIGHT_RANGE)}),
     FieldFlag("--clearance", "config.racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor "
-              "and walls (the world keeps the vehicle's 0.1 m), in [0.05, 1]",
-              {"type": arg.float_in(0.05, 1.0, unit="m")}),
-    FieldFlag("--temperature", "config.mppi.temperature", f"MPPI lambda, in [{TEMPERATURE_MIN:g}, {FLOAT32_MAX:.4g}]",
-              {"type": arg.float_in(TEMPERATURE_MIN, FLOAT32_MAX)}),
+              f"and walls (the world keeps the vehicle's 0.1 m), in {VEHICLE_RADIUS_RANGE.interval}",
+              {"type": arg.float_range(VEHICLE_RADIUS_RANGE)}),
+    FieldFlag("--temperature", "config.mppi.temperature", f"MPPI lambda, in {TEMPERATURE_RANGE.interval}",
+              {"type": arg.float_range(TEMPERATURE_RANGE)}),
     FieldFlag("--samples", "config.mppi.num_samples", "MPPI samples per step, in [1, 2^20]",
               {"type": arg.int_in(1, 2**20)}),
     FieldFlag("--speed", "speed", f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best "
@@ -124,8 +132,9 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
     FieldFlag("--model-latency", "config.model_latency_ticks", "ticks of actuation latency the controller's model "
               "predicts across, in [0, 3] (0: none)", {"type": arg.int_in(0, 3)}),
     FieldFlag("--disturbance-observer", "config.disturbance_time_constant_s", "s: the controller's model learns an "
-              "external push (wind, model error) with this time constant, in [0.025, 60]",
-              {"type": arg.float_in(0.025, 60)}),
+              f"external push (wind, model error) with this time constant, in "
+              f"{DISTURBANCE_TIME_CONSTANT_RANGE.interval}",
+              {"type": arg.float_range(DISTURBANCE_TIME_CONSTANT_RANGE)}),
     # each --fault entry sets one or more fields of the race's faults (a later entry of a field wins)
     FieldFlag("--fault", "faults", "a fault of the world the controller does not model (repeatable): a setting of "
               "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; latency_ticks=1; "
@@ -256,10 +265,12 @@ def _check_race(args) -> None:
     and a missing or damaged weights or course file is refused."""
     from pixelmpc_jax.world.course import make_course
 
-    spec = race_spec(args)[0]
+    spec, dof_params = race_spec(args)
     make_course(spec.course)  # a course file's bad field is named here
     for controller in _controllers(args):
-        spec.replace(controller=controller).policy()
+        flown = spec.replace(controller=controller)
+        flown.check_weights(dof_params)  # a learned pixel model flown with the camera it was trained for
+        flown.policy()
 
 
 def _cmd_race(args) -> int:

@@ -16,9 +16,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pixelmpc_jax.control.mppi_checks import Range
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import track as track_lib
 
+HEADING_WEIGHT_RANGE = Range(0.0, 1.0)  # RacingCostConfig.heading_weight, and `pixelmpc race --heading-weight`
+VEHICLE_RADIUS_RANGE = Range(0.05, 1.0, unit="m")  # RacingCostConfig.vehicle_radius, and `race --clearance`
 SPEED_CAP_NONE = 1e30  # m/s, the speed cap of the cost without one (max_lateral_acc None): above any target speed
 
 
@@ -118,8 +121,8 @@ class RacingCostConfig:
     heading_weight: float = 1.0
 
     def __post_init__(self):
-        if not (0.0 <= self.heading_weight <= 1.0):
-            raise ValueError(f"RacingCostConfig.heading_weight must lie in [0, 1], got {self.heading_weight!r}")
+        HEADING_WEIGHT_RANGE.check("RacingCostConfig.heading_weight", self.heading_weight)
+        VEHICLE_RADIUS_RANGE.check("RacingCostConfig.vehicle_radius", self.vehicle_radius)
 
     def window_length(self, path_spacing: float = 0.25) -> int:
         """Number of path samples in each step's window (static)."""
@@ -225,6 +228,26 @@ def racing_params(track: track_lib.Track, step_progress: jax.Array, target_speed
         hall_max=track.hall_max,
         target_speed=jnp.asarray(target_speed, jnp.float32),
     )
+
+
+def check_racing_params(params: RacingParams, horizon: int) -> None:
+    """A ValueError unless ``params`` holds one path window per horizon step: ``expected_s`` (T,), ``path_s`` (T, L),
+    ``path_xyz`` (T, 3, L), ``tangent_xyz`` (T, 4, L) and a scalar ``target_speed``. Shapes only: it runs when a step
+    is traced (a window missing for a step would make every sample's cost NaN)."""
+    if not isinstance(params, RacingParams):
+        raise TypeError(f"the racing params must be a RacingParams (costs.racing_params), got {type(params).__name__}")
+    T = horizon
+    expected = jnp.shape(params.expected_s)
+    if expected != (T,):
+        raise ValueError(f"RacingParams.expected_s must have shape (T,) = ({T},), one progress per horizon step "
+                         f"(costs.racing_params(track, step_progress of shape ({T},), ...)), got shape {expected}")
+    L = jnp.shape(params.path_s)[-1] if jnp.ndim(params.path_s) == 2 else None
+    for name, shape in (("path_s", (T, L)), ("path_xyz", (T, 3, L)), ("tangent_xyz", (T, 4, L))):
+        if L is None or jnp.shape(getattr(params, name)) != shape:
+            raise ValueError(f"RacingParams.{name} must have shape {shape} (horizon {T}, window L), got shape "
+                             f"{jnp.shape(getattr(params, name))}")
+    if jnp.shape(params.target_speed) != ():
+        raise ValueError(f"RacingParams.target_speed must be a scalar, got shape {jnp.shape(params.target_speed)}")
 
 
 def speed_cap(track: track_lib.Track, config: RacingCostConfig) -> jax.Array:

@@ -26,19 +26,31 @@ iterations (``lax.scan``), returns ``U[0]`` and keeps the plan shifted by one st
 Numerics: non-finite sample costs get zero weight; an iteration whose every sample is non-finite keeps the
 plan (``info.all_nonfinite``); a plan holding a non-finite value (carried in, or after the update) is
 replaced by the last finite one, or by the middle of the bounds (``info.plan_reset``), so ``U[0]`` is always
-finite. Settings float32 cannot carry and costs of the wrong shape are refused with a ValueError before
-anything runs (:mod:`~pixelmpc_jax.control.mppi_checks`); ``Controller.check`` checks a step's inputs outside
-any jit.
+finite. Settings float32 cannot carry, a state and costs of the wrong shape are refused with a ValueError before
+anything runs (:mod:`~pixelmpc_jax.control.mppi_checks`; the state's shape when the step is traced, so under a
+plain ``jax.jit`` too; an integer state is cast to float). Input values the step cannot fly (NaN in x0 or the
+params, or what the problem's ``input_findings`` refuses) are flagged in ``info.input_rejected``: the plan is then
+not updated and the command sent is the carried plan's first control; ``Controller.check(..., values=True)``
+raises them outside jit, naming each.
 
 Like an optax transformation, a :class:`Controller` is ``init`` and ``step``, pure functions over a small
 NamedTuple state: jit them, vmap them over robots, scan them over time, as the caller's program needs::
 
     ctrl = make_mppi(config, dynamics, running_cost)
     state = ctrl.init(key, u_init)
-    u0, state, info = jax.jit(ctrl.step)(state, x0, params)
+    step = devices.compile_controller(ctrl).step     # the fast path: compiled once, its inputs checked
+    u0, state, info = step(state, x0, params)
 
 How a step runs, as opposed to what it computes, is :mod:`pixelmpc_jax.devices`'s concern
-(:func:`~pixelmpc_jax.devices.compile_controller`).
+(:func:`~pixelmpc_jax.devices.compile_controller`). A plain ``jax.jit(ctrl.step)`` computes the same step but
+compiles it with XLA's default CPU options, without the YNNPACK ones ``compile_controller`` adds
+(:func:`~pixelmpc_jax.devices.compiler_options`). That is the whole difference in speed: a unicycle on one core of
+a 2-core AMD EPYC, 1.72 against 1.41 ms a step at 512 x 50 and 8.40 against 6.17 ms at 2048 x 50 (medians;
+``jax.jit`` with the same ``compiler_options`` matches ``compile_controller``, and ``compile_controller`` with
+``Execution(cpu_matmul="xla")`` matches the plain jit). PixelMPC's step differs (see
+:func:`~pixelmpc_jax.devices.compile_controller`; ``pixelmpc bench`` times both, ``apps/bench/jit_paths.py``). A
+plain jit also skips ``Controller.check`` and the compile count. Inside a jit of one's own, pass
+``compiler_options=devices.compiler_options("auto", 1)`` to it for the same kernels.
 """
 
 from __future__ import annotations
@@ -51,7 +63,15 @@ import jax
 import jax.numpy as jnp
 
 from pixelmpc_jax import timing
-from pixelmpc_jax.control.mppi_checks import check_prefix, checked_config, checked_u_init, step_input_checks
+from pixelmpc_jax.control.mppi_checks import (
+    check_prefix,
+    check_x0,
+    checked_config,
+    checked_state,
+    checked_u_init,
+    step_input_checks,
+    step_input_findings,
+)
 from pixelmpc_jax.control.rollout import Prefix, rollout_costs, rollout_states
 from pixelmpc_jax.control.sampling import coloured_noise_filter, importance_weights
 
@@ -60,12 +80,16 @@ from pixelmpc_jax.control.sampling import coloured_noise_filter, importance_weig
 class MPPIConfig:
     """Static MPPI settings; hashable, so a new config compiles once on purpose.
 
+    Nothing in it is a vehicle's: ``noise_sigma`` is required (keyword only) and is the one source of the number
+    of control channels m, which ``u_min``, ``u_max`` and the controller's plan (T, m) follow. A quadrotor's
+    settings live with the quadrotor's controller (:func:`~pixelmpc_jax.control.pixelmpc.paper_mppi_config`).
+
     Attributes:
         num_samples: N, sampled control sequences per iteration.
         horizon: T, steps per rollout.
         dt: step length (s); informational for the dynamics the user passes (the paper: 0.025).
-        noise_sigma: per-channel standard deviation of the control noise, length m; each 0 or in
-            [1e-18, 1e18] (its square and inverse square must be float32 numbers).
+        noise_sigma: required; per-channel standard deviation of the control noise, length m (the number of
+            control channels); each 0 or in [1e-18, 1e18] (its square and inverse square must be float32 numbers).
         temperature: lambda of the softmax weights, in [1e-30, 3.4e38] (what float32 carries).
         iterations: K optimisation iterations per step.
         u_min, u_max: per-channel control bounds (length m, finite float32 numbers), or None for unbounded.
@@ -80,7 +104,7 @@ class MPPIConfig:
     num_samples: int = 512
     horizon: int = 80
     dt: float = timing.CONTROL_DT
-    noise_sigma: tuple[float, ...] = (0.2, 0.2, 0.3, 2.2)
+    noise_sigma: tuple[float, ...] = dataclasses.field(kw_only=True)
     temperature: float = 1.0
     iterations: int = 1
     u_min: tuple[float, ...] | None = None
@@ -121,6 +145,13 @@ class MPPIInfo(NamedTuple):
         plan_reset: True when the carried plan or the updated one held a non-finite value: the step then
             went on from the last finite plan (the carried one if finite, else the reset plan: the middle of
             the bounds, zero where a channel is unbounded), so ``u0`` is always finite.
+        input_rejected: () bool, True when the step's input could not be flown: x0 held NaN or inf, a float leaf
+            of params held NaN, or the problem's own check failed (``make_mppi``'s ``input_findings``: PixelMPC's
+            zero quaternion, a detected pixel not normalised). The fallback command sent is then the carried
+            plan's first control (the last finite plan's: the reset plan if the carried one was not finite), the
+            plan is not updated and is shifted on as usual. ``Controller.check(state, x0, params, values=True)``
+            names what was wrong (the checked execution of :func:`~pixelmpc_jax.devices.compile_controller` raises
+            it).
         nominal_trajectory: (T+1, n) states predicted under the updated plan, starting at x0.
         costs: (N,) total cost per sample.
     """
@@ -133,6 +164,7 @@ class MPPIInfo(NamedTuple):
     nominal_trajectory: jax.Array
     costs: jax.Array
     plan_reset: jax.Array
+    input_rejected: jax.Array
 
 
 class Controller(NamedTuple):
@@ -143,9 +175,10 @@ class Controller(NamedTuple):
         step: ``step(state, x0, params) -> (u0, state, info)``: one MPPI step, pure (nothing is mutated, the key
             travels in the state), to ``jax.jit``, ``jax.vmap`` or ``lax.scan`` as the caller's program needs.
         config: the MPPIConfig it was built with.
-        check: ``check(state, x0, params) -> (state, x0, params)``: the step's inputs checked outside jit (a
-            ValueError naming what is wrong; :func:`~pixelmpc_jax.control.mppi_checks.step_input_checks`), x0 made
-            an array (an integer or bool state in the plan's float type).
+        check: ``check(state, x0, params, values=False) -> (state, x0, params)``: the step's inputs checked outside
+            jit (a ValueError naming what is wrong; :func:`~pixelmpc_jax.control.mppi_checks.step_input_checks`),
+            x0 made an array (an integer or bool state in the plan's float type); with ``values`` their numbers too
+            (what ``info.input_rejected`` flags inside the step).
         with_sample_placement: ``with_sample_placement(place) -> Controller``: the same controller with
             ``place`` applied to each iteration's (N, T, m) white noise as it is drawn, which says where the caller
             wants the samples to live (how the step runs, not what it computes); ``place`` must return the values
@@ -259,20 +292,29 @@ def _iteration_stats(costs: jax.Array, weights: jax.Array, finite: jax.Array, al
 
 
 def make_mppi(config: MPPIConfig, dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None = None,
-              prefix: Prefix | None = None) -> Controller:
+              prefix: Prefix | None = None, input_findings: Callable | None = None) -> Controller:
     """MPPI for the given one-sample model and costs (see module docstring), as pure ``init`` and ``step``.
 
     ``prefix`` optionally gives the first steps of the horizon their own model and cost (see Prefix).
+    ``input_findings(x0, params) -> {message: () bool}`` optionally adds the problem's own checks of a step's input:
+    it raises a ValueError naming the expected shape while the step is traced, and returns, per message, whether the
+    values are sound (True) inside the step (``info.input_rejected``) and outside jit (``Controller.check``).
+    Whatever it adds, x0 must be one finite state (n,) that ``dynamics`` maps to (n,), checked when the step is
+    traced (an integer state is cast to float32), and no float leaf of ``params`` may hold NaN.
     """
     if not isinstance(config, MPPIConfig):
         raise TypeError(f"config must be an MPPIConfig, got {type(config).__name__}")
     check_prefix(prefix, config.horizon)
-    check = step_input_checks(dynamics, MPPIState, config.horizon, config.control_dim)
-    return _controller(_sampling(config), dynamics, running_cost, terminal_cost, prefix, check)
+
+    def findings(x0, params):
+        return step_input_findings(x0, params, input_findings)
+
+    check = step_input_checks(dynamics, MPPIState, config.horizon, config.control_dim, findings)
+    return _controller(_sampling(config), dynamics, running_cost, terminal_cost, prefix, check, findings)
 
 
 def _controller(s: _Sampling, dynamics: Callable, running_cost: Callable, terminal_cost: Callable | None,
-                prefix: Prefix | None, check: Callable) -> Controller:
+                prefix: Prefix | None, check: Callable, findings: Callable) -> Controller:
     """The init/step pair over the sampling ``s``, closed over once."""
     config = s.config
 
@@ -292,6 +334,10 @@ def _controller(s: _Sampling, dynamics: Callable, running_cost: Callable, termin
         return MPPIState(plan=plan, key=key)
 
     def step(state: MPPIState, x0, params):
+        x0 = checked_state(x0, state.plan.dtype)  # shapes and dtypes, while the step is traced
+        check_x0(dynamics, x0, config.control_dim, params)
+        found = findings(x0, params)
+        input_sound = jnp.all(jnp.stack([jnp.asarray(sound, bool) for sound in found.values()]))
         key, key_iters = jax.random.split(state.key)
         keys = jax.random.split(key_iters, config.iterations)
         carried_finite = jnp.all(jnp.isfinite(state.plan))
@@ -299,16 +345,17 @@ def _controller(s: _Sampling, dynamics: Callable, running_cost: Callable, termin
         (plan, all_nonfinite), stats = jax.lax.scan(lambda c, k: iteration(c, k, x0, params),
                                                     (start, jnp.asarray(False)), keys)
         updated_finite = jnp.all(jnp.isfinite(plan))
-        plan = jnp.where(updated_finite, plan, start)
+        plan = jnp.where(updated_finite & input_sound, plan, start)  # bad input: the carried (finite) plan
         last = jax.tree_util.tree_map(lambda a: a[-1], stats)
         u0 = plan[0]
         shifted = jnp.concatenate([plan[1:], plan[-1:]], axis=0)
         info = MPPIInfo(**last._asdict(), all_nonfinite=all_nonfinite, plan_reset=~(carried_finite & updated_finite),
+                        input_rejected=~input_sound,
                         nominal_trajectory=rollout_states(dynamics, x0, plan, params, prefix))
         return u0, MPPIState(plan=shifted, key=key), info
 
     def with_sample_placement(place_samples):
         return _controller(s._replace(place_samples=place_samples), dynamics, running_cost, terminal_cost, prefix,
-                           check)
+                           check, findings)
 
     return Controller(init=init, step=step, config=config, check=check, with_sample_placement=with_sample_placement)

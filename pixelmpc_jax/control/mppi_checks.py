@@ -8,13 +8,19 @@ compiles, never broadcast over the samples.
 * :func:`checked_config`: ``MPPIConfig``'s fields (its ``__post_init__``).
 * :func:`check_prefix`, :func:`checked_u_init`, :func:`step_input_checks`: what ``make_mppi``, ``init`` and
   ``step`` are given (the step's inputs by ``Controller.check``, outside jit: the compiled step of
-  :func:`~pixelmpc_jax.devices.compile_controller` runs it before every call).
+  :func:`~pixelmpc_jax.devices.compile_controller` runs it before every call). The state's shape and dtype are
+  checked again while the step is traced (:func:`checked_state`, :func:`check_x0`), so they hold under a plain
+  ``jax.jit(ctrl.step)`` too.
+* :func:`step_input_findings`: the step's input values (a NaN, and what the problem adds: a zero quaternion), flagged
+  inside the step (``info.input_rejected``) and raised outside jit by ``Controller.check(..., values=True)`` (the
+  checked execution of :func:`~pixelmpc_jax.devices.compile_controller`).
 * :func:`checked_costs`, :func:`checked_trajectory_costs`: what a running or terminal cost returns.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +35,43 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
+class Range(NamedTuple):
+    """The one range of a numeric setting: a configuration's ``__post_init__`` checks it (:meth:`check`) and the
+    command line's flag of that setting parses with it (:func:`pixelmpc_jax.arguments.float_range`), so Python and
+    the command line refuse the same values with the same interval.
+
+    Attributes:
+        lo, hi: the bounds, ``hi`` included.
+        lo_open: ``lo`` excluded.
+        unit: the unit named after the interval ("s", "m"), or "".
+    """
+
+    lo: float
+    hi: float
+    lo_open: bool = False
+    unit: str = ""
+
+    @property
+    def interval(self) -> str:
+        """``[lo, hi] unit`` (``(lo, hi]`` with ``lo_open``)."""
+        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]" + (f" {self.unit}" if self.unit else "")
+
+    def holds(self, value) -> bool:
+        """Whether ``value`` is a number (not a bool) within the range (NaN and inf are not)."""
+        return (_is_number(value) and (value > self.lo if self.lo_open else value >= self.lo)
+                and value <= self.hi)
+
+    def check(self, name: str, value) -> float:
+        """``value`` as a float; a ValueError ``{name} must be a finite number in {interval}, got {value}``."""
+        if not self.holds(value):
+            raise ValueError(f"{name} must be a finite number in {self.interval}, got {value!r}")
+        return float(value)
+
+
+TEMPERATURE_RANGE = Range(TEMPERATURE_MIN, FLOAT32_MAX)  # MPPIConfig.temperature (lambda)
+NOISE_EXPONENT_RANGE = Range(0.0, 4.0)  # MPPIConfig.noise_exponent (beta)
+
+
 def checked_config(config) -> dict[str, tuple[float, ...] | None]:
     """The sequences of an ``MPPIConfig`` as tuples of floats, ``{"noise_sigma", "u_min", "u_max"}``, once every
     field is checked; a ValueError naming the first field out of its range."""
@@ -38,7 +81,7 @@ def checked_config(config) -> dict[str, tuple[float, ...] | None]:
             raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
     if not (_is_number(config.dt) and 0 < config.dt <= FLOAT32_MAX):
         raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {config.dt!r}")
-    if not (_is_number(config.temperature) and TEMPERATURE_MIN <= config.temperature <= FLOAT32_MAX):
+    if not TEMPERATURE_RANGE.holds(config.temperature):
         raise ValueError(f"MPPIConfig.temperature (lambda) must be a number in [{TEMPERATURE_MIN:g}, "
                          f"{FLOAT32_MAX:.4g}] (what float32 carries), got {config.temperature!r}")
     fields = {"noise_sigma": _checked_sigma(config.noise_sigma)}
@@ -50,8 +93,7 @@ def checked_config(config) -> dict[str, tuple[float, ...] | None]:
         if np.any(lo > hi):
             raise ValueError(f"MPPIConfig: u_min > u_max in channels {np.nonzero(lo > hi)[0].tolist()} "
                              f"(u_min={fields['u_min']}, u_max={fields['u_max']})")
-    if not (isinstance(config.noise_exponent, (int, float)) and 0.0 <= config.noise_exponent <= 4.0):
-        raise ValueError(f"MPPIConfig.noise_exponent (beta) must lie in [0, 4], got {config.noise_exponent!r}")
+    NOISE_EXPONENT_RANGE.check("MPPIConfig.noise_exponent (beta)", config.noise_exponent)
     if not (_is_number(config.control_cost_weight) and 0 <= config.control_cost_weight <= FLOAT32_MAX):
         raise ValueError(f"MPPIConfig.control_cost_weight must be a finite number >= 0, "
                          f"got {config.control_cost_weight!r}")
@@ -106,29 +148,59 @@ def checked_u_init(u_init, T: int, m: int) -> jax.Array:
     return u
 
 
-def step_input_checks(dynamics: Callable, state_type: type, T: int, m: int) -> Callable:
-    """``check(state, x0, params) -> (state, x0, params)``: what the public step is given, checked before tracing.
+def step_input_checks(dynamics: Callable, state_type: type, T: int, m: int,
+                      findings: Callable[[jax.Array, object], dict]) -> Callable:
+    """``check(state, x0, params, values=False) -> (state, x0, params)``: what the public step is given, checked
+    outside jit.
 
     ``state`` must be a ``state_type`` whose plan is (T, m); ``x0`` is made an array (in the plan's float type
-    if it is an integer or bool state) and checked against ``dynamics`` once per shape and dtype.
+    if it is an integer or bool state) and checked against ``dynamics`` once per shape and dtype. With ``values``
+    the numbers are checked too (a NaN, a zero quaternion: the ``findings``, run on the host), each failed one
+    named in the ValueError.
     """
     checked_state_shapes: set = set()
+    evaluate = jax.jit(findings)
 
-    def check(state, x0, params):
+    def check(state, x0, params, values=False):
         if not isinstance(state, state_type):
             raise TypeError(f"state must be the MPPIState returned by init/step, got {type(state).__name__}")
         if tuple(state.plan.shape) != (T, m):
             raise ValueError(f"state.plan must have shape ({T}, {m}) (horizon, control_dim), got {state.plan.shape}")
-        x0 = jnp.asarray(x0)
-        if not jnp.issubdtype(x0.dtype, jnp.floating):  # an integer or bool state rolls out in the plan's float
-            x0 = x0.astype(state.plan.dtype)
+        x0 = checked_state(x0, state.plan.dtype)
         signature = (x0.shape, str(x0.dtype))
         if signature not in checked_state_shapes:
             check_x0(dynamics, x0, m, params)
             checked_state_shapes.add(signature)
+        if values:
+            failed = [message for message, sound in evaluate(x0, params).items() if not bool(sound)]
+            if failed:
+                raise ValueError("; ".join(failed))
         return state, x0, params
 
     return check
+
+
+def checked_state(x0, float_dtype) -> jax.Array:
+    """``x0`` as an array, an integer or bool state (or a list of numbers) in ``float_dtype``: the rollout carries
+    floats. Runs on the host or when the step is traced (shapes and dtypes only)."""
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(float_dtype)
+    return x0
+
+
+def step_input_findings(x0: jax.Array, params, problem_findings: Callable | None) -> dict:
+    """``{message: () bool}``, each True where the step's input is sound: x0 finite, no NaN in any float leaf of
+    ``params`` (inf may stand for "no limit" there), and the problem's own ``problem_findings(x0, params)``
+    (its shape checks raise while it is traced). Inside the step their conjunction flags ``info.input_rejected``;
+    outside jit (``Controller.check(..., values=True)``) each failed message is raised."""
+    found = {f"x0 must hold finite numbers, shape {tuple(x0.shape)}; it holds NaN or inf": jnp.all(jnp.isfinite(x0))}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+            found[f"params{jax.tree_util.keystr(path)} must hold no NaN"] = ~jnp.any(jnp.isnan(leaf))
+    if problem_findings is not None:
+        found.update(problem_findings(x0, params))
+    return found
 
 
 def check_x0(dynamics: Callable, x0: jax.Array, m: int, params) -> None:

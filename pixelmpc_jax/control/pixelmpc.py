@@ -41,6 +41,7 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import Controller, MPPIConfig, make_mppi
+from pixelmpc_jax.control.mppi_checks import Range
 from pixelmpc_jax.control.rollout import Prefix, TrajectoryCost
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
@@ -66,6 +67,16 @@ LOOK_AHEAD_MODELS = ("own", "projection")  # what predicts the next gate's pixel
 # plane; "plan", from there or from the step the current plan (MPPI's zero-noise sample) passes it, the earlier.
 LOOK_AHEAD_FROM = ("plane", "plan")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
+PAPER_NOISE_SIGMA = (0.2, 0.2, 0.3, 2.2)  # the paper's MPPI noise std per control [wx, wy, wz (rad/s), thrust (N)]
+# The ranges of ControllerConfig's numeric settings: one rule, checked by ControllerConfig and by the flags of
+# `pixelmpc race` that set them (commands/race.py).
+T_F_RANGE = Range(0.0, 2.0, unit="s")  # the pixel cost's horizon: at most the paper's 2 s (80 steps of 0.025 s)
+C_PIXEL_RANGE = Range(0.0, PIXEL_WEIGHT_MAX)
+LOOK_AHEAD_RANGE = Range(0.0, 1e3)
+BORDER_MARGIN_RANGE = Range(0.0, 0.5, lo_open=True)
+DISTURBANCE_TIME_CONSTANT_RANGE = Range(timing.CONTROL_DT, 60.0, unit="s")
+QUATERNION_NORM_RANGE = (0.5, 1.5)  # a state's quaternion this far from unit is not a rotation (a zero one)
+DETECTED_PIXEL_RANGE = (-1.0, 2.0)  # a detected target pixel, normalised (the image is [0, 1]^2), with margin
 
 
 def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: float = 200.0,
@@ -81,7 +92,7 @@ def paper_mppi_config(num_samples: int = 512, horizon: int = 80, temperature: fl
     rates = np.full(3, rate_max, np.float32)
     lo = np.concatenate([-rates, np.asarray([params.thrust_min], np.float32)])
     hi = np.concatenate([rates, np.asarray([params.thrust_max], np.float32)])
-    return MPPIConfig(num_samples=num_samples, horizon=horizon, dt=dt, noise_sigma=(0.2, 0.2, 0.3, 2.2),
+    return MPPIConfig(num_samples=num_samples, horizon=horizon, dt=dt, noise_sigma=PAPER_NOISE_SIGMA,
                       temperature=temperature, iterations=1, u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
 
 
@@ -95,8 +106,9 @@ class ControllerConfig:
     Attributes:
         mppi: sampling settings (the paper's by default).
         racing: the racing cost's settings.
-        t_f: seconds of the horizon over which the pixel cost counts (the paper: 1 or 2).
-        c_pixel: the pixel cost weight of Eq. (18) (the paper: 3e6, 6e6, 9e6).
+        t_f: seconds of the horizon over which the pixel cost counts (the paper: 1 or 2), in :data:`T_F_RANGE`
+            ([0, 2] s).
+        c_pixel: the pixel cost weight of Eq. (18) (the paper: 3e6, 6e6, 9e6), in :data:`C_PIXEL_RANGE`.
         pixel_cost_scale: our stage cost is ``c_pixel * pixel_cost_scale * L1`` per step. The paper's
             numbers do not transfer as they stand (its cost's units and step weighting are not given);
             the scale is calibrated so the paper's c_pixel grid spans the same range of behaviour
@@ -179,10 +191,7 @@ class ControllerConfig:
     look_ahead_from: str = "plane"
 
     def __post_init__(self):
-        if isinstance(self.look_ahead, bool) or not (isinstance(self.look_ahead, (int, float))
-                                                     and 0.0 <= self.look_ahead < math.inf):
-            raise ValueError(f"look_ahead must be a finite weight >= 0, got {self.look_ahead!r}")
-        object.__setattr__(self, "look_ahead", float(self.look_ahead))
+        object.__setattr__(self, "look_ahead", LOOK_AHEAD_RANGE.check("ControllerConfig.look_ahead", self.look_ahead))
         if self.target_prior not in TARGET_PRIORS:
             raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
         if self.look_ahead_from not in LOOK_AHEAD_FROM:
@@ -196,11 +205,11 @@ class ControllerConfig:
             raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
         if self.look_ahead_model not in LOOK_AHEAD_MODELS:
             raise ValueError(f"look_ahead_model must be one of {LOOK_AHEAD_MODELS}, got {self.look_ahead_model!r}")
-        if not (0.0 <= self.t_f < math.inf):
-            raise ValueError(f"t_f must be a finite number >= 0 seconds, got {self.t_f!r}")
+        T_F_RANGE.check("ControllerConfig.t_f", self.t_f)
         if not (0.0 <= self.pixel_cost_scale < math.inf):
             raise ValueError(f"pixel_cost_scale must be a finite number >= 0, got {self.pixel_cost_scale!r}")
-        if not (0.0 <= self.c_pixel < math.inf and self.c_pixel * self.pixel_cost_scale <= PIXEL_WEIGHT_MAX):
+        C_PIXEL_RANGE.check("ControllerConfig.c_pixel", self.c_pixel)
+        if not (self.c_pixel * self.pixel_cost_scale <= PIXEL_WEIGHT_MAX):
             raise ValueError(f"c_pixel must be a finite number >= 0 with c_pixel * pixel_cost_scale <= "
                              f"{PIXEL_WEIGHT_MAX:g} (a horizon of such costs must stay a float32 number), got "
                              f"{self.c_pixel!r} (scale {self.pixel_cost_scale!r})")
@@ -208,8 +217,7 @@ class ControllerConfig:
             raise ValueError(f"pixel_deadzone must lie in [0, 0.5), got {self.pixel_deadzone!r}")
         if self.pixel_cost not in PIXEL_COSTS:
             raise ValueError(f"pixel_cost must be one of {PIXEL_COSTS}, got {self.pixel_cost!r}")
-        if not (0.0 < self.border_margin <= 0.5):
-            raise ValueError(f"border_margin must lie in (0, 0.5], got {self.border_margin!r}")
+        BORDER_MARGIN_RANGE.check("ControllerConfig.border_margin", self.border_margin)
         if self.pixel_error_clip is not None and not (self.pixel_error_clip > 0.0):
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
         if self.box_size_limit is not None and not (0.0 < self.box_size_limit < math.inf):
@@ -218,9 +226,11 @@ class ControllerConfig:
             raise ValueError(f"model_latency_ticks must be an integer in [0, 3], got {self.model_latency_ticks!r}")
         object.__setattr__(self, "model_latency_ticks", int(self.model_latency_ticks))
         tau = self.disturbance_time_constant_s
-        if tau is not None and not (isinstance(tau, (int, float)) and self.mppi.dt <= tau < math.inf):
-            raise ValueError(f"disturbance_time_constant_s must be None or a finite number of seconds >= the step "
-                             f"{self.mppi.dt:g} s, got {tau!r}")
+        if tau is not None:
+            DISTURBANCE_TIME_CONSTANT_RANGE.check("ControllerConfig.disturbance_time_constant_s (None: no model)", tau)
+            if tau < self.mppi.dt:
+                raise ValueError(f"ControllerConfig.disturbance_time_constant_s must be at least the step "
+                                 f"{self.mppi.dt:g} s, got {tau!r}")
         if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
             object.__setattr__(self, "box_size_limit", None)
         if self.pixel_model == "projection":  # its own model is the projection
@@ -324,6 +334,57 @@ def disturbed_step(x: jax.Array, u: jax.Array, dt: float, quad_params: quadrotor
     return x_next if disturbance is None else x_next.at[quadrotor.VEL].add(dt * disturbance.astype(x.dtype))
 
 
+def quaternion_findings(x: jax.Array) -> dict:
+    """``{message: () bool}`` of a robot state's values (:func:`~pixelmpc_jax.control.mppi.make_mppi`'s
+    ``input_findings``): its quaternion must be a rotation, of norm in :data:`QUATERNION_NORM_RANGE` (an all-zero
+    one would be flown as the identity)."""
+    lo, hi = QUATERNION_NORM_RANGE
+    norm = jnp.linalg.norm(x[quadrotor.QUAT])
+    return {f"the state's quaternion [qw, qx, qy, qz] (x[3:7]) must be a rotation, of norm in [{lo:g}, {hi:g}] (an "
+            f"all-zero quaternion is none)": (norm >= lo) & (norm <= hi)}
+
+
+def _shape_check(name: str, value, shape: tuple) -> None:
+    if jnp.shape(value) != shape:
+        raise ValueError(f"PixelMPCParams.{name} must have shape {shape}, got shape {jnp.shape(value)}")
+
+
+def pixelmpc_input_findings(config: ControllerConfig):
+    """``findings(X0, params) -> {message: () bool}``: PixelMPC's own checks of a step's input (``make_mppi``'s
+    ``input_findings``). Shapes raise while the step is traced: X0 (10 + pixel_dim + next_pixel_dim,), the racing
+    params one window per horizon step (:func:`~pixelmpc_jax.control.costs.check_racing_params`), the gates' centre
+    and normal (3,). Values: the quaternion (:func:`quaternion_findings`) and, where the target's pixel is the
+    detector's (``target_prior`` "none", ``partial_target`` "detected"), a detected pixel normalised, within
+    :data:`DETECTED_PIXEL_RANGE` (a pixel in pixels, 320 for 640 px, is not)."""
+    n = quadrotor.STATE_DIM + config.pixel_dim + config.next_pixel_dim
+    pixel = "[u, v, s]" if config.pixel_dim == 3 else "[u, v]"
+    layout = f"[x (10,); target {pixel}" + (f"; next gate's pixel ({config.next_pixel_dim},)]" if
+                                             config.next_pixel_dim else "]")
+    detected_only = config.target_prior == "none" and config.partial_target == "detected"
+
+    def findings(X0, p):
+        if jnp.shape(X0) != (n,):
+            raise ValueError(f"PixelMPC state X0 must have shape ({n},) = {layout}, got shape {jnp.shape(X0)}")
+        if not isinstance(p, PixelMPCParams):
+            raise TypeError(f"PixelMPC params must be a PixelMPCParams, got {type(p).__name__}")
+        costs.check_racing_params(p.racing, config.mppi.horizon)
+        _shape_check("target_active", p.target_active, ())
+        for name in ("target_centre", "target_normal") + (("next_centre", "next_normal") if config.look_ahead else ()):
+            _shape_check(name, getattr(p, name), (3,))
+        if p.disturbance is not None:
+            _shape_check("disturbance", p.disturbance, (3,))
+        found = quaternion_findings(X0)
+        if detected_only:
+            lo, hi = DETECTED_PIXEL_RANGE
+            uv = X0[quadrotor.STATE_DIM:quadrotor.STATE_DIM + 2]
+            message = (f"the detected target pixel X0[10:12] must be normalised (pixel / image size; the image is "
+                       f"[0, 1]^2), within [{lo:g}, {hi:g}] while target_active")
+            found[message] = ~p.target_active | jnp.all((uv >= lo) & (uv <= hi))
+        return found
+
+    return findings
+
+
 def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
                       cost_config: costs.RacingCostConfig | None = None,
                       quad_params: quadrotor.QuadParams | None = None, disturbance: bool = False) -> Controller:
@@ -341,7 +402,11 @@ def make_nominal_mppi(mppi_config: MPPIConfig | None = None,
     def trajectory_cost(X, U, steps, p):
         return costs.racing_costs(X, steps, p[0] if disturbance else p, cost_config)
 
-    return make_mppi(mppi_config, dynamics, TrajectoryCost(trajectory_cost))
+    def findings(x0, p):
+        costs.check_racing_params(p[0] if disturbance else p, mppi_config.horizon)
+        return quaternion_findings(x0)
+
+    return make_mppi(mppi_config, dynamics, TrajectoryCost(trajectory_cost), input_findings=findings)
 
 
 def make_pixelmpc(config: ControllerConfig | None = None,
@@ -446,4 +511,4 @@ def make_pixelmpc(config: ControllerConfig | None = None,
 
     cost = TrajectoryCost(trajectory_cost)  # one call over the whole horizon: the prefix shares it
     prefix = Prefix(n_f, prefix_dynamics, cost) if n_f > 0 else None
-    return make_mppi(config.mppi, dynamics, cost, prefix=prefix)
+    return make_mppi(config.mppi, dynamics, cost, prefix=prefix, input_findings=pixelmpc_input_findings(config))

@@ -55,6 +55,28 @@ def measure(fn: Callable[[], object], repeats: int = 30, warmup: int = 3, slow_s
     return {**time_stats(times), "reduced_repeats": bool(reduced), "first_call_ms": float(first * 1e3)}
 
 
+def measure_interleaved(fns: dict[str, Callable[[], object]], repeats: int = 30, warmup: int = 3) -> dict[str, dict]:
+    """Time several calls of the same work against each other: each first called once (compilation, timed apart
+    as ``first_call_ms``) and ``warmup`` times, then ``repeats`` rounds in which each is timed once, in turn, each
+    call ending in ``block_until_ready``; on a shared machine a load that comes and goes then weighs on each
+    alike. Returns ``{name: time_stats + first_call_ms}``."""
+    first = {}
+    for name, fn in fns.items():
+        start = time.perf_counter()
+        _block(fn())
+        first[name] = (time.perf_counter() - start) * 1e3
+        for _ in range(warmup):
+            _block(fn())
+    times: dict[str, list] = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            _block(fn())
+            times[name].append((time.perf_counter() - start) * 1e3)
+    return {name: {**time_stats(times[name]), "reduced_repeats": False, "first_call_ms": first[name]}
+            for name in fns}
+
+
 def time_stats(times_ms) -> dict:
     """The ms figures of timed calls: median, mean, two_sigma (2 x std, population), min, max, p95 (linear
     interpolation between the calls) and repeats (how many)."""

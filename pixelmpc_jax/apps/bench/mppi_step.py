@@ -18,6 +18,7 @@ from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+from pixelmpc_jax.control.pixelmpc import PAPER_NOISE_SIGMA
 from pixelmpc_jax.control.rollout import TrajectoryCost
 from pixelmpc_jax.devices import compile_controller
 from pixelmpc_jax.dynamics import quadrotor
@@ -32,7 +33,7 @@ def run_mppi_step(samples: int = 512, horizon: int = 80, repeats: int = 50, cost
     params = quadrotor.QuadParams()
     lo, hi = params.control_bounds()
     config = MPPIConfig(num_samples=samples, horizon=horizon, dt=timing.CONTROL_DT,
-                        noise_sigma=(0.2, 0.2, 0.3, 2.2), u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
+                        noise_sigma=PAPER_NOISE_SIGMA, u_min=tuple(lo.tolist()), u_max=tuple(hi.tolist()))
     if cost == "racing":
         from pixelmpc_jax.world import course as course_lib
         track = course_lib.load_course()
