@@ -11,7 +11,7 @@ import pytest
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.experiments import frontier as F
 from pixelmpc_jax.apps.experiments import skeleton
-from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing import frontier_curve, grid
 from pixelmpc_jax.sim.metrics import LOSS_CAUSES, MEASURE
 
 
@@ -76,7 +76,7 @@ def test_a_cell_outside_the_nominal_range_is_not_extrapolated():
     assert cell["bracketed"] is False
     assert cell["frontier_avoidable_s"] is None and cell["frontier_gain"] is None
     assert cell["suggested_nominal_speed"] == 5.0  # 6 m/s * 40 s / 45 s = 5.3, rounded down to 0.5 m/s
-    assert F.interpolate(hand_made()["nominal"], 25.0) is None  # faster than the fastest nominal lap
+    assert frontier_curve.interpolate(hand_made()["nominal"], 25.0) is None  # faster than the fastest nominal lap
 
 
 def test_no_avoidable_time_uses_the_floor_and_lost_laps_are_flagged():
@@ -193,7 +193,8 @@ def test_the_partial_cells_fly_best_beside_its_target_from_the_detector_and_noth
     before = detected.spec.replace(config=dataclasses.replace(detected.spec.config, look_ahead_from="plane"))
     assert before.config == presets.LOOK_AHEAD_BEST
     assert before.key() == RaceSpec("pixelmpc", presets.LOOK_AHEAD_BEST, speed=8.5).key()
-    assert not {"partial_target", "look_ahead_from"} & set(before.record()["config"])
+    assert (before.record()["config"]["partial_target"], before.record()["config"]["look_ahead_from"]) == (
+        "detected", "plane")
 
 
 def test_a_speed_range_flies_nominal_mppi_every_step_with_clean_cell_names(tmp_path, monkeypatch):

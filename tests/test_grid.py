@@ -3,7 +3,6 @@ weights), the cache key of a RaceSpec."""
 
 import dataclasses
 import json
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -22,10 +21,6 @@ from pixelmpc_jax.sim.metrics import MEASURE
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
-RESULTS = Path(__file__).resolve().parent.parent / "experiments" / "results"
-# RaceSpec keys computed before the clipped detector, the surveyed map and the estimated switch (commit eeb8c41)
-OLD_KEYS = {"pixelmpc": "3757ddf45236d8a1", "pixelmpc_pf_perturbed": "16554683d6690a65",
-            "mppi_eskf": "8931cd2060fc6670"}
 CELLS = [grid.Cell("nominal"), grid.Cell("dof", RaceSpec("pixelmpc")),
          grid.Cell("projection", RaceSpec("pixelmpc", ControllerConfig(pixel_model="projection")))]
 
@@ -111,41 +106,27 @@ def test_results_of_another_visibility_measure_are_flown_again(tmp_path, flown):
     assert _run(flown, tmp_path) == ["nominal"]
 
 
-@pytest.mark.parametrize("folder", ["reproduce/frontier", "reproduce/table2", "frontier"])
-def test_the_committed_results_stay_valid_for_a_default_run(folder):
-    """The committed cells still name the races a default run flies (their keys); whether their measure is this
-    version's is :func:`grid.is_current`'s other half."""
-    results = grid.load_results(RESULTS / folder)
-    assert results, f"no committed results in {folder}"
-    for name, entry in results.items():
-        seed = entry.get("seed", 0)
-        cell = grid.Cell(name, grid.recorded_race(entry).replace(laps=1, seed=0, dof_weights=None))
-        assert grid.flies_race(entry, cell.race(len(entry["laps"]), seed=seed, dof_weights=None))
-        assert not grid.flies_race(entry, cell.race(len(entry["laps"]), seed=seed + 1, dof_weights=None))
-
-
-def test_the_apps_cells_find_their_committed_results():
-    """The cells the reproduce parts and the frontier define now are the ones their committed results answer, so a
-    resumed `pixelmpc reproduce all --out experiments/results/reproduce` keeps them; all but the `best` preset's,
-    which the reproduction flew with the preset before trial 34 of the levers search, and every PixelMPC cell, flown
-    with the ideal projection before the detector's report was cut at the image border: a resumed run flies them
-    again as they are now (nominal MPPI on the true state uses no detection, and keeps its cells)."""
-    from pixelmpc_jax.apps.experiments import frontier, paper, reproduce
+def test_the_apps_cells_find_the_results_a_run_of_them_recorded(flown, tmp_path):
+    """The cells the reproduce parts and the frontier define are the ones the results a run of them wrote answer (each
+    read back as its race), so a resumed `pixelmpc reproduce all` keeps them and flies nothing; another seed is
+    another race."""
+    from pixelmpc_jax.apps.experiments import frontier, paper
     from pixelmpc_jax.apps.racing import presets
 
-    runs = {"reproduce/frontier": ([frontier.nominal_cell(v) for v in frontier.DEFAULT_SPEEDS]
-                                   + list(frontier.preset_cells(presets.PAPER_PACE_SPEED)), 10, reproduce.SEED),
-            "reproduce/table2": (paper.table_cells("dof"), 10, reproduce.SEED),
-            "frontier": ([frontier.nominal_cell(v) for v in (6.0, 7.0, 8.0, 10.0, 14.0)]
-                         + list(frontier.default_cells()), 10, 0)}
-    for folder, (cells, laps, seed) in runs.items():
-        results = grid.load_results(RESULTS / folder)
-        found = [c.name for c in cells if grid.flies_race(results.get(c.name), c.race(laps, seed, None))]
-        stale = [c.name for c in cells if (folder.startswith("reproduce/") and c.name.startswith("best_"))
-                 or c.race(laps, seed, None).controller == "pixelmpc"]
-        assert any(c.race(laps, seed, None).controller == "mppi" for c in cells if c.name not in stale), folder
-        assert sorted(found) == sorted(c.name for c in cells if c.name not in stale), folder
-        assert all(name in results for name in stale), folder  # flown, with the former preset
+    runs = {"frontier": [frontier.nominal_cell(v) for v in frontier.DEFAULT_SPEEDS]
+            + list(frontier.preset_cells(presets.PAPER_PACE_SPEED)),
+            "table2": paper.table_cells("dof")}
+    for folder, cells in runs.items():
+        grid.run_grid(cells, tmp_path / folder, laps=1, seed=200, progress=False, batch_size=1)
+        results = grid.load_results(tmp_path / folder)
+        assert sorted(results) == sorted(c.name for c in cells), folder
+        for cell in cells:
+            assert grid.recorded_race(results[cell.name]).key() == cell.race(1, 200, None).key(), cell.name
+            assert grid.flies_race(results[cell.name], cell.race(1, 200, None)), cell.name
+            assert not grid.flies_race(results[cell.name], cell.race(1, 201, None)), cell.name
+        flown.clear()
+        grid.run_grid(cells, tmp_path / folder, laps=1, seed=200, progress=False, batch_size=1)
+        assert flown == [], folder
 
 
 def test_current_results_are_the_cells_a_rerun_keeps(flown, tmp_path):
@@ -189,52 +170,32 @@ def test_identical_races_have_one_key_and_any_difference_another():
     assert spec.key() not in keys.values() and len(set(keys.values())) == len(keys)
 
 
-def test_a_race_recorded_with_a_retired_setting_reads_back_with_the_key_it_was_flown_under():
-    """Races recorded while the MPPI configuration held how a step ran (``mppi.sample_devices`` 1,
-    ``mppi.cpu_matmul`` "auto", now :class:`~pixelmpc_jax.devices.Execution`) read back as the same race with the
-    same key; a record holding another value of one is refused, naming it."""
-    for spec in (RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2), RaceSpec("mppi")):
-        recorded = json.loads(json.dumps(spec.record()))
-        assert "sample_devices" not in recorded["config"]["mppi"]
-        recorded["config"]["mppi"].update(sample_devices=1, cpu_matmul="auto")
-        assert RaceSpec.from_record(recorded) == spec and RaceSpec.from_record(recorded).key() == spec.key()
-    assert RaceSpec("mppi").key() == "a91b7d227174b51c"  # its key before the retirement (moves with its defaults)
-    recorded["config"]["mppi"]["sample_devices"] = 2
+def test_a_record_holds_every_setting_and_reads_back_as_its_race():
+    """A record writes every setting of the race (the whole configuration); read back from JSON it is the same race
+    with the same key. A setting the race does not know is refused, naming it."""
+    spec = RaceSpec("pixelmpc", BORDER, speed=8.0, laps=4, seed=2, estimator="eskf", eskf=ESKFConfig(map_sigma_m=0.0))
+    recorded = json.loads(json.dumps(spec.record()))
+    assert recorded == json.loads(json.dumps(dataclasses.asdict(spec)))
+    assert recorded["eskf"]["map_sigma_m"] == 0.0 and recorded["detector"] == "clipped" and "faults" in recorded
+    assert RaceSpec.from_record(recorded) == spec and RaceSpec.from_record(recorded).key() == spec.key()
+    recorded["config"]["mppi"]["sample_devices"] = 1  # how a step ran: not a setting of the race
     with pytest.raises(ValueError, match="unknown setting config.mppi.sample_devices"):
         RaceSpec.from_record(recorded)
 
 
-def test_races_recorded_before_the_onboard_loop_read_back_as_they_flew_with_their_keys():
-    """Before the clipped detector, the surveyed map and the estimated switch, every race flew the ideal projection
-    (recorded as "geometry"), a perturbed course known to the controller, and on a filter the world's switch (and the
-    ESKF took the map as exact). Their
-    records read back as those races, under the keys they were flown with; the new defaults are other races."""
-    old_keys = {  # keys of records written before the settings
-        "pixelmpc": (RaceSpec("pixelmpc", detector="ideal"), OLD_KEYS["pixelmpc"]),
-        "pixelmpc_pf_perturbed": (RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal", map="known",
-                                           gate_switch="truth"), OLD_KEYS["pixelmpc_pf_perturbed"]),
-        "mppi_eskf": (RaceSpec("mppi", estimator="eskf", detector="ideal", gate_switch="truth",
-                               eskf=ESKFConfig(map_sigma_m=0.0)), OLD_KEYS["mppi_eskf"]),
-    }
-    for name, (spec, key) in old_keys.items():
-        old = json.loads(json.dumps(spec.record()))
-        assert "map" not in old and "gate_switch" not in old, name
-        old["detector"] = "geometry"
-        flown = RaceSpec.from_record(old)
-        assert flown == spec and flown.key() == spec.key() == key, name
-        assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))) == spec
-    # the new defaults: other races, recorded as such
-    for spec in (RaceSpec("pixelmpc"), RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal"),
-                 RaceSpec("mppi", estimator="eskf", detector="ideal")):
-        assert spec.key() not in {key for _, key in old_keys.values()}
-        assert RaceSpec.from_record(json.loads(json.dumps(spec.record()))) == spec
+def test_the_loops_defaults_and_the_settings_that_fly_nothing():
+    """The clipped detector, the surveyed map and the estimated switch are the defaults; the ideal projection, the
+    known map and the truth's switch are other races. Where a setting flies nothing it keeps its default: the map
+    without a perturbation, the switch on the true state; nominal MPPI on the true state uses no detection: one key
+    for both geometric ones."""
     perturbed = RaceSpec("pixelmpc", estimator="pf", perturb=True)
     assert (perturbed.detector, perturbed.map, perturbed.gate_switch) == ("clipped", "surveyed", "estimate")
     assert perturbed.record()["map"] == "surveyed" and perturbed.record()["gate_switch"] == "estimate"
-    # where a setting flies nothing it keeps its default, out of the record: the map without a perturbation, the
-    # switch on the true state; nominal MPPI on the true state uses no detection: one key for both geometric ones
+    earlier = RaceSpec("pixelmpc", estimator="pf", perturb=True, detector="ideal", map="known", gate_switch="truth")
+    assert earlier.key() != perturbed.key()
+    assert RaceSpec.from_record(json.loads(json.dumps(earlier.record()))) == earlier
     plain = RaceSpec("pixelmpc", map="known", gate_switch="truth")
-    assert (plain.map, plain.gate_switch) == ("surveyed", "estimate") and "map" not in plain.record()
+    assert (plain.map, plain.gate_switch) == ("surveyed", "estimate") and plain == RaceSpec("pixelmpc")
     nominal = RaceSpec("mppi")
     assert nominal.detector == "clipped" and nominal.key() == nominal.replace(detector="ideal").key()
     assert nominal.replace(detector="image").key() != nominal.key()
@@ -337,10 +298,10 @@ def test_a_record_reads_back_as_the_race_it_was_flown_as(tmp_path, flown):
 
 
 def test_a_flat_record_of_an_older_version_reads_as_the_same_race():
-    """results.json written before the spec held the controller's configuration: settings flat, options dotted; the
-    detector was not recorded, and every race flew the ideal projection."""
+    """results.json written before the spec held the controller's configuration: settings flat, options dotted (the
+    grid reads them into the nested configuration)."""
     flat = {"name": "c", "controller": "pixelmpc", "speed": 8.0, "t_f": 1.0, "c_pixel": 3e7, "pixel_model": "dof",
-            "temperature": None, "num_samples": 512, "max_time_s": 60.0,
+            "temperature": None, "num_samples": 512, "max_time_s": 60.0, "detector": "ideal",
             "options": {"pixel_cost": "border", "mppi.noise_exponent": 1.0}}
     config = ControllerConfig(c_pixel=3e7, pixel_cost="border",
                             mppi=dataclasses.replace(paper_mppi_config(), noise_exponent=1.0))
@@ -427,7 +388,7 @@ def test_a_tilted_camera_is_a_race_setting_both_controllers_fly_and_the_packaged
     projection = ControllerConfig(pixel_model="projection", pixel_cost="border")
     spec = RaceSpec("pixelmpc", projection, speed=8.0)
     tilted = spec.replace(camera_tilt_deg=20)
-    assert "camera_tilt_deg" not in spec.record()  # a race flown before the setting keeps its record and key
+    assert spec.record()["camera_tilt_deg"] == 0.0 and tilted.record()["camera_tilt_deg"] == 20.0
     assert tilted.camera_tilt_deg == 20.0 and tilted.key() != spec.key()
     assert RaceSpec.from_record(json.loads(json.dumps(tilted.record()))) == tilted
     prepared = race.prepare(tilted)
@@ -439,6 +400,10 @@ def test_a_tilted_camera_is_a_race_setting_both_controllers_fly_and_the_packaged
     for bad in (-1.0, 61.0, float("nan"), True):
         with pytest.raises(ValueError, match="camera_tilt_deg"):
             spec.replace(camera_tilt_deg=bad)
-    for model in ("dof", "vdof"):
+    for model in ("dof", "vdof"):  # refused where the learned model is flown, not where the race is written
+        tilted_learned = RaceSpec("pixelmpc", ControllerConfig(pixel_model=model), camera_tilt_deg=20.0)
         with pytest.raises(ValueError, match="trained for the untilted camera"):
-            RaceSpec("pixelmpc", ControllerConfig(pixel_model=model), camera_tilt_deg=20.0)
+            tilted_learned.check_weights(None)
+        with pytest.raises(ValueError, match="trained for the untilted camera"):
+            race.prepare(tilted_learned)
+        tilted_learned.replace(controller="mppi").check_weights(None)  # nominal MPPI flies no pixel model

@@ -1,13 +1,14 @@
 """Nominal MPPI's committed frontier shipped in the package (apps/racing/nominal_frontier.py): the file is what its
-folder gives (`pixelmpc report --frontier-data`), it is read at PixelMPC's lap time, only for a race it speaks for,
-and the main job prints that beside its table (apps/racing/compare.py)."""
+folder gives (`pixelmpc report --frontier-data`, experiments/reporting/frontier_data.py), it is read at PixelMPC's lap
+time, only for a race it speaks for, and the main job prints that beside its table (apps/racing/compare.py)."""
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
+import result_folders as rf
 
+from experiments.reporting import frontier_data
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.racing import compare, nominal_frontier, presets
 from pixelmpc_jax.apps.racing.spec import RaceSpec
@@ -36,58 +37,61 @@ def _results(laps: list[dict], measure: str | None = metrics.MEASURE) -> dict:
 
 
 def test_the_shipped_frontier_is_what_its_folder_gives():
-    """``pixelmpc report --frontier-data --check`` passes: run ``pixelmpc report --frontier-data`` when the folder
-    changes."""
-    old, new = nominal_frontier.rewrite(ROOT, check=True)
+    """``pixelmpc report --frontier-data --check`` passes on this checkout: the package's copy is what the committed
+    folder the index names gives (run ``pixelmpc report --frontier-data`` when the folder changes)."""
+    old, new = frontier_data.rewrite(ROOT, check=True)
     assert old == new, "pixelmpc_jax/data/nominal_frontier.json is stale: run `pixelmpc report --frontier-data`"
     shipped = nominal_frontier.load()
-    assert shipped == json.loads(new) and shipped["source"] == "experiments/results/best_heldout_700"
+    assert shipped == json.loads(new) and shipped["source"] == frontier_data.source(ROOT).as_posix()
     assert (shipped["course"], shipped["estimator"], shipped["perturb"], shipped["camera_tilt_deg"],
             shipped["faults"]) == ("alphapilot", "truth", False, 0.0, {})
     assert shipped["measure"] == metrics.MEASURE
-    assert (shipped["device"], shipped["date"], shipped["seeds"]) == ("2-core AMD EPYC, jax 0.10.2", "2026-11-28",
-                                                                      [700, 709])
-    assert [point["speed"] for point in shipped["points"]] == [7.0, 8.0, 8.5, 10.0]
-    assert nominal_frontier.FILE == ROOT / nominal_frontier.IN_PACKAGE  # the package's copy is the checkout's
+    assert nominal_frontier.FILE == ROOT / frontier_data.IN_PACKAGE  # the package's copy is the checkout's
+
+
+HELD_OUT = Path("experiments/results/held_out")
 
 
 def _checkout(tmp_path) -> Path:
-    """A checkout whose frontier folder holds copies of the committed one's records, and the shipped file."""
-    folder = tmp_path / nominal_frontier.SOURCE
-    folder.mkdir(parents=True)
-    for name in ("frontier.json", "results.json"):
-        shutil.copy(ROOT / nominal_frontier.SOURCE / name, folder / name)
-    (tmp_path / "README.md").write_text("# a checkout\n")
-    (tmp_path / nominal_frontier.IN_PACKAGE).parent.mkdir(parents=True)
-    shutil.copy(nominal_frontier.FILE, tmp_path / nominal_frontier.IN_PACKAGE)
-    return tmp_path
+    """A checkout whose index ships the package's frontier from a synthetic frontier folder (nominal MPPI at 6 and
+    8 m/s: 40 s laps with 1 s avoidable, 30 s laps with 5 s), without the shipped file yet."""
+    rf.frontier_folder(tmp_path / HELD_OUT)
+    folders = {HELD_OUT.name: {"status": "current", "claim": "a frontier", "command": None, "record_schema": 1,
+                               "ships": frontier_data.IN_PACKAGE.as_posix()}}
+    return rf.checkout(tmp_path, folders, [], "# a checkout\n", "# results\n")
 
 
-def test_report_checks_then_rewrites_the_file_when_its_folder_changes(tmp_path, capsys):
+def test_report_writes_checks_then_rewrites_the_file_when_its_folder_changes(tmp_path, capsys):
     root = _checkout(tmp_path)
     argv = ["report", "--frontier-data", "--root", str(root)]
-    assert cli.main([*argv, "--check"]) == 0
-    path = root / nominal_frontier.SOURCE / "frontier.json"
+    (root / frontier_data.IN_PACKAGE).parent.mkdir(parents=True)
+    assert cli.main(argv) == 0 and cli.main([*argv, "--check"]) == 0
+    written = json.loads((root / frontier_data.IN_PACKAGE).read_text())
+    assert written["source"] == HELD_OUT.as_posix() and written["seeds"] == [0, 1]
+    assert [(p["speed"], p["lap_time_s"], p["avoidable_s"]) for p in written["points"]] == [(6.0, 40.0, 1.0),
+                                                                                             (8.0, 30.0, 5.0)]
+    path = root / HELD_OUT / "frontier.json"
     record = json.loads(path.read_text())
     record["nominal"][1]["avoidable_s"] = 8.25  # nominal_8
     path.write_text(json.dumps(record))
     capsys.readouterr()
+    before = (root / frontier_data.IN_PACKAGE).read_text()
     assert cli.main([*argv, "--check"]) == EXIT_FAILED
     assert '+      "avoidable_s": 8.25,' in capsys.readouterr().out
-    assert (root / nominal_frontier.IN_PACKAGE).read_text() == nominal_frontier.FILE.read_text()  # unchanged
+    assert (root / frontier_data.IN_PACKAGE).read_text() == before  # unchanged
     assert cli.main(argv) == 0
-    assert json.loads((root / nominal_frontier.IN_PACKAGE).read_text())["points"][1]["avoidable_s"] == 8.25
+    assert json.loads((root / frontier_data.IN_PACKAGE).read_text())["points"][1]["avoidable_s"] == 8.25
     assert cli.main([*argv, "--check"]) == 0
 
 
 def test_a_folder_whose_nominal_points_were_flown_in_two_worlds_is_refused(tmp_path):
     root = _checkout(tmp_path)
-    path = root / nominal_frontier.SOURCE / "results.json"
+    path = root / HELD_OUT / "results.json"
     results = json.loads(path.read_text())
     results["nominal_8"]["config"]["estimator"] = "pf"
     path.write_text(json.dumps(results))
     with pytest.raises(ValueError, match="one world under one measure"):
-        nominal_frontier.build(root)
+        frontier_data.build(root)
 
 
 def test_the_frontier_is_read_at_pixelmpcs_mean_lap_time_between_two_points():
@@ -102,12 +106,11 @@ def test_the_frontier_is_read_at_pixelmpcs_mean_lap_time_between_two_points():
     assert entry["pixelmpc"] == pytest.approx({"avoidable_s": 1.25, "vis_below_50_s": 3.25,
                                                "share_target_in_view": 0.97, "mean_target_angle_deg": 28.0,
                                                "laps_completed": 2})
-    # at the committed best's lap time the read is the folder's own row for it
-    row = next(cell for cell in json.loads((ROOT / nominal_frontier.SOURCE / "frontier.json").read_text())["cells"]
-               if cell["name"] == "best_v8.5")
-    entry = nominal_frontier.held_against(PROJECTION.record(), _results([_lap(row["lap_time_s"])]))
-    assert entry["nominal"]["avoidable_s"] == pytest.approx(row["frontier_avoidable_s"], rel=1e-12)
-    assert entry["nominal"]["share_target_in_view"] == pytest.approx(row["frontier_share_target_in_view"], rel=1e-12)
+    # at a point's own lap time the read is that point's figures
+    point = nominal_frontier.load()["points"][1]
+    entry = nominal_frontier.held_against(PROJECTION.record(), _results([_lap(point["lap_time_s"])]))
+    assert entry["nominal"]["avoidable_s"] == pytest.approx(point["avoidable_s"], rel=1e-12)
+    assert entry["nominal"]["share_target_in_view"] == pytest.approx(point["share_target_in_view"], rel=1e-12)
 
 
 @pytest.mark.parametrize("race, measure, why", [

@@ -124,22 +124,15 @@ def test_the_exact_map_setting_flies_on_the_kalman_filter_only_for_both_controll
     assert RaceSpec.from_record(default_spec.record()) == default_spec
 
 
-def test_races_flown_before_the_surveyed_map_default_keep_their_record_and_key():
-    """The ESKF took the map as exact until a surveyed map's accuracy became its default: a race recorded then (its
-    record without the Kalman filter's settings, the default they were) reads back taking the map as exact, with the
-    record and the key it had; today's default is written out, and a race on another loop records none of it."""
+def test_a_race_on_the_kalman_filter_records_the_map_accuracy_it_was_told():
+    """Today's default, a surveyed map's accuracy, is written out with the race; the map taken as exact is another
+    race; a race on another loop keeps the Kalman filter's defaults, which fly nothing there."""
     then = RaceSpec("pixelmpc", speed=8.5, estimator="eskf", seed=200)
-    old_record = {**then.record()}
-    old_record.pop("eskf", None)  # as every race on the former default was recorded
-    was = RaceSpec.from_record(old_record)
-    assert was.eskf == ESKFConfig(map_sigma_m=0.0) and was.record() == old_record
-    assert was.key() == RaceSpec.from_record(json.loads(json.dumps(old_record))).key()
-    assert "eskf" in then.record() and then.record()["eskf"]["map_sigma_m"] == SURVEYED_MAP_SIGMA_M
-    assert then.key() != was.key() and RaceSpec.from_record(then.record()) == then
-    # a setting recorded in part (written before map_sigma_m existed, or by hand) reads the rest as it was then
-    aligned = RaceSpec.from_record({**old_record, "eskf": {"align_s": 2.0}})
-    assert aligned.eskf == ESKFConfig(map_sigma_m=0.0, align_s=2.0)
-    assert "eskf" not in RaceSpec("pixelmpc", speed=8.5, estimator="pf").record()
+    assert then.record()["eskf"]["map_sigma_m"] == SURVEYED_MAP_SIGMA_M
+    exact = then.replace(eskf=ESKFConfig(map_sigma_m=0.0))
+    assert exact.key() != then.key() and RaceSpec.from_record(json.loads(json.dumps(exact.record()))) == exact
+    assert RaceSpec.from_record(then.record()) == then
+    assert RaceSpec("pixelmpc", speed=8.5, estimator="pf", eskf=ESKFConfig(map_sigma_m=0.0)).eskf == ESKFConfig()
 
 
 def test_the_alignment_flies_on_the_kalman_filter_only_for_both_controllers():

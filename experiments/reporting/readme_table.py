@@ -1,5 +1,10 @@
 """The README's results table, rebuilt from the committed result folders (``pixelmpc report --readme``).
 
+Which rows the table holds, in which order, each with its claim, its kind and its folder, is data: the ``readme`` list
+of ``experiments/results/index.json`` (:mod:`experiments.reporting.index`). A row's kind names the function here
+that reads its folder (:data:`KINDS`); its claim is a template the function fills from what the folder's races flew
+(``{controller}``, ``{speed}``, ...).
+
 One row per headline claim: what is claimed, our figure with its interval where the folder records one, its tail
 (the worst lap, the slowest step), the paper's figure, the loop and the machine it was measured on, the folder and
 whether the folder commits its per-tick record (``ticks_compact.npz``, :mod:`~pixelmpc_jax.sim.ticks_compact`; "n/a"
@@ -26,22 +31,22 @@ from typing import NamedTuple
 
 import numpy as np
 
+from experiments.reporting import index, splice
 from pixelmpc_jax.apps.bench.table1 import PAPER as PAPER_TABLE_I
 from pixelmpc_jax.apps.experiments import frontier
 from pixelmpc_jax.apps.experiments import gains as gains_lib
 from pixelmpc_jax.apps.experiments.estimation import PAPER_TABLE_IV
 from pixelmpc_jax.apps.experiments.paper import LABEL_SPEED, PAPER_LAP_TIME, PAPER_VIS_BELOW_50
 from pixelmpc_jax.apps.experiments.skeleton import failure_counts
+from pixelmpc_jax.apps.racing import frontier_curve
 from pixelmpc_jax.apps.racing.presets import LOOK_AHEAD_BEST, PAPER_PACE_SPEEDS, preset
-from pixelmpc_jax.apps.racing.spec import RaceSpec, flown_setting
+from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.learn.evaluate import PAPER_AEE_PX
 from pixelmpc_jax.perception.eskf import SURVEYED_MAP_SIGMA_M
 from pixelmpc_jax.sim import metrics, ticks_compact
 
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
-RESULTS = Path("experiments/results")
-BENCHMARKS = Path("benchmarks/results")
 NOT_RECORDED = "-"
 
 # The paper's figures held against ours, each from the table or section that reports it (the values live with the
@@ -134,7 +139,7 @@ def _seeds(first: int, laps: int) -> str:
 
 
 DETECTOR_WORDS = {"clipped": "detector clipped at the image border", "ideal": "ideal detector (the earlier loop)",
-                  "geometry": "ideal detector (the earlier loop)", "image": "image detector"}
+                  "image": "image detector"}
 
 
 def _loop(estimator: str, config: dict | None = None) -> str:
@@ -142,13 +147,13 @@ def _loop(estimator: str, config: dict | None = None) -> str:
     where the gate switch came from, and on the ESKF the map's accuracy it was told when that was not its default."""
     words = [{"truth": "true state", "pf": "particle filter", "eskf": "ESKF"}.get(estimator, estimator)]
     if config is not None and estimator == "eskf":
-        sigma = flown_setting(config, "eskf").map_sigma_m
+        sigma = config["eskf"]["map_sigma_m"]
         if sigma != SURVEYED_MAP_SIGMA_M:
             words[0] = "ESKF taking the map as exact" if sigma == 0 else f"ESKF told the map to {sigma:g} m"
     if config is not None:
-        words.append(DETECTOR_WORDS.get(config.get("detector", "ideal"), config.get("detector", "ideal")))
+        words.append(DETECTOR_WORDS[config["detector"]])
         if estimator != "truth":
-            words.append("gate switch from the estimate" if config.get("gate_switch", "truth") == "estimate"
+            words.append("gate switch from the estimate" if config["gate_switch"] == "estimate"
                          else "the truth's gate switch")
     return ", ".join(words)
 
@@ -223,7 +228,7 @@ def frontier_row_from_compact(folder: Path, cell: str) -> dict:
     speeds = sorted(float(race["target_speed"]) for name, race in races.items()
                     if name == frontier.nominal_cell(float(race["target_speed"])).name)
     names = [frontier.nominal_cell(speed).name for speed in speeds]
-    nominal = [{"name": name, "speed": speed, **frontier.summarise(results[name])}
+    nominal = [{"name": name, "speed": speed, **frontier_curve.summarise(results[name])}
                for speed, name in zip(speeds, names)]
     if cell not in results:
         raise ValueError(f"{folder}: the per-tick record holds no race {cell!r}")
@@ -306,31 +311,27 @@ def gains_text(gains: dict, finished: int) -> str:
             f"paired); joined means {gain(joined)}, local fit {gain(local)}")
 
 
-def frontier_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
-    """A row of `best`'s frontier gain in a frontier folder: the paired gain [interval] at its lap time against
-    nominal MPPI flown slower, beside the joined means and the local fit (the bars apply to the smallest of the
-    three), and its share of time with the target in view beside nominal's at its lap time; the tail of its laps
-    and its worst lap's avoidable time beside nominal's at the same lap time (every nominal point nominal MPPI on
-    the cell's loop, :func:`_frontier`). ``claim`` names the controller as ``{controller}``, filled from what the
-    folder's race flew (:func:`flown_preset`)."""
-
-    def row(root: Path) -> Row:
-        path = RESULTS / folder
-        record, cell_row, at_target = _frontier(root, path, cell)
-        results = _json(root / path / "results.json")[cell]
-        laps = [lap for lap in results["laps"] if lap["success"]]
-        worst = max(lap["time_vis_avoidable_s"] for lap in laps)
-        lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
-        return Row(claim.format(controller=flown_preset(results["config"])),
-                   f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time; in view "
-                   f"{cell_row['share_target_in_view']:.1%} (nominal at the cell's lap time "
-                   f"{cell_row['frontier_share_target_in_view']:.1%})",
-                   f"{lap_tail(results['laps'])}; worst lap {worst:.2f} s avoidable (nominal at the cell's lap time "
-                   f"{cell_row['frontier_avoidable_s']:.2f} s)",
-                   "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
-                   path, per_tick(root / path))
-
-    return row
+def frontier_gain(root: Path, entry: dict) -> Row:
+    """A row of `best`'s frontier gain in a frontier folder (``entry``: its ``folder``, ``claim`` and ``cell``): the
+    paired gain [interval] at its lap time against nominal MPPI flown slower, beside the joined means and the local
+    fit (the bars apply to the smallest of the three), and its share of time with the target in view beside
+    nominal's at its lap time; the tail of its laps and its worst lap's avoidable time beside nominal's at the same
+    lap time (every nominal point nominal MPPI on the cell's loop, :func:`_frontier`). The claim names the controller
+    as ``{controller}``, filled from what the folder's race flew (:func:`flown_preset`)."""
+    path, cell = Path(entry["folder"]), entry["cell"]
+    record, cell_row, at_target = _frontier(root, path, cell)
+    results = _json(root / path / "results.json")[cell]
+    laps = [lap for lap in results["laps"] if lap["success"]]
+    worst = max(lap["time_vis_avoidable_s"] for lap in laps)
+    lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
+    return Row(entry["claim"].format(controller=flown_preset(results["config"])),
+               f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time; in view "
+               f"{cell_row['share_target_in_view']:.1%} (nominal at the cell's lap time "
+               f"{cell_row['frontier_share_target_in_view']:.1%})",
+               f"{lap_tail(results['laps'])}; worst lap {worst:.2f} s avoidable (nominal at the cell's lap time "
+               f"{cell_row['frontier_avoidable_s']:.2f} s)",
+               "not measured (one target speed)", _frontier_loop(root, path, record, cell_row), _measured(record),
+               path, per_tick(root / path))
 
 
 def _courses_tail(tails: list[dict]) -> str:
@@ -343,78 +344,65 @@ def _courses_tail(tails: list[dict]) -> str:
             f"{metrics.TAIL_OVER_MEDIAN * 100:g} % over")
 
 
-def courses_gain(folder: str, claim: str, cell: str = "best_v8.5") -> Callable[[Path], Row]:
-    """A row of `best`'s paired gain on each generated course of ``folder``: its frontier folders ``course_<seed>``
-    (each course flown from its own file beside them), the gains and the tail of every lap together; the machine is
-    the folder README's ``Device:`` line (the laps were flown where the joining process did not run)."""
-
-    def row(root: Path) -> Row:
-        path = RESULTS / folder
-        courses = sorted(p.name for p in (root / path).iterdir() if p.is_dir() and p.name.startswith("course_"))
-        if not courses:
-            raise ValueError(f"{path} holds no course folder (course_<seed>)")
-        gains, tails, changes, loops, presets_flown = [], [], [], set(), set()
-        for course in courses:
-            record, cell_row, at_target = _frontier(root, path / course, cell)
-            results = _json(root / path / course / "results.json")[cell]
-            paired = cell_row["gains"]["paired"]
-            gains.append(f"{course.removeprefix('course_')}: **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, "
-                         f"{paired['interval'][1]:.2f}]")
-            changes.append(f"{cell_row['lap_time_s'] / at_target['lap_time_s'] - 1:+.1%}")
-            tails.append(metrics.lap_tail(results["laps"]))
-            presets_flown.add(flown_preset(results["config"]))
-            stem = Path(results["config"]["course"]).stem
-            loops.add(_frontier_loop(root, path / course, record, cell_row).replace(
-                f"course {stem}", f"{len(courses)} generated courses"))
-        if len(loops) != 1 or len(presets_flown) != 1:
-            raise ValueError(f"{path}: its courses were flown on different loops, seeds or presets: "
-                             f"{sorted(loops | presets_flown)}")
-        return Row(claim.format(controller=presets_flown.pop()),
-                   f"paired {'; '.join(gains)}; lap time {', '.join(changes)} against nominal MPPI at the same target",
-                   _courses_tail(tails), "not measured (AlphaPilot only)", loops.pop(),
-                   f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}", path,
-                   per_tick(root / path))
-
-    return row
+def courses_gain(root: Path, entry: dict) -> Row:
+    """A row of `best`'s paired gain on each generated course of the entry's folder: its frontier folders
+    ``course_<seed>`` (each course flown from its own file beside them), the gains and the tail of every lap together;
+    the machine is the folder README's ``Device:`` line (the laps were flown where the joining process did not run)."""
+    path, cell = Path(entry["folder"]), entry["cell"]
+    courses = sorted(p.name for p in (root / path).iterdir() if p.is_dir() and p.name.startswith("course_"))
+    if not courses:
+        raise ValueError(f"{path} holds no course folder (course_<seed>)")
+    gains, tails, changes, loops, presets_flown = [], [], [], set(), set()
+    for course in courses:
+        record, cell_row, at_target = _frontier(root, path / course, cell)
+        results = _json(root / path / course / "results.json")[cell]
+        paired = cell_row["gains"]["paired"]
+        gains.append(f"{course.removeprefix('course_')}: **{paired['gain']:.2f}** [{paired['interval'][0]:.2f}, "
+                     f"{paired['interval'][1]:.2f}]")
+        changes.append(f"{cell_row['lap_time_s'] / at_target['lap_time_s'] - 1:+.1%}")
+        tails.append(metrics.lap_tail(results["laps"]))
+        presets_flown.add(flown_preset(results["config"]))
+        stem = Path(results["config"]["course"]).stem
+        loops.add(_frontier_loop(root, path / course, record, cell_row).replace(
+            f"course {stem}", f"{len(courses)} generated courses"))
+    if len(loops) != 1 or len(presets_flown) != 1:
+        raise ValueError(f"{path}: its courses were flown on different loops, seeds or presets: "
+                         f"{sorted(loops | presets_flown)}")
+    return Row(entry["claim"].format(controller=presets_flown.pop()),
+               f"paired {'; '.join(gains)}; lap time {', '.join(changes)} against nominal MPPI at the same target",
+               _courses_tail(tails), "not measured (AlphaPilot only)", loops.pop(),
+               f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}", path,
+               per_tick(root / path))
 
 
-def visibility_at_same_lap_time(folder: str) -> Callable[[Path], Row]:
+def visibility_at_same_lap_time(root: Path, entry: dict) -> Row:
     """Time below 50 % a lap, nominal MPPI at `best`'s lap time -> `best`, beside the paper's nominal -> best cell,
-    from the frontier folder ``folder``."""
-
-    def row(root: Path) -> Row:
-        path = RESULTS / folder
-        record, cell_row, _ = _frontier(root, path, "best_v8.5")
-        results = _json(root / path / "results.json")["best_v8.5"]
-        worst = max(lap["time_vis_below_50_s"] for lap in results["laps"] if lap["success"])
-        (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
-        (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
-        return Row("Time a lap with the target gate under 50 % in view: nominal MPPI -> PixelMPC "
-                   f"({flown_preset(results['config'])}; ours at the same lap time, the paper's at the same target)",
-                   f"{cell_row['frontier_vis_below_50_s']:.2f} -> **{cell_row['vis_below_50_s']:.2f}** s",
-                   f"worst lap {worst:.2f} s", f"{nominal:g} -> {best:g} s (laps {nominal_lap:g} -> {best_lap:g} s)",
-                   _frontier_loop(root, path, record, cell_row), _measured(record), path, per_tick(root / path))
-
-    return row
+    from the entry's frontier folder and cell."""
+    path, cell = Path(entry["folder"]), entry["cell"]
+    record, cell_row, _ = _frontier(root, path, cell)
+    results = _json(root / path / "results.json")[cell]
+    worst = max(lap["time_vis_below_50_s"] for lap in results["laps"] if lap["success"])
+    (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
+    (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
+    return Row(entry["claim"].format(controller=flown_preset(results["config"])),
+               f"{cell_row['frontier_vis_below_50_s']:.2f} -> **{cell_row['vis_below_50_s']:.2f}** s",
+               f"worst lap {worst:.2f} s", f"{nominal:g} -> {best:g} s (laps {nominal_lap:g} -> {best_lap:g} s)",
+               _frontier_loop(root, path, record, cell_row), _measured(record), path, per_tick(root / path))
 
 
-def dof_accuracy(root: Path) -> Row:
+def dof_accuracy(root: Path, entry: dict) -> Row:
     """The DOF's AEE against Farneback on held-out frames."""
-    path = RESULTS / "dof_eval"
+    path = Path(entry["folder"])
     data = _json(root / path / "dof_eval.json")
-    return Row("The DOF's flow error (AEE against Farneback) on held-out frames", f"{data['aee_px']:.2f} px/frame",
+    return Row(entry["claim"], f"{data['aee_px']:.2f} px/frame",
                NOT_RECORDED, f"{PAPER['aee_px']:g} px/frame",
                f"{data['frames']:,} frames of {len(data['data']['test_laps'])} held-out laps of nominal MPPI",
                f"{stated_device(root / path / 'README.md')}, {data['created'][:10]}", path, "n/a")
 
 
-TABLES = "tables_2_3"  # Tables II and III at the paper's main cell (`pixelmpc experiment table2 --main`)
-
-
-def _tables(root: Path) -> tuple[Path, dict, dict]:
-    """(the folder, its rows by cell, its results) of the Tables II/III folder, its compact per-tick record checked
-    against its results where it commits one."""
-    path = RESULTS / TABLES
+def _tables(root: Path, path: Path) -> tuple[Path, dict, dict]:
+    """(the folder, its rows by cell, its results) of a Tables II/III folder (`pixelmpc experiment table2 --main`),
+    its compact per-tick record checked against its results where it commits one."""
     results = _json(root / path / "results.json")
     if per_tick(root / path) == "yes":
         check_compact_record(root / path, results)
@@ -429,15 +417,15 @@ def _tables_measured(root: Path, path: Path) -> str:
     return f"{stated_device(root / path / 'README.md')}, {stated_date(root / path / 'README.md')}"
 
 
-def nominal_lap(root: Path) -> Row:
+def nominal_lap(root: Path, entry: dict) -> Row:
     """Nominal MPPI's lap at the paper's 14 m/s target (the Tables II/III folder's nominal cell)."""
-    path, rows, results = _tables(root)
+    path, rows, results = _tables(root, Path(entry["folder"]))
     row = rows[frontier.nominal_cell(LABEL_SPEED).name]
     laps = results[row["cell"]]["laps"]
     done = [lap["lap_time_s"] for lap in laps if lap["success"]]
     lap_time = row["lap_time_s"]
     paper_mean, paper_sigma = PAPER["nominal_lap_s"]
-    return Row(f"Nominal MPPI flies the course at the paper's {LABEL_SPEED:g} m/s target: lap time (mean ± 2σ)",
+    return Row(entry["claim"].format(speed=LABEL_SPEED),
                f"{lap_time['mean']:.1f} ± {lap_time['two_sigma']:.1f} s, {_share(len(done), len(laps))} laps",
                f"slowest lap {max(done):.1f} s", f"{paper_mean:.1f} ± {paper_sigma:.1f} s",
                f"{_loop('truth', results[row['cell']]['config'])}, AlphaPilot, {len(laps)} laps, "
@@ -445,11 +433,11 @@ def nominal_lap(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-def paper_main_cell(root: Path) -> Row:
+def paper_main_cell(root: Path, entry: dict) -> Row:
     """The paper's own controller (the `paper` preset: its L1 cost, DOF and best cell) against nominal MPPI at the
     same target, at the 14 m/s label and at its pace: time a lap under 50 % in view under this measure, the paper's
     "after first seen" rule beside it."""
-    path, rows, results = _tables(root)
+    path, rows, results = _tables(root, Path(entry["folder"]))
     parts, worst, laps = [], 0.0, None
     for speed in (LABEL_SPEED, PAPER_PACE_SPEEDS[LABEL_SPEED]):
         nominal = rows[frontier.nominal_cell(speed).name]
@@ -462,21 +450,16 @@ def paper_main_cell(root: Path) -> Row:
         worst = max([worst, *(lap["time_vis_below_50_s"] for lap in results[paper["cell"]]["laps"])])
         laps, seed = paper["num_laps"], results[paper["cell"]]["seed"]
     (paper_nominal, _), (paper_best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
-    return Row("Tables II-III, the paper's main cell (the `paper` preset: L1 pixel cost, its DOF, t_f 1 s, c_pixel "
-               "9e6) against nominal MPPI at the same target: time a lap under 50 % in view",
-               "; ".join(parts), f"worst lap {worst:.1f} s", f"{paper_nominal:g} -> {paper_best:g} s (14 m/s)",
+    return Row(entry["claim"], "; ".join(parts), f"worst lap {worst:.1f} s",
+               f"{paper_nominal:g} -> {paper_best:g} s (14 m/s)",
                f"{_loop('truth', results[paper['cell']]['config'])}, AlphaPilot, {laps} laps a cell, "
                f"{_seeds(seed, laps)}",
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-TABLE_IV = RESULTS / "table4_validation_2300"  # Table IV at the 16 m/s label's pace, both filters
-
-
-def _table_iv(root: Path) -> tuple[Path, Callable[[str], tuple[dict, dict]], dict]:
-    """Table IV's 16 m/s pace: the folder, nominal MPPI's and `best`'s rows of its summary on an estimator, and its
-    results, every lap checked against the per-tick record (:func:`check_compact_record`)."""
-    path = TABLE_IV
+def _table_iv(root: Path, path: Path) -> tuple[Path, Callable[[str], tuple[dict, dict]], dict]:
+    """Table IV's 16 m/s pace in the folder ``path``: the folder, nominal MPPI's and `best`'s rows of its summary on an
+    estimator, and its results, every lap checked against the per-tick record (:func:`check_compact_record`)."""
     cells = {c["cell"]: c for c in _json(root / path / "summary.json")["table_iv"]}
     results = _json(root / path / "results.json")
     check_compact_record(root / path, results)
@@ -487,15 +470,14 @@ def _successes(cell: dict) -> int:
     return round(cell["success_rate"] * cell["num_laps"])
 
 
-def table_iv_filter(root: Path) -> Row:
+def table_iv_filter(root: Path, entry: dict) -> Row:
     """Table IV: laps finished on the particle filter at the paper's 16 m/s pace, nominal MPPI -> `best`."""
-    path, rows, results = _table_iv(root)
+    path, rows, results = _table_iv(root, Path(entry["folder"]))
     nominal, best = rows("pf")
     intervals = [wilson_interval(_successes(c), c["num_laps"]) for c in (nominal, best)]
     failures = ", ".join(f"{cause.replace('_', ' ')} {count}" for cause, count in sorted(nominal["failures"].items()))
     seed = results[best["cell"]]["seed"]
-    return Row(f"Table IV: laps finished racing on the particle filter at the paper's {best['label']:g} m/s "
-               f"(our pace for it), nominal MPPI -> PixelMPC ({flown_preset(results[best['cell']]['config'])})",
+    return Row(entry["claim"].format(label=best["label"], controller=flown_preset(results[best["cell"]]["config"])),
                f"{_share(_successes(nominal), nominal['num_laps'])} -> "
                f"**{_share(_successes(best), best['num_laps'])}** "
                f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
@@ -507,15 +489,14 @@ def table_iv_filter(root: Path) -> Row:
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-def table_iv_eskf(root: Path) -> Row:
+def table_iv_eskf(root: Path, entry: dict) -> Row:
     """The same cells on the error-state Kalman filter: laps finished and the RMS position error."""
-    path, rows, results = _table_iv(root)
+    path, rows, results = _table_iv(root, Path(entry["folder"]))
     (nominal, best), (nominal_pf, best_pf) = rows("eskf"), rows("pf")
     worst = max(lap["rms_position_error_m"] for lap in results[best["cell"]]["laps"])
     seed = results[best["cell"]]["seed"]
     flown = flown_preset(results[best["cell"]]["config"])
-    return Row("The same on the error-state Kalman filter (`--estimator eskf`): laps finished and RMS position error, "
-               f"nominal MPPI -> {flown}",
+    return Row(entry["claim"].format(controller=flown),
                f"{_share(_successes(nominal), nominal['num_laps'])} -> {_share(_successes(best), best['num_laps'])}; "
                f"{nominal['rms_position_error_m']:.3f} -> **{best['rms_position_error_m']:.3f}** m (particle filter "
                f"{nominal_pf['rms_position_error_m']:.3f} -> {best_pf['rms_position_error_m']:.3f} m)",
@@ -575,16 +556,6 @@ def _of_seeds(laps: gains_lib.Laps, seeds: set[int]) -> gains_lib.Laps:
     return gains_lib.Laps(*(field[keep] for field in laps))
 
 
-ONBOARD_FRONTIER = "best_onboard_2740"  # `best` and nominal MPPI flown slower, every point on the onboard loop
-onboard_gain = frontier_gain(ONBOARD_FRONTIER, "The same ({controller}) on the onboard loop (the image detector, the "
-                             "ESKF, the gate switch from the estimate, the surveyed map), nominal MPPI flown slower on "
-                             "that loop too")
-
-
-PACE_BEST = RESULTS / "best_pace_9.1_2200"  # `best` at the 16 m/s label's pace, and nominal MPPI at that target
-PACE_FRONTIER = (RESULTS / "best_validation_2200", PACE_BEST)  # nominal MPPI flown slower on the same seeds
-
-
 class _RaceAgainstFrontier(NamedTuple):
     race: RaceSpec
     laps: list[dict]  # every lap of the race
@@ -620,42 +591,38 @@ def _in_view(laps: list[dict]) -> float:
     return statistics.mean(lap["share_target_in_view"] for lap in laps)
 
 
-def pace_paired_gain(root: Path) -> Row:
-    """`best` at the 16 m/s label's pace on the true state (a `pixelmpc race` in :data:`PACE_BEST`'s ``best/``)
-    against nominal MPPI flown slower on the same seeds (the points of :data:`PACE_FRONTIER`, its laps of other seeds
-    left out): the paired gain, the joined means and the local fit with their intervals, and the median lap against
-    nominal MPPI's at the same target on the same seeds; every lap checked against the folders' per-tick records."""
-    path = PACE_BEST
-    flown = _race_against_frontier(root, path, PACE_FRONTIER)
+def pace_paired_gain(root: Path, entry: dict) -> Row:
+    """`best` at the 16 m/s label's pace on the true state (a `pixelmpc race` in the entry folder's ``best/``)
+    against nominal MPPI flown slower on the same seeds (the points of its ``frontiers`` folders, their laps of other
+    seeds left out): the paired gain, the joined means and the local fit with their intervals, and the median lap
+    against nominal MPPI's at the same target on the same seeds; every lap checked against the folders' per-tick
+    records."""
+    path, frontiers = Path(entry["folder"]), tuple(Path(folder) for folder in entry["frontiers"])
+    flown = _race_against_frontier(root, path, frontiers)
     race = flown.race
     median_change = _median_lap(flown.done) / _median_lap(flown.at_target) - 1
     label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, race.speed))
-    return Row(f"The same ({flown_preset(race.record())}) at the paper's {label:g} m/s label's pace, "
-               f"{race.speed:g} m/s; its median lap against nominal MPPI's at the same target",
+    return Row(entry["claim"].format(controller=flown_preset(race.record()), label=label, speed=race.speed),
                f"{gains_text(flown.gains, len(flown.done))}; in view {_in_view(flown.done):.1%}; median lap "
                f"{median_change:+.1%}",
                lap_tail(flown.laps), "not measured (one target speed)",
                f"{_loop(race.estimator, race.record())}, AlphaPilot, {len(flown.laps)} laps, "
                f"{_seeds(race.seed, len(flown.laps))}; nominal MPPI's laps of those seeds from "
-               + " and ".join(f"[{folder.name}]({folder.as_posix()}/)" for folder in PACE_FRONTIER),
+               + " and ".join(f"[{folder.name}]({folder.as_posix()}/)" for folder in frontiers),
                _tables_measured(root, path), path, per_tick(root / path))
 
 
-AGGRESSIVE = RESULTS / "best_aggressive_tilt30_2600"  # PixelMPC at the paper's 14 m/s target, the camera tilted up
-
-
-def aggressive_paired_gain(root: Path) -> Row:
+def aggressive_paired_gain(root: Path, entry: dict) -> Row:
     """PixelMPC at the paper's 14 m/s target with a camera tilted up for both controllers (a `pixelmpc race` in
-    :data:`AGGRESSIVE`'s ``best/``) against nominal MPPI on the same camera, flown on the same seeds at speeds
+    the entry folder's ``best/``) against nominal MPPI on the same camera, flown on the same seeds at speeds
     around its lap time (the folder's frontier points): its median lap, the paired gain with the joined means and
     the local fit, the share in view, and its median lap against nominal MPPI's at the same target; every lap checked
     against the folder's per-tick record."""
-    path = AGGRESSIVE
+    path = Path(entry["folder"])
     flown = _race_against_frontier(root, path, (path,))
     race, median = flown.race, _median_lap(flown.done)
-    return Row(f"Aggressive: PixelMPC ({flown_preset(race.record())}) at the paper's {race.speed:g} m/s target, the "
-               f"camera tilted up {race.camera_tilt_deg:g} degrees for both controllers: median lap, paired gain "
-               "against nominal MPPI flown at the same lap time, share in view",
+    return Row(entry["claim"].format(controller=flown_preset(race.record()), speed=race.speed,
+                                     tilt=race.camera_tilt_deg),
                f"median lap **{median:.2f}** s ({median / _median_lap(flown.at_target) - 1:+.1%} against nominal "
                f"MPPI at the same target); {gains_text(flown.gains, len(flown.done))}; in view "
                f"{_in_view(flown.done):.1%} (nominal MPPI at the same target {_in_view(flown.at_target):.1%})",
@@ -663,11 +630,6 @@ def aggressive_paired_gain(root: Path) -> Row:
                f"{_loop(race.estimator, race.record())}, AlphaPilot, camera tilted {race.camera_tilt_deg:g} deg, "
                f"{len(flown.laps)} laps, {_seeds(race.seed, len(flown.laps))}",
                _tables_measured(root, path), path, per_tick(root / path))
-
-
-ONBOARD_PACE = RESULTS / "onboard_16ms_pace_2760"
-# each controller's races in the folder (a `pixelmpc race` each, named for its folder), flown on consecutive seeds
-ONBOARD_PACE_RACES = {"mppi": ("nominal",), "pixelmpc": ("best_2760", "best_2780")}
 
 
 def _onboard_pace_races(root: Path, folder: Path, races: dict[str, tuple[str, ...]]) -> tuple[dict, dict]:
@@ -699,47 +661,42 @@ def _onboard_pace_races(root: Path, folder: Path, races: dict[str, tuple[str, ..
     return records, laps
 
 
-def onboard_pace(folder: Path = ONBOARD_PACE,
-                 races: dict[str, tuple[str, ...]] = ONBOARD_PACE_RACES) -> Callable[[Path], Row]:
+def onboard_pace(root: Path, entry: dict) -> Row:
     """A row of laps finished at the paper's 16 m/s label's pace on the onboard loop, nominal MPPI -> `best`: the
-    `pixelmpc race --loop onboard` runs ``races`` of ``folder`` (the metrics.json of a folder named for each, a
-    controller's races on consecutive seeds), every lap checked against the per-tick record."""
-
-    def row(root: Path) -> Row:
-        records, laps = _onboard_pace_races(root, folder, races)
-        finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
-        intervals = [wilson_interval(finished[name], len(laps[name])) for name in races]
-        failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
-                             for cause, count in sorted(failure_counts(laps["mppi"]).items(), key=str))
-        done = [lap["lap_time_s"] for lap in laps["pixelmpc"] if lap["success"]]
-        race = records["pixelmpc"]
-        speed = race["speed"]
-        label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
-        return Row(f"At the paper's {label:g} m/s label's pace on the onboard loop: laps finished, nominal MPPI -> "
-                   f"PixelMPC ({flown_preset(race)})",
-                   f"{_share(finished['mppi'], len(laps['mppi']))} -> "
-                   f"**{_share(finished['pixelmpc'], len(laps['pixelmpc']))}** "
-                   f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
-                   f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
-                   f"failures: {failures or 'none'}",
-                   "not measured (particle filter only)",
-                   f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, "
-                   f"{len(laps['pixelmpc'])} laps a controller, {_seeds(race['seed'], len(laps['pixelmpc']))}",
-                   _tables_measured(root, folder), folder, per_tick(root / folder))
-
-    return row
+    `pixelmpc race --loop onboard` runs of the entry's folder, its ``races`` (each controller's, by the folder of its
+    metrics.json, a controller's races on consecutive seeds), every lap checked against the per-tick record."""
+    folder, races = Path(entry["folder"]), {name: tuple(names) for name, names in entry["races"].items()}
+    records, laps = _onboard_pace_races(root, folder, races)
+    finished = {name: sum(bool(lap["success"]) for lap in race_laps) for name, race_laps in laps.items()}
+    intervals = [wilson_interval(finished[name], len(laps[name])) for name in races]
+    failures = ", ".join(f"{(cause or 'flying').replace('_', ' ')} {count}"
+                         for cause, count in sorted(failure_counts(laps["mppi"]).items(), key=str))
+    done = [lap["lap_time_s"] for lap in laps["pixelmpc"] if lap["success"]]
+    race = records["pixelmpc"]
+    speed = race["speed"]
+    label = next(label for label, pace in PAPER_PACE_SPEEDS.items() if math.isclose(pace, speed))
+    return Row(entry["claim"].format(label=label, controller=flown_preset(race)),
+               f"{_share(finished['mppi'], len(laps['mppi']))} -> "
+               f"**{_share(finished['pixelmpc'], len(laps['pixelmpc']))}** "
+               f"[{intervals[0][0]:.0%}, {intervals[0][1]:.0%}] -> [{intervals[1][0]:.0%}, {intervals[1][1]:.0%}]",
+               f"its worst lap {max(done) / statistics.median(done) - 1:+.1%} over its median; nominal's "
+               f"failures: {failures or 'none'}",
+               "not measured (particle filter only)",
+               f"{_loop(race['estimator'], race)}, the surveyed map, AlphaPilot, {speed:g} m/s, "
+               f"{len(laps['pixelmpc'])} laps a controller, {_seeds(race['seed'], len(laps['pixelmpc']))}",
+               _tables_measured(root, folder), folder, per_tick(root / folder))
 
 
-def real_time(root: Path) -> Row:
-    """The PixelMPC step and the closed-loop tick on two CPU cores, beside the paper's Table I row on a GPU."""
-    path = BENCHMARKS / "cpu-amd-epyc-2core"
+def real_time(root: Path, entry: dict) -> Row:
+    """The PixelMPC step and the closed-loop tick on two CPU cores (a harness report of ``benchmarks/results/``),
+    beside the paper's Table I row on a GPU."""
+    path = Path(entry["folder"])
     bench = _json(root / path / "bench.json")
     summary = bench["summary"]
     step = next(r for r in bench["rows"] if r["group"] == "controller" and r["name"].startswith("PixelMPC step (DOF")
                 and r.get("rollout") == "batched" and r.get("sample_devices") == bench["device"]["num_devices"])
     mean, two_sigma, most = PAPER["step_ms"]
-    return Row(f"Real time: the PixelMPC step ({summary['num_samples']} samples x {summary['horizon']} steps), "
-               "median",
+    return Row(entry["claim"].format(samples=summary["num_samples"], horizon=summary["horizon"]),
                f"**{summary['pixelmpc_step_median_ms']:.2f}** ms; the closed-loop tick "
                f"{summary['loop_tick_median_ms']:.2f} ms, {summary['loop_real_time_factor']:.2f}x real time",
                f"p95 {step['p95_ms']:.2f} ms, slowest {step['max_ms']:.2f} ms of {step['repeats']}",
@@ -748,60 +705,46 @@ def real_time(root: Path) -> Row:
                f"{device_name(bench['device'])}, {stated_date(root / path / 'README.md')}", path, "n/a")
 
 
-ROWS = (
-    visibility_at_same_lap_time("best_validation_2200"),
-    frontier_gain("best_validation_2200", "PixelMPC ({controller}) against nominal MPPI flown slower: frontier gain, "
-                  "nominal's avoidable low-visibility time at the same lap time over ours"),
-    courses_gain("best_courses_2500", "The same ({controller}) on three generated courses, made after the preset was "
-                 "chosen: paired gain on each"),
-    onboard_gain,
-    pace_paired_gain,
-    aggressive_paired_gain,
-    paper_main_cell,
-    table_iv_filter,
-    table_iv_eskf,
-    onboard_pace(),
-    nominal_lap,
-    dof_accuracy,
-    real_time,
-)
+# what reads each kind of row the index lists (``experiments/results/index.json``, ``readme``)
+KINDS: dict[str, Callable[[Path, dict], Row]] = {
+    "visibility_at_same_lap_time": visibility_at_same_lap_time, "frontier_gain": frontier_gain,
+    "courses_gain": courses_gain, "pace_paired_gain": pace_paired_gain,
+    "aggressive_paired_gain": aggressive_paired_gain,
+    "paper_main_cell": paper_main_cell, "table_iv_filter": table_iv_filter, "table_iv_eskf": table_iv_eskf,
+    "onboard_pace": onboard_pace, "nominal_lap": nominal_lap, "dof_accuracy": dof_accuracy, "real_time": real_time,
+}
 
 
 def _cell(text: str) -> str:
     return text.replace("|", "\\|")
 
 
+def row(root: Path, entry: dict) -> Row:
+    """The row of one entry of the index's ``readme`` list (its ``kind``, ``folder``, ``claim`` and what its kind
+    reads besides), read from the checkout ``root``."""
+    if entry["kind"] not in KINDS:
+        raise ValueError(f"{entry['folder']}: no row of kind {entry['kind']!r} (kinds: {', '.join(sorted(KINDS))})")
+    return KINDS[entry["kind"]](Path(root), entry)
+
+
 def table(root: Path) -> str:
-    """The results table (Markdown) from the result folders under the checkout ``root``."""
+    """The results table (Markdown) from the rows the index lists (:func:`~experiments.reporting.index.load`), read
+    from the result folders under the checkout ``root``."""
     root = Path(root)
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    for make in ROWS:
-        row = make(root)
-        link = f"[{row.folder.name}]({row.folder.as_posix()}/)"
-        lines.append("| " + " | ".join(_cell(v) for v in (*row[:6], link, row.per_tick)) + " |")
+    for entry in index.load(root)["readme"]:
+        row_ = row(root, entry)
+        link = f"[{row_.folder.name}]({row_.folder.as_posix()}/)"
+        lines.append("| " + " | ".join(_cell(v) for v in (*row_[:6], link, row_.per_tick)) + " |")
     return "\n".join(lines)
-
-
-def check_markers(text: str) -> None:
-    """A ValueError unless ``text`` holds one :data:`BEGIN` ... :data:`END` block."""
-    if text.count(BEGIN) != 1 or text.count(END) != 1 or text.index(BEGIN) > text.index(END):
-        raise ValueError(f"the README must hold one {BEGIN} ... {END} block")
-
-
-def replace_block(text: str, block: str) -> str:
-    """``text`` with what lies between :data:`BEGIN` and :data:`END` replaced by ``block``."""
-    check_markers(text)
-    head, rest = text.split(BEGIN)
-    _, tail = rest.split(END)
-    return f"{head}{BEGIN}\n{block}\n{END}{tail}"
 
 
 def rewrite_readme(root: Path, check: bool = False) -> tuple[str, str]:
     """(the README as it is, as the table makes it); the README is rewritten unless ``check`` (or it is current)."""
     readme = Path(root) / "README.md"
     old = readme.read_text()
-    check_markers(old)  # refused before the table's seconds of reading
-    new = replace_block(old, table(root))
+    splice.check_markers(old, BEGIN, END, "README.md")  # refused before the table's seconds of reading
+    new = splice.replace_block(old, table(root), BEGIN, END)
     if new != old and not check:
         readme.write_text(new)
     return old, new

@@ -12,6 +12,7 @@ from pixelmpc_jax.apps.experiments.reproduce import SEED
 from pixelmpc_jax.apps.racing.presets import LOOPS
 from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
 from pixelmpc_jax.arguments import SEED_MAX
+from pixelmpc_jax.control.pixelmpc import T_F_RANGE
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
 # the best preset beside its target's pixel from the detector for a gate cut by the image border, or none (nominal
@@ -312,8 +313,8 @@ def _add_speed_probe(jobs) -> None:
                    help="the pixel models of the PixelMPC cells (default projection dof)")
     p.add_argument("--c-pixel", type=arg.float_in(0.0, 1e30, lo_open=True), nargs="+", default=[9e6],
                    help="pixel cost weights, in (0, 1e30] (default 9e6)")
-    p.add_argument("--t-f", type=arg.float_in(0.0, arg.T_F_MAX_S, lo_open=True, unit="s"), default=1.0,
-                   help=f"seconds of the horizon with the pixel cost, in (0, {arg.T_F_MAX_S:g}] (default 1)")
+    p.add_argument("--t-f", type=arg.float_in(0.0, T_F_RANGE.hi, lo_open=True, unit="s"), default=1.0,
+                   help=f"seconds of the horizon with the pixel cost, in (0, {T_F_RANGE.hi:g}] (default 1)")
     p.add_argument("--dof-weights", type=arg.weights_file, default=None,
                    help="DOF weights file for the dof cells (default: the shipped weights)")
     p.add_argument("--out", type=arg.writable_dir, default=Path("runs/visibility_probe"), help="output directory")

@@ -1,11 +1,15 @@
-"""``pixelmpc report``: the README's results table rebuilt from the committed result folders
-(:mod:`~pixelmpc_jax.apps.readme_table`), the package's copy of nominal MPPI's committed frontier rebuilt from its
-folder (:mod:`~pixelmpc_jax.apps.racing.nominal_frontier`), and a folder's compact per-tick record
-(:mod:`~pixelmpc_jax.sim.ticks_compact`) written from its full ones."""
+"""``pixelmpc report``: the README's results table and ``docs/results.md``'s list of folders rebuilt from the results
+index and the committed result folders, the package's copy of nominal MPPI's committed frontier rebuilt from its
+folder, and a folder's compact per-tick record (:mod:`~pixelmpc_jax.sim.ticks_compact`) written from its full ones.
+
+The first two read a checkout's ``experiments/results/`` through the repository's reporting tools,
+``experiments/reporting/`` in the checkout (not part of the installed library, which never reads the results): the
+command imports them from the checkout it is given and refuses in one line where there is none."""
 
 from __future__ import annotations
 
 import difflib
+import importlib
 import sys
 from pathlib import Path
 
@@ -21,7 +25,8 @@ def add_report(sub) -> None:
                                       "per-tick record (--compact DIR)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--readme", action="store_true",
-                      help="rewrite the README's results table (between its results:begin/end markers)")
+                      help="rewrite the README's results table and docs/results.md's list of folders (between their "
+                           "markers) from experiments/results/index.json")
     what.add_argument("--frontier-data", action="store_true",
                       help="rewrite pixelmpc_jax/data/nominal_frontier.json, nominal MPPI's frontier that `pixelmpc "
                            "race` holds PixelMPC's lap time against, from its committed folder")
@@ -51,14 +56,29 @@ def _cmd_report(args) -> int:
             f"{name} ({len(race['num_ticks'])} laps)" for name, race in races.items()))
         return 0
     if args.frontier_data:
-        from pixelmpc_jax.apps.racing import nominal_frontier
+        frontier_data = reporting(args.root, "frontier_data")
+        old, new = frontier_data.rewrite(args.root, check=args.check)
+        return _reported(old or "", new, frontier_data.IN_PACKAGE.as_posix(), "--frontier-data", args.check)
+    index, readme_table = reporting(args.root, "index"), reporting(args.root, "readme_table")
+    readme = _reported(*readme_table.rewrite_readme(args.root, check=args.check), "README.md", "--readme", args.check)
+    results = _reported(*index.rewrite_results_doc(args.root, check=args.check), index.RESULTS_DOC.as_posix(),
+                        "--readme", args.check)
+    return max(readme, results)
 
-        old, new = nominal_frontier.rewrite(args.root, check=args.check)
-        return _reported(old or "", new, nominal_frontier.IN_PACKAGE.as_posix(), "--frontier-data", args.check)
-    from pixelmpc_jax.apps import readme_table
 
-    old, new = readme_table.rewrite_readme(args.root, check=args.check)
-    return _reported(old, new, "README.md", "--readme", args.check)
+TOOLS = Path("experiments/reporting")
+
+
+def reporting(root: Path, module: str):
+    """The module ``module`` of the reporting tools of the checkout ``root`` (``experiments/reporting/``), imported
+    from there; a ValueError in one line when ``root`` holds none (the tools are not installed with the package)."""
+    if not (Path(root) / TOOLS / "__init__.py").is_file():
+        raise ValueError(f"pixelmpc report reads a checkout's results with its tools in {TOOLS.as_posix()}/, and "
+                         f"{Path(root).resolve()} holds none (run it from a checkout, or name one with --root)")
+    checkout = str(Path(root).resolve())
+    if checkout not in sys.path:
+        sys.path.insert(0, checkout)
+    return importlib.import_module(f"experiments.reporting.{module}")
 
 
 def _reported(old: str, new: str, name: str, flag: str, check: bool) -> int:

@@ -38,18 +38,17 @@ from pixelmpc_jax.apps.experiments import skeleton
 from pixelmpc_jax.apps.experiments.gains import AVOIDABLE_FLOOR_S, BOOTSTRAP_DRAWS, BOOTSTRAP_LEVEL
 from pixelmpc_jax.apps.experiments.skeleton import Experiment
 from pixelmpc_jax.apps.racing import grid
+from pixelmpc_jax.apps.racing.frontier_curve import SAME_LAP_TIME_FIGURES, curve, interpolate, summarise
 from pixelmpc_jax.apps.racing.presets import with_loop
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
-from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES, lap_tail, tail_columns
+from pixelmpc_jax.sim.metrics import LOSS_CAUSES, PHASES, tail_columns
 from pixelmpc_jax.strict_json import json_safe
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 
 PAPER_LAP_TIME_S = 31.8  # the paper's nominal lap at its "14 m/s" label: its pace
 # 42.5 s .. 21.9 s laps: brackets the cells slowed to ~40 s at the pace and the 14 m/s label's cells (22-26 s); 8.5
 # and 9.1 m/s are the paper's 14 and 16 m/s paces (presets.PAPER_PACE_SPEEDS), so the tables' nominal cells are here
-# nominal MPPI's figures interpolated at each cell's lap time, beside the gain
-SAME_LAP_TIME_FIGURES = ("vis_below_50_s", "share_target_in_view", "mean_target_angle_deg")
 DEFAULT_SPEEDS = (6.0, 7.0, 8.0, 8.5, 9.1, 10.0, 12.0, 14.0)
 QUICK_SPEEDS = (6.0, 8.0, 8.5, 10.0)  # 42.5 s .. 27 s: brackets the paper's pace and slowed cells to ~40 s
 
@@ -140,51 +139,6 @@ def quick_spec() -> FrontierSpec:
 
 def nominal_cell(speed: float, max_time_s: float = LAP_TIME_LIMIT_S) -> grid.Cell:
     return grid.Cell(f"nominal_{speed:g}", RaceSpec("mppi", speed=float(speed), max_time_s=max_time_s))
-
-
-def _stats(values: list[float]) -> tuple[float | None, float | None]:
-    if not values:
-        return None, None
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), float(2 * arr.std())
-
-
-def summarise(result: dict) -> dict:
-    """Means (and two sigma) over the completed laps of one cell's race results."""
-    laps = result.get("laps", [])
-    done = [lap for lap in laps if lap.get("success") and lap.get("lap_time_s") is not None]
-    lap_time, lap_sigma = _stats([lap["lap_time_s"] for lap in done])
-    avoidable, avoidable_sigma = _stats([lap["time_vis_avoidable_s"] for lap in done
-                                         if lap.get("time_vis_avoidable_s") is not None])
-    vis, _ = _stats([lap["time_vis_below_50_s"] for lap in done if lap.get("time_vis_below_50_s") is not None])
-    in_view, _ = _stats([lap["share_target_in_view"] for lap in done if lap.get("share_target_in_view") is not None])
-    angle, _ = _stats([lap["mean_target_angle_deg"] for lap in done if lap.get("mean_target_angle_deg") is not None])
-    causes = {}
-    for cause in LOSS_CAUSES:
-        key = f"time_vis_below_50_{cause}_s"
-        causes[cause] = _stats([lap[key] for lap in done if lap.get(key) is not None])[0]
-    phases = {phase: _stats([lap[f"time_vis_avoidable_{phase}_s"] for lap in done
-                             if lap.get(f"time_vis_avoidable_{phase}_s") is not None])[0] for phase in PHASES}
-    return {"lap_time_s": lap_time, "lap_time_two_sigma_s": lap_sigma, "avoidable_s": avoidable,
-            "avoidable_two_sigma_s": avoidable_sigma, "vis_below_50_s": vis, "share_target_in_view": in_view,
-            "mean_target_angle_deg": angle,
-            "success_rate": len(done) / len(laps) if laps else None, "laps": len(laps), "laps_completed": len(done),
-            "all_laps_completed": bool(laps) and len(done) == len(laps), "causes": causes,
-            "phases": phases, "tail": lap_tail(laps)}
-
-
-def _curve(nominal: list[dict], y: str) -> tuple[np.ndarray, np.ndarray]:
-    points = sorted((p["lap_time_s"], p[y]) for p in nominal if p["lap_time_s"] is not None and p[y] is not None)
-    return np.asarray([p[0] for p in points]), np.asarray([p[1] for p in points])
-
-
-def interpolate(nominal: list[dict], lap_time: float | None, y: str = "avoidable_s") -> float | None:
-    """The nominal curve's ``y`` at ``lap_time`` (linear between the points sorted by lap time); None when the
-    lap time lies outside the nominal lap times (no extrapolation) or is None."""
-    xs, ys = _curve(nominal, y)
-    if lap_time is None or len(xs) == 0 or not xs[0] <= lap_time <= xs[-1]:
-        return None
-    return float(np.interp(lap_time, xs, ys))
 
 
 def suggest_speed(nominal: list[dict], lap_time: float) -> float | None:
@@ -493,7 +447,7 @@ def plot(frontier: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 5))
-    xs, ys = _curve(frontier["nominal"], "avoidable_s")
+    xs, ys = curve(frontier["nominal"], "avoidable_s")
     if len(xs):
         ax.plot(xs, ys, "k-s", ms=5, label="nominal MPPI (flying slower)")
         ax.plot(xs, ys / 1.5, "k--", lw=1, label="frontier / 1.5")

@@ -159,7 +159,7 @@ def _relink(markdown: str, folder: str) -> str:
 
 def _overview(out: Path) -> list[str]:
     """The presets, and the paper's pace as the frontier measured it: our nominal laps beside the paper's."""
-    from pixelmpc_jax.apps.experiments.frontier import interpolate
+    from pixelmpc_jax.apps.racing.frontier_curve import interpolate
     from pixelmpc_jax.apps.racing.presets import PAPER_NOMINAL_LAP_S, PAPER_PACE_SPEEDS, WHY
 
     lines = ["The presets: " + "; ".join(f"`{name}`: {why}" for name, why in WHY.items()) + ".", "",

@@ -2,14 +2,14 @@
 loses at PixelMPC's lap time on it: what the main job shows beside its table.
 
 The race flies both controllers at the same target speed, where nominal MPPI flies the faster lap, so the table alone
-compares laps of different lengths. The frontier (:mod:`~pixelmpc_jax.apps.experiments.frontier`) holds nominal MPPI
-at several target speeds; joined by lap time, it gives nominal MPPI's avoidable time below 50 % and share of time in
-view at PixelMPC's lap time (:func:`~pixelmpc_jax.apps.experiments.frontier.interpolate`, never extrapolated).
+compares laps of different lengths. A frontier holds nominal MPPI at several target speeds; joined by lap time, it
+gives nominal MPPI's avoidable time below 50 % and share of time in view at PixelMPC's lap time
+(:func:`~pixelmpc_jax.apps.racing.frontier_curve.interpolate`, never extrapolated).
 
-A plain ``pip install`` ships no ``experiments/``, so nominal MPPI's points of one committed frontier folder
-(:data:`SOURCE`) travel in ``pixelmpc_jax/data/nominal_frontier.json`` (:data:`FILE`), with the folder's name, the
-race settings its points were flown with, the measure, the device and the date as the folder records them.
-:func:`build` makes it from the folder, ``pixelmpc report --frontier-data`` rewrites it (:func:`rewrite`) and a
+A plain ``pip install`` ships no ``experiments/``, so nominal MPPI's points of one committed frontier folder travel
+in ``pixelmpc_jax/data/nominal_frontier.json`` (:data:`FILE`), with the folder's name, the race settings its points
+were flown with, the measure, the device and the date as the folder records them. The package only reads the file:
+``pixelmpc report --frontier-data`` rebuilds it from the folder in a checkout (``experiments/reporting/``), and a
 test fails when it differs from what the folder gives.
 
 A race is held against the frontier only where the frontier says something about it (:func:`why_not_comparable`):
@@ -21,68 +21,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pixelmpc_jax.apps.experiments import frontier as frontier_lib
+from pixelmpc_jax.apps.racing import frontier_curve
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.apps.readme_table import RESULTS, device_name
-from pixelmpc_jax.strict_json import dumps, write_atomic
 from pixelmpc_jax.world.course import course_title
 
-SOURCE = RESULTS / "best_heldout_700"  # nominal MPPI at 7-10 m/s on the held-out seeds 700-709, 10 laps a speed
-IN_PACKAGE = Path("pixelmpc_jax/data/nominal_frontier.json")  # where the file lies in a checkout
 FILE = Path(__file__).resolve().parents[2] / "data" / "nominal_frontier.json"  # the package's copy, read by a race
-# each nominal point's fields the file keeps: its name and speed, how many laps it finished, and the figures read at
-# a lap time (means over the completed laps, :func:`~pixelmpc_jax.apps.experiments.frontier.summarise`)
-FIGURES = ("avoidable_s", *frontier_lib.SAME_LAP_TIME_FIGURES)
-POINT_FIELDS = ("name", "speed", "laps", "laps_completed", "lap_time_s", *FIGURES)
-MADE_BY = "pixelmpc report --frontier-data, from the source folder's frontier.json and results.json"
+# the figures of each nominal point the file keeps that are read at a lap time (means over the completed laps,
+# :func:`~pixelmpc_jax.apps.racing.frontier_curve.summarise`)
+FIGURES = ("avoidable_s", *frontier_curve.SAME_LAP_TIME_FIGURES)
 # the race settings that decide whether the frontier's nominal MPPI flew the race's world, seen the race's way
 WORLD = ("course", "estimator", "perturb", "camera_tilt_deg", "faults")
-
-
-def _world(race: RaceSpec) -> dict:
-    """The :data:`WORLD` settings of a race, as the file records them (the faults that are on, each at its value)."""
-    return {"course": race.course, "estimator": race.estimator, "perturb": race.perturb,
-            "camera_tilt_deg": race.camera_tilt_deg,
-            "faults": {name: getattr(race.faults, name) for name in race.faults.active()}}
-
-
-def build(root: Path, folder: Path = SOURCE) -> dict:
-    """The shipped frontier made from a frontier folder of the checkout ``root`` (its ``frontier.json`` and
-    ``results.json``): ``source``, ``made_by``, the :data:`WORLD` settings of its nominal races, ``measure``,
-    ``device``, ``date``, ``laps`` (a speed), ``seeds`` (first, last) and nominal MPPI's ``points``
-    (:data:`POINT_FIELDS`, in order of speed). A ValueError when its nominal points were not all flown in one world
-    under one measure."""
-    record = json.loads((Path(root) / folder / "frontier.json").read_text())
-    results = json.loads((Path(root) / folder / "results.json").read_text())
-    flown = [results[point["name"]] for point in record["nominal"]]
-    races = [RaceSpec.from_record({k: v for k, v in r["config"].items() if k != "name"}) for r in flown]
-    worlds = [_world(race) for race in races]
-    measures = {r["measure"] for r in flown}
-    if not flown or any(race.controller != "mppi" for race in races) or len(measures) != 1 or any(
-            world != worlds[0] for world in worlds):
-        raise ValueError(f"{folder}: its nominal points must be nominal MPPI's, flown in one world under one measure "
-                         f"(measures {sorted(measures)}, worlds {worlds})")
-    measured = record["measured"]
-    points = sorted(({field: point[field] for field in POINT_FIELDS} for point in record["nominal"]),
-                    key=lambda point: point["speed"])
-    return {"source": folder.as_posix(), "made_by": MADE_BY, **worlds[0], "measure": measures.pop(),
-            "device": device_name(measured["device"]), "date": measured["written"][:10], "laps": measured["laps"],
-            "seeds": measured["seeds"], "points": points}
-
-
-def _text(data: dict) -> str:
-    return dumps(data, indent=2) + "\n"
-
-
-def rewrite(root: Path, check: bool = False) -> tuple[str | None, str]:
-    """(the checkout's shipped frontier file as it is, None when there is none; as :func:`build` makes it from the
-    checkout ``root``); the file is rewritten unless ``check`` (or it is current)."""
-    path = Path(root) / IN_PACKAGE
-    old = path.read_text() if path.is_file() else None
-    new = _text(build(root))
-    if new != old and not check:
-        write_atomic(path, lambda f: f.write(new.encode()))
-    return old, new
 
 
 def load() -> dict:
@@ -146,11 +94,11 @@ def held_against(race: dict, pixelmpc: dict | None, frontier: dict | None = None
     why = why_not_comparable(race, pixelmpc.get("measure"), frontier)
     if why is not None:
         return {**entry, "why": why}
-    here = frontier_lib.summarise(pixelmpc)
+    here = frontier_curve.summarise(pixelmpc)
     lap_time = here["lap_time_s"]
     if lap_time is None:
         return {**entry, "why": "PixelMPC completed no lap"}
-    nominal = {figure: frontier_lib.interpolate(frontier["points"], lap_time, figure) for figure in FIGURES}
+    nominal = {figure: frontier_curve.interpolate(frontier["points"], lap_time, figure) for figure in FIGURES}
     if nominal["avoidable_s"] is None:
         times = [point["lap_time_s"] for point in frontier["points"]]
         return {**entry, "why": f"PixelMPC's lap time, {lap_time:.2f} s, lies outside the committed frontier's lap "

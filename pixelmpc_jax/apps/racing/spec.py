@@ -17,7 +17,6 @@ spec.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import json
@@ -37,34 +36,6 @@ from pixelmpc_jax.sim.faults import Faults
 from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
 
-# Settings added after races were recorded: left out of the record while at their defaults, so every race flown
-# before them keeps its record and its key (a record that lacks them reads back as the defaults).
-LATER_SETTINGS = (("faults",), ("guards",), ("config", "model_latency_ticks"),
-                  ("config", "disturbance_time_constant_s"), ("config", "target_prior"), ("config", "look_ahead"),
-                  ("camera_tilt_deg",), ("config", "look_ahead_model"), ("eskf",),
-                  ("config", "partial_target"), ("config", "look_ahead_from"))
-# Settings taken out of the configuration after races were recorded, with the one value every race was recorded
-# with: how a step ran, not what it computed (now :class:`~pixelmpc_jax.devices.Execution`). A record that holds one
-# at that value reads back without it, and the key hashes it at that value, so every race flown before keeps its
-# record and its key.
-RETIRED_SETTINGS = ((("config", "mppi", "sample_devices"), 1), (("config", "mppi", "cpu_matmul"), "auto"))
-# Settings added with a default that differs from what every race before them flew, with that earlier value: where
-# the setting flies something (:meth:`RaceSpec.flies`), a record leaves it out at the earlier value and a record
-# without it reads back at the earlier value, so every race flown before keeps its record and its key; where it flies
-# nothing it keeps its default and stays out of the record.
-EARLIER_VALUES = {"map": "known", "gate_switch": "truth"}
-# Nested settings whose defaults changed after races were recorded, with the settings every race before flew: on a
-# loop that flies them (:meth:`RaceSpec.flies`), a record leaves them out when they hold those earlier settings and
-# writes them whole otherwise (so every race flown before keeps its record and its key), and a record without them,
-# or without one of their fields, reads back at the earlier settings. The ESKF took the map as exact until a surveyed
-# map's accuracy became its default (``ESKFConfig.map_sigma_m``).
-EARLIER_SETTINGS = {"eskf": ESKFConfig(map_sigma_m=0.0)}
-# Values renamed after races were recorded: a record's old spelling reads back as the new name, and the key hashes the
-# new name as the old spelling, so every race flown before keeps its key. "geometry" was the ideal projection until
-# the clipped detector became the default.
-RENAMED_VALUES = {"detector": {"geometry": "ideal"}}
-# Settings every record holds, with the value the races of versions that recorded fewer settings flew.
-UNRECORDED_BEFORE = {"detector": "ideal"}
 MAPS = ("surveyed", "known")
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
 
@@ -106,7 +77,8 @@ class RaceSpec:
         camera_tilt_deg: the onboard camera's upward tilt on its mount, deg (0: the paper's), in
             [0, :data:`CAMERA_TILT_MAX_DEG`]; the detector, the controller and the visibility measure all see through
             it. The packaged learned pixel models were trained for the untilted camera, so a tilted race flies the
-            projection pixel model, nominal MPPI, or weights trained for the tilt.
+            projection pixel model, nominal MPPI, or weights trained for the tilt (refused where a learned model is
+            flown: :meth:`check_weights`).
         map: with ``perturb``, what the controller and the filter read: "surveyed", the nominal course, while the
             world flies the perturbed gates; or "known", the perturbed course itself (a perturbed course perfectly
             known, as every perturbed race flew before the setting). Without ``perturb`` the map is the course:
@@ -169,22 +141,17 @@ class RaceSpec:
             object.__setattr__(self, "guards", GuardConfig())
         if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
             object.__setattr__(self, "eskf", ESKFConfig())
-        for name in EARLIER_VALUES:  # the map flies nothing on an unperturbed course, the switch on the true state
+        for name in ("map", "gate_switch"):  # the map flies nothing on an unperturbed course, the switch on the truth
             if not self.flies(name):
                 object.__setattr__(self, name, RaceSpec.__dataclass_fields__[name].default)
-        if self.camera_tilt_deg and self.uses_dof and (self.dof_weights is None
-                                                       or self.dof_weights in dof.PACKAGED_VARIANTS):
-            raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
-                             f"with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection pixel model or "
-                             f"weights trained for that camera")
         packaged_dof_name = self.dof_weights in dof.PACKAGED_VARIANTS
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
 
     def flies(self, name: str) -> bool:
-        """Whether the setting ``name`` of :data:`EARLIER_VALUES` or :data:`EARLIER_SETTINGS` changes a lap: the map
-        with ``perturb``, the gate switch on a filter, the Kalman filter's settings on the Kalman filter."""
-        return _flies(name, self.perturb, self.estimator)
+        """Whether the setting ``name`` ("map" or "gate_switch") changes a lap: the map with ``perturb``, the gate
+        switch on a filter."""
+        return bool(self.perturb) if name == "map" else self.estimator != "truth"
 
     def episode_config(self) -> EpisodeConfig:
         """The environment and driver the race's laps fly in (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`)."""
@@ -201,25 +168,9 @@ class RaceSpec:
         return dataclasses.replace(self, **changes)
 
     def record(self) -> dict:
-        """The spec in JSON types: its fields, the configuration nested as its dataclasses (tuples as lists once
-        written), less the :data:`LATER_SETTINGS` at their defaults (the :data:`EARLIER_SETTINGS` at their earlier
-        ones where they fly) and the :data:`EARLIER_VALUES` where they fly nothing or hold their earlier value.
-        :meth:`from_record` reads it back."""
-        record = dataclasses.asdict(self)
-        for name, earlier in EARLIER_VALUES.items():
-            if not self.flies(name) or record[name] == earlier:
-                del record[name]
-        default = dataclasses.asdict(RaceSpec())
-        for name, earlier in EARLIER_SETTINGS.items():  # where they fly, they are left out at the earlier settings
-            if self.flies(name):
-                default[name] = dataclasses.asdict(earlier)
-        for *parents, name in LATER_SETTINGS:
-            node, default_node = record, default
-            for parent in parents:
-                node, default_node = node[parent], default_node[parent]
-            if node[name] == default_node[name]:
-                del node[name]
-        return record
+        """The spec in JSON types, every setting written: its fields, the configuration nested as its dataclasses
+        (tuples as lists once written). :meth:`from_record` reads it back."""
+        return dataclasses.asdict(self)
 
     def with_fields(self, fields: dict) -> RaceSpec:
         """The spec with each field of ``fields`` set: ``{dotted path: value}``, the path as :meth:`record` nests it
@@ -238,24 +189,8 @@ class RaceSpec:
     @classmethod
     def from_record(cls, record: dict) -> RaceSpec:
         """The spec a :meth:`record` describes (read back from JSON). A setting the record lacks takes its
-        default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``; a
-        :data:`RETIRED_SETTINGS` at its one value is dropped, a :data:`RENAMED_VALUES` spelling reads as its new name,
-        a record of a version that recorded fewer settings flew :data:`UNRECORDED_BEFORE`, and an
-        :data:`EARLIER_VALUES` setting the record lacks reads back at its earlier value where it flies, as do the
-        :data:`EARLIER_SETTINGS` it lacks or holds in part."""
-        record = _without_retired(record)
-        if isinstance(record, dict):
-            record = {**UNRECORDED_BEFORE, **record}
-            for name, renamed in RENAMED_VALUES.items():
-                if isinstance(record[name], str) and record[name] in renamed:
-                    record[name] = renamed[record[name]]
-            for name in EARLIER_SETTINGS:
-                if (_flies(name, record.get("perturb", False), record.get("estimator", "truth"))
-                        and isinstance(record.get(name, {}), dict)):  # anything else is refused by name below
-                    record[name] = dataclasses.asdict(flown_setting(record, name))
-        spec = _from_record(cls(), record, "")
-        earlier = {name: value for name, value in EARLIER_VALUES.items() if name not in record and spec.flies(name)}
-        return spec.replace(**earlier) if earlier else spec
+        default; an unknown one is a ValueError naming it, e.g. ``config.mppi.temprature``."""
+        return _from_record(cls(), record, "")
 
     def changed_settings(self) -> dict:
         """The controller settings that differ from the defaults, as ``{dotted name: value}`` (for reports)."""
@@ -293,14 +228,6 @@ class RaceSpec:
         record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
         if self.controller == "mppi" and self.estimator == "truth" and self.detector == "clipped":
             record["detector"] = "ideal"  # no detection reaches nominal MPPI on the true state: the same laps
-        for name, renamed in RENAMED_VALUES.items():  # a renamed value hashed under its old spelling
-            old = {new: spelling for spelling, new in renamed.items()}
-            record[name] = old.get(record[name], record[name])
-        for (*parents, name), value in RETIRED_SETTINGS:  # hashed as every race before their retirement was
-            node = record
-            for parent in parents:
-                node = node[parent]
-            node[name] = value
         text = json.dumps(_canonical(record), sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -319,9 +246,15 @@ class RaceSpec:
         return make_policy(self.controller, self.config, Execution(sample_devices=sample_devices))
 
     def check_weights(self, dof_params) -> None:
-        """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names."""
+        """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names, and
+        they suit its camera (the packaged ones were trained for the untilted camera). Where the race flies a learned
+        pixel model only: nominal MPPI, or PixelMPC with the projection, flies any camera tilt."""
         if not self.uses_dof:
             return
+        if self.camera_tilt_deg and (self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS):
+            raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
+                             f"with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection pixel model or "
+                             f"weights trained for that camera")
         if dof_params is None:
             if self.dof_weights is not None and (self.config.pixel_model == "vdof"
                                                  or self.dof_weights not in dof.PACKAGED_VARIANTS):
@@ -341,32 +274,6 @@ def _canonical(value):
     if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
         return float(value)
     return value
-
-
-def flown_setting(record: dict, name: str):
-    """The :data:`EARLIER_SETTINGS` ``name`` (its dataclass) that a race recorded in ``record`` flew, on a loop that
-    flies it: the fields the record holds, the earlier settings for those it lacks (all of them where it left the
-    setting out)."""
-    return _from_record(EARLIER_SETTINGS[name], record.get(name, {}), f"{name}.")
-
-
-def _flies(name: str, perturb: bool, estimator: str) -> bool:
-    """:meth:`RaceSpec.flies` from the race's ``perturb`` and ``estimator``."""
-    if name == "map":
-        return bool(perturb)
-    return estimator == "eskf" if name in EARLIER_SETTINGS else estimator != "truth"
-
-
-def _without_retired(record):
-    """``record`` without the :data:`RETIRED_SETTINGS` it holds at their one value (a copy; the rest as it is)."""
-    record = copy.deepcopy(record)
-    for (*parents, name), value in RETIRED_SETTINGS:
-        node = record
-        for parent in parents:
-            node = node.get(parent) if isinstance(node, dict) else None
-        if isinstance(node, dict) and name in node and node[name] == value:
-            del node[name]
-    return record
 
 
 def _from_record(default, record: dict, where: str):

@@ -8,6 +8,7 @@ import datetime
 from pathlib import Path
 
 from pixelmpc_jax.apps.experiments import frontier
+from pixelmpc_jax.apps.racing.frontier_curve import SAME_LAP_TIME_FIGURES
 from pixelmpc_jax.strict_json import json_safe, write_json_atomic
 
 FIGURES = ("score", "feasible", "gain", "lap_time_s", "lap_time_change", "avoidable_s", "vis_below_50_s",
@@ -180,7 +181,7 @@ def validation_record(built: dict, best, setup, results: dict, course: str | Non
                      "gain_interval": row["frontier_gain_interval"], "laps_completed": row["laps_completed"],
                      "laps": row["laps"], "lap_time_s": row["lap_time_s"], "lap_time_two_sigma_s":
                      row["lap_time_two_sigma_s"], "lap_time_change": change, "avoidable_s": row["avoidable_s"],
-                     **{key: row[key] for figure in frontier.SAME_LAP_TIME_FIGURES
+                     **{key: row[key] for figure in SAME_LAP_TIME_FIGURES
                         for key in (figure, f"frontier_{figure}")}})
     copied = {name: done["shared_from"] for name, done in results.items() if done.get("shared_from")}
     return json_safe({"rows": rows, "nominal": built["nominal"], "copied": copied, "setup": setup.record(),
