@@ -1,4 +1,5 @@
 import fcntl
+import logging
 import os
 import shutil
 import subprocess
@@ -134,9 +135,79 @@ def pytest_configure(config):
     from pixelmpc_jax.host import use_compilation_cache
 
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
+    _record_closed_loop_compilations()
     _run_computations_inline()
     if _fast_compilation():
         _render_batches_as_shipped()
+
+
+# The compiled closed-loop programs: :func:`pixelmpc_jax.sim.episode.episode_fn`'s episode, jitted alone or vmapped.
+CLOSED_LOOP_PROGRAM = "jit_closed_loop_episode"
+MAX_CLOSED_LOOP_PROGRAMS = 10  # what the suite may compile (tests/test_compilation_setup.py reads the summary)
+
+
+class _CompileLog(logging.Handler):
+    """Appends ``cache key <TAB> seconds`` to this process's file in the run's folder for every closed-loop program
+    it compiles, from JAX's compiler log (a persistent-cache miss names the key; the write that follows, the time)."""
+
+    def __init__(self, path: Path):
+        super().__init__(logging.DEBUG)
+        self.path, self.pending = path, {}
+
+    def emit(self, record):
+        args = record.args if isinstance(record.args, tuple) else ()
+        if not args or not str(args[0]).startswith(CLOSED_LOOP_PROGRAM):
+            return
+        thread = record.thread
+        if record.msg.startswith("PERSISTENT COMPILATION CACHE MISS"):
+            self.pending[thread] = args[1]
+        elif "seconds to compile" in record.msg and thread in self.pending:
+            with open(self.path, "a") as out:
+                out.write(f"{self.pending.pop(thread)}\t{float(args[-1]):.3f}\n")
+
+
+def _compile_log_dir() -> Path:
+    return Path(os.environ[RUN_CACHE]) / "closed_loop_compiles"
+
+
+def _record_closed_loop_compilations() -> None:
+    """Log every closed-loop program this test process compiles (:class:`_CompileLog`)."""
+    folder = _compile_log_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    logger = logging.getLogger("jax._src.compiler")
+    logger.setLevel(logging.DEBUG)
+    logger.addHandler(_CompileLog(folder / f"{os.getpid()}.tsv"))
+
+
+def closed_loop_compilations(cache_dir: Path, log_dir: Path) -> dict[str, float]:
+    """Every distinct closed-loop program the run compiled, ``{cache key: compile seconds}``: the run's compilation
+    cache holds each once, from a test process or a command the tests started (JAX records its compile time in
+    whole seconds there), and a test process's log holds its time to the millisecond."""
+    from jax._src import compilation_cache
+
+    programs = {}
+    for entry in sorted(cache_dir.glob(f"{CLOSED_LOOP_PROGRAM}-*-cache")):
+        data = compilation_cache.decompress_executable(entry.read_bytes())
+        programs[entry.name.removesuffix("-cache")] = float(compilation_cache.extract_executable_and_time(data)[1])
+    for log in sorted(log_dir.glob("*.tsv")):
+        for line in log.read_text().splitlines():
+            key, seconds = line.split("\t")
+            programs[key] = float(seconds)
+    return programs
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """The closed-loop programs the run compiled and their compile time (the run's first process, at the end)."""
+    if "new" not in _CACHE_HOME:
+        return
+    from pixelmpc_jax.host import compilation_cache_dir
+
+    programs = closed_loop_compilations(Path(compilation_cache_dir()), _compile_log_dir())
+    terminalreporter.write_sep("=", "closed-loop programs compiled")
+    terminalreporter.write_line(f"{len(programs)} distinct closed-loop programs (at most {MAX_CLOSED_LOOP_PROGRAMS}), "
+                                f"{sum(programs.values()):.1f} s of compilation in all")
+    for key, seconds in sorted(programs.items(), key=lambda item: -item[1]):
+        terminalreporter.write_line(f"  {seconds:7.2f} s  {key[:60]}")
 
 
 def made_once_per_run(name: str, make) -> Path:

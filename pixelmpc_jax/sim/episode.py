@@ -94,7 +94,9 @@ def _varying_with(key: jax.Array, tree):
 
 
 def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Callable:
-    """The pure episode ``run(world, key) -> EpisodeLog`` (jit and vmap it; see :func:`make_runner`)."""
+    """The pure episode ``closed_loop_episode(world, key) -> EpisodeLog`` (jit and vmap it; see :func:`make_runner`).
+    Its compiled programs are named for it (``jit_closed_loop_episode``), so a compilation cache or log tells them
+    apart from the rest."""
     env = env_lib.make_env(config)
     M = config.max_ticks
     P = config.logged_prediction_steps
@@ -141,7 +143,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             position_cov_trace=log.position_cov_trace.at[tick - 1].set(obs.position_cov_trace),
         )
 
-    def run(world: World, key: jax.Array) -> EpisodeLog:
+    def closed_loop_episode(world: World, key: jax.Array) -> EpisodeLog:
         key, key_policy, key_reset = jax.random.split(key, 3)
         sim = env.reset(world, key_reset)
         carry = _Carry(sim=sim, policy_state=policy.init(key_policy, world), key=key, log=empty_log(world, sim))
@@ -159,7 +161,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
         return final.log._replace(num_ticks=sim.tick, gates_passed=jnp.minimum(sim.target, world.track.num_gates),
                                   end_cause=sim.end_cause, finished=env_lib.lap_finished(world, sim))
 
-    return run
+    return closed_loop_episode
 
 
 class Runner(NamedTuple):
