@@ -4,7 +4,7 @@ the one the result folders give.
 Each ```python block of the README and of ``docs/*.md`` runs alone in a fresh interpreter (its own imports,
 nothing from the block before it), so a reader can paste any one of them. The long notes live in ``docs/``; every
 relative link or image of the README and of ``docs/*.md`` must name a file that exists. The results table is
-what ``pixelmpc report --readme`` builds from ``experiments/results/`` (:mod:`pixelmpc_jax.apps.readme_table`).
+what ``pixelmpc report --readme`` builds from ``experiments/results/`` (:mod:`experiments.reporting.readme_table`).
 """
 
 import re
@@ -51,14 +51,70 @@ def test_the_readme_and_the_docs_have_python_examples():
     assert len(_python_blocks()) >= 3
 
 
-@pytest.mark.parametrize("where, code", _python_blocks(), ids=[where for where, _ in _python_blocks()])
+# An example that flies a whole lap of a preset (a minute or more of compiling and flying on two cores) runs with the
+# slow checks (--runslow, which CI runs); every other example runs in the default run, in well under a minute.
+SLOW_EXAMPLE = re.compile(r"\brace\(preset\(")
+
+
+def _example_params() -> list:
+    return [pytest.param(where, code, id=where, marks=[pytest.mark.slow] if SLOW_EXAMPLE.search(code) else [])
+            for where, code in _python_blocks()]
+
+
+@pytest.mark.parametrize("where, code", _example_params())
 def test_python_example_runs_alone(tmp_path, where, code):
-    if re.search(r"^u0, ", code, re.M):  # an example that steps a controller must give a finite control
-        code += "\nimport numpy\nassert numpy.isfinite(numpy.asarray(u0)).all() and numpy.shape(u0) == (4,), u0\n"
+    if re.search(r"^u0, ", code, re.M):  # an example that steps a controller must give a finite control vector
+        code += "\nimport numpy\nassert numpy.isfinite(numpy.asarray(u0)).all() and numpy.ndim(u0) == 1, u0\n"
     done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
                           timeout=EXAMPLE_TIMEOUT_S)
     assert done.returncode == 0, (f"the ```python block at {where} failed when run alone "
                                   f"(exit {done.returncode}):\n{done.stderr[-4000:]}")
+
+
+PUBLIC_IMPORT = re.compile(r"^from pixelmpc_jax import ", re.M)
+INTERNAL_IMPORT = re.compile(r"^\s*(from|import) pixelmpc_jax\.", re.M)
+
+
+def _page_blocks(name: str) -> list[str]:
+    return [code for _, code in _python_blocks([ROOT / "docs" / name])]
+
+
+def test_the_library_examples_use_the_public_surface_and_stay_short():
+    """The README's library example, the closed-loop page and the user's own robot import from the package's top
+    only; a race from Python is at most 10 lines of user code, the user's unicycle at most 30."""
+    readme = _python_blocks([README])[0][1]
+    closed_loop, unicycle = _page_blocks("closed_loop.md"), _page_blocks("unicycle.md")
+    assert len(closed_loop) == 2 and len(unicycle) == 1
+    assert any("race(preset(\"best\")" in code for code in closed_loop)
+    assert any("course_from_gates(" in code and 'fly("mppi"' in code for code in closed_loop)
+    for code in [readme, *closed_loop, *unicycle]:
+        assert PUBLIC_IMPORT.search(code) and not INTERNAL_IMPORT.search(code), code[:200]
+    assert all(len(code.splitlines()) <= 10 for code in closed_loop)
+    assert len(unicycle[0].splitlines()) <= 30
+
+
+def test_the_reference_shows_the_readmes_library_example_itself():
+    """docs/index.md takes the README's library example between its section markers (one copy, run above)."""
+    readme = README.read_text()
+    section = re.search(r"<!-- --8<-- \[start:library\] -->\n(.*?)<!-- --8<-- \[end:library\] -->", readme, re.S)
+    assert section and section.group(1).strip() == f"```python\n{_python_blocks([README])[0][1]}```"
+    assert '--8<-- "README.md:library"' in (ROOT / "docs" / "index.md").read_text()
+
+
+def test_the_reference_documents_every_public_name():
+    """docs/api.md renders each name of ``pixelmpc_jax.__all__`` (the preset names are in ``preset``'s docstring)."""
+    import pixelmpc_jax
+
+    documented = set(re.findall(r"^::: pixelmpc_jax\.(\w+)$", (ROOT / "docs" / "api.md").read_text(), re.M))
+    assert documented == set(pixelmpc_jax.__all__) - {"__version__", "PRESETS"}
+
+
+def test_the_reference_builds_without_a_warning(tmp_path):
+    """``mkdocs build --strict`` (the docs extra; CI installs it and builds the reference so too)."""
+    pytest.importorskip("mkdocstrings")
+    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=EXAMPLE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-4000:]
 
 
 def test_the_readme_is_short():
@@ -67,11 +123,14 @@ def test_the_readme_is_short():
 
 def test_the_readme_results_table_is_what_the_result_folders_give():
     """``pixelmpc report --readme --check`` passes: the table between the markers is :func:`readme_table.table` of
-    the committed folders (run ``pixelmpc report --readme`` after a result changes)."""
-    from pixelmpc_jax.apps import readme_table
+    the committed folders the results index lists, and docs/results.md's list of folders is the index's (run
+    ``pixelmpc report --readme`` after a result or the index changes)."""
+    from experiments.reporting import index, readme_table
 
     old, new = readme_table.rewrite_readme(ROOT, check=True)
     assert old == new, "README.md's results table is stale: run `pixelmpc report --readme`"
+    old, new = index.rewrite_results_doc(ROOT, check=True)
+    assert old == new, "docs/results.md's list of folders is stale: run `pixelmpc report --readme`"
 
 
 def test_the_docs_the_readme_links_to_exist():

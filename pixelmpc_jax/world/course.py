@@ -1,7 +1,8 @@
 """Building a race course (:class:`~pixelmpc_jax.world.track.Track`): from a course file (the packaged
-AlphaPilot course by default), the straight course of the paper's straight-lane test, and a course with its
-gates perturbed within their bounds; the courses known by name (:data:`COURSES`) and the course a name or a file
-gives (:func:`make_course`); and generating a seeded course file (:func:`generate_course`).
+AlphaPilot course by default), the straight course of the paper's straight-lane test, a course from its gates'
+centres (:func:`course_from_gates`), and a course with its gates perturbed within their bounds; the courses known
+by name (:data:`COURSES`) and the course a name or a file gives (:func:`make_course`); and generating a seeded
+course file (:func:`generate_course`).
 
 A built course gets its hall (``HALL_MARGIN`` around every gate frame, the start and the desired path; the
 ceiling at ``max(HALL_CEILING, highest point + 3 m)``) and its desired path with the number of path points P
@@ -218,6 +219,40 @@ def straight_course(
     names = tuple(f"Gate{k + 1}" for k in range(num_gates))
     bounds = np.broadcast_to(np.asarray(perturbation_bound, np.float64), (num_gates, 3))
     return _assemble(names, gates, start, bounds)
+
+
+def course_from_gates(centres, start=(0.0, 0.0, 3.0), width: float = GATE_WIDTH, height: float = GATE_HEIGHT,
+                      border: float = GATE_BORDER) -> Track:
+    """A course of upright gates at ``centres`` (G, 3), flown in that order from ``start`` (3,), at rest and heading
+    for the first gate; each gate faces the direction of travel, level (from the gate before it, the start for the
+    first, towards the gate after it; the last from the gate before it), of the AlphaPilot gates' size by default.
+
+    Raises:
+        ValueError: centres not (G, 3) finite numbers, a start not 3, a gate frame below the floor, two points
+            of the course on top of each other.
+    """
+    centres = np.asarray(centres, np.float64)
+    if centres.ndim != 2 or centres.shape[0] < 1 or centres.shape[1] != 3 or not np.all(np.isfinite(centres)):
+        raise ValueError(f"centres: expected (G, 3) finite gate centres in metres, got shape {centres.shape}")
+    position = _vector(start, 3, "start")
+    if not (width > 0 and height > 0 and border >= 0):
+        raise ValueError(f"course_from_gates: need width, height > 0 and border >= 0; got {width}, {height}, {border}")
+    if np.any(centres[:, 2] - 0.5 * height - border < 0):
+        raise ValueError(f"a gate's frame is below the floor: centre heights {centres[:, 2].tolist()}, frames "
+                         f"{0.5 * height + border:g} m below them")
+    points = np.concatenate([position[None], centres])
+    travel = np.concatenate([centres[1:] - points[:-2], centres[-1:] - points[-2:-1]])[:, :2]  # (G, 2) level
+    length = np.linalg.norm(travel, axis=1)
+    if np.any(length < 1e-3):
+        raise ValueError("two points of the course (the start or gates) are at one place seen from above")
+    normals = np.concatenate([travel / length[:, None], np.zeros((len(centres), 1))], axis=1)
+    rotation = np.stack([normals, np.cross([0.0, 0.0, 1.0], normals), np.broadcast_to([0.0, 0.0, 1.0],
+                                                                                       normals.shape)], axis=-1)
+    gates = make_gate(centres, rotation, width, height, border)
+    first = centres[0] - position
+    start_state = quadrotor.hover_state(tuple(position), yaw=float(np.arctan2(first[1], first[0])))
+    names = tuple(f"Gate{k + 1}" for k in range(len(centres)))
+    return _assemble(names, gates, start_state, np.zeros((len(centres), 3)))
 
 
 class NamedCourse(NamedTuple):

@@ -111,7 +111,10 @@ def with_loop(spec: RaceSpec, name: str) -> RaceSpec:
 
 
 def preset(name: str) -> RaceSpec:
-    """The race ``name`` ("paper" or "best"), PixelMPC; :func:`nominal_of` gives its nominal MPPI baseline."""
+    """The race ``name`` of :data:`PRESETS`, PixelMPC on the AlphaPilot course, one lap from seed 0: "best", the best
+    configuration measured on the speed frontier (the vdof pixel model at the paper's pace, 8.5 m/s), or "paper", the
+    paper's formulation at its 14 m/s target (:data:`WHY` says why each). :func:`nominal_of` gives its nominal MPPI
+    baseline; ``preset("best").replace(laps=10, seed=100)`` changes a field; ``race(spec)`` flies it."""
     if name == "paper":
         return RaceSpec("pixelmpc", ControllerConfig(), speed=PAPER_LABEL_SPEEDS[0])
     if name == "best":

@@ -1,4 +1,6 @@
-"""Racing laps with a controller and writing what a person wants to see: metrics.json, a table, a plot.
+"""Racing laps with a controller and writing what a person wants to see: metrics.json, a table, a plot; the closed
+loop from Python: :func:`race` flies a :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec`, :func:`fly` one's own
+controller or course, each returning a :class:`RaceResult`.
 
 Laps are run in batches (``vmap`` of the episode); after every batch ``metrics.json`` and the per-tick record
 ``ticks_<controller>.npz`` are rewritten atomically, so an interrupted run keeps the laps it finished.
@@ -16,12 +18,15 @@ import jax
 import numpy as np
 
 from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.devices import Execution, usable_sample_devices
+from pixelmpc_jax.dynamics import dof, vdof
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.sim import ticks as ticks_lib
-from pixelmpc_jax.sim.controllers import make_policy
+from pixelmpc_jax.sim.controllers import CONTROLLERS, make_policy
+from pixelmpc_jax.sim.policies import Policy
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
@@ -83,14 +88,19 @@ def fly_batch(race: Race, seeds: list[int]) -> list[tuple]:
 
     The seeds are padded to a whole batch (the last repeated, the copies dropped), so every batch has one
     shape and the vmapped episode compiles once."""
-    flight = race.flight
     padded = seeds + seeds[-1:] * (race.batch_size - len(seeds))
-    worlds = lap_worlds(flight.base, padded, race.spec.perturb, race.spec.map)
-    keys = jax.vmap(jax.random.PRNGKey)(np.asarray(padded))
+    worlds = lap_worlds(race.flight.base, padded, race.spec.perturb, race.spec.map)
+    return _fly_worlds(race.flight, worlds, padded)[:len(seeds)]
+
+
+def _fly_worlds(flight: _Flight, worlds: env_lib.World, seeds: list[int]) -> list[tuple]:
+    """The laps of ``seeds`` in ``worlds`` (stacked, one per seed) in one call: ``[(log, the course the lap flew)]``,
+    host arrays. With its samples over several devices, a lap at a time."""
+    keys = jax.vmap(jax.random.PRNGKey)(np.asarray(seeds))
     if flight.sample_devices > 1:  # one lap, its samples over the devices
         logs = metrics_lib.unbatch(flight.runner.single(jax.tree_util.tree_map(lambda a: a[0], worlds), keys[0]))
     else:
-        logs = metrics_lib.unbatch(flight.runner.batch(worlds, keys))[:len(seeds)]
+        logs = metrics_lib.unbatch(flight.runner.batch(worlds, keys))
     flown = worlds.track if worlds.course is None else worlds.course
     return [(log, jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], flown)) for lane, log in enumerate(logs)]
 
@@ -99,9 +109,14 @@ def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -
     """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`), with the filter's figures when the race
     flies on its estimate (its mean and largest position error), whether the vehicle turned upside down, and the
     lap's seed."""
-    lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=spec.speed)
+    return _lap_record(log, track, camera, seed, spec.speed, spec.estimator)
+
+
+def _lap_record(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> dict:
+    """:func:`lap_record` of a lap flown at ``target_speed`` on the estimator ``estimator``."""
+    lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=target_speed)
     n = int(log.num_ticks)
-    if spec.estimator != "truth":
+    if estimator != "truth":
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
         lap["mean_position_error_m"] = float(np.mean(errors)) if n else None
@@ -122,6 +137,44 @@ class FlownLap(NamedTuple):
     ticks: dict
     log: episode_lib.EpisodeLog
     track: track_lib.Track
+
+
+class RaceResult(NamedTuple):
+    """A race's laps as a program reads them (:func:`race`, :func:`fly`); lap i flew seed ``laps[i]["seed"]``.
+
+    Attributes:
+        laps: each lap's metrics (:func:`lap_record`): ``success``, ``lap_time_s`` (None unless finished),
+            ``crash``, ``gates_passed``, the visibility figures (``time_vis_below_50_s``, ...), ``seed``.
+        aggregate: each metric's mean, two sigma and count over the laps, ``success_rate`` and ``num_laps``
+            (:func:`~pixelmpc_jax.sim.metrics.aggregate`).
+        ticks: each lap's per-tick arrays, S = its ticks + 1 (state 0 the start): ``states`` (S, 10),
+            ``estimates`` (S, 10), ``target`` (S,), ``visibility`` (S,), ``pointed_visibility`` (S,), ``controls``
+            (S - 1, 4) and the gates as flown (:func:`~pixelmpc_jax.sim.ticks.lap_ticks`).
+        logs: each lap's whole :class:`~pixelmpc_jax.sim.episode.EpisodeLog` (host arrays, padded to the time
+            limit: the detections and the controller's predicted pixel too).
+        controller: the controller's name.
+        interrupted: Ctrl-C stopped the race; the laps are those finished before it.
+    """
+
+    laps: list[dict]
+    aggregate: dict
+    ticks: list[dict]
+    logs: list[episode_lib.EpisodeLog]
+    controller: str
+    interrupted: bool = False
+
+    @classmethod
+    def of(cls, records: list[dict], ticks: list[dict], logs: list, controller: str,
+           interrupted: bool = False) -> RaceResult:
+        """The result of laps' records, per-tick arrays (:func:`~pixelmpc_jax.sim.ticks.lap_ticks`) and logs, each
+        lap's commands added to its ticks and the records aggregated."""
+        ticks = [{**lap, "controls": np.asarray(log.controls)[: int(log.num_ticks)]} for lap, log in zip(ticks, logs)]
+        return cls(list(records), metrics_lib.aggregate(list(records)), ticks, list(logs), controller, interrupted)
+
+    @property
+    def lap_times(self) -> np.ndarray:
+        """(L,) each lap's time, s; NaN for a lap not finished."""
+        return np.asarray([np.nan if lap["lap_time_s"] is None else lap["lap_time_s"] for lap in self.laps])
 
 
 class Race(NamedTuple):
@@ -152,9 +205,13 @@ def fly_batches(race: Race) -> Iterator[list[FlownLap]]:
         chunk = seeds[first:first + race.batch_size]
         flown = []
         for lap_seed, (log, lap_track) in zip(chunk, fly_batch(race, chunk)):
-            flown.append(FlownLap(lap_record(spec, log, lap_track, race.camera, lap_seed),
-                                  ticks_lib.lap_ticks(log, lap_track.gates, race.camera, lap_seed), log, lap_track))
+            flown.append(_flown_lap(log, lap_track, race.camera, lap_seed, spec.speed, spec.estimator))
         yield flown
+
+
+def _flown_lap(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> FlownLap:
+    return FlownLap(_lap_record(log, track, camera, seed, target_speed, estimator),
+                    ticks_lib.lap_ticks(log, track.gates, camera, seed), log, track)
 
 
 class LapBook:
@@ -181,6 +238,11 @@ class LapBook:
     def write_ticks(self, out: Path) -> None:
         if self.ticks:
             ticks_lib.write(Path(out) / f"ticks_{self.name}.npz", self.ticks, self.race.camera, self.race.spec.speed)
+
+    def result(self) -> RaceResult:
+        """The laps flown so far as a :class:`RaceResult`."""
+        return RaceResult.of(self.results["laps"], self.ticks, self.logs, self.race.flight.policy_name,
+                             self.results["interrupted"])
 
     def flown(self) -> dict:
         """The results with each lap's flown states (``trajectories``), the target's visibility at each tick
@@ -214,16 +276,35 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     and, with ``video``, the first lap's ``onboard.mp4`` written. ``interrupted`` is True when Ctrl-C (or SIGTERM,
     under the ``pixelmpc`` command) stopped the run: the laps finished before it are kept (and in ``out``).
     """
-    race = prepare(spec, batch_size, dof_params)
-    book = LapBook(race)
+    return _fly_race(spec, out, batch_size, progress, video, dof_params).flown()
+
+
+def race(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progress: bool = False,
+         dof_params=None) -> RaceResult:
+    """Fly the race ``spec`` (a preset, :func:`~pixelmpc_jax.apps.racing.presets.preset`, or one's own
+    :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec`) and return its laps, their metrics and per-tick arrays.
+
+    The laps fly as :func:`run_laps` flies them (the ``pixelmpc race`` command flies the same batches, the same
+    records): lap i on seed ``spec.seed + i``, ``batch_size`` at a time; with ``out`` the race's files are written
+    there too. ``dof_params``: the learned pixel model's weights when the spec names weights that do not ship in
+    the package. A lap of the ``best`` preset from Python, and what comes back: docs/closed_loop.md.
+    """
+    return _fly_race(spec, out, batch_size, progress, False, dof_params).result()
+
+
+def _fly_race(spec: RaceSpec, out: Path | None, batch_size: int, progress: bool, video: bool, dof_params) -> LapBook:
+    """Fly ``spec`` batch by batch into a :class:`LapBook` (see :func:`run_laps`)."""
+    prepared = prepare(spec, batch_size, dof_params)
+    book = LapBook(prepared)
     bar = _progress_bar(spec) if progress else None
     try:
-        for laps in fly_batches(race):
+        for laps in fly_batches(prepared):
             book.add(laps)
             if video and out is not None and laps[0].record["seed"] == spec.seed:
                 from pixelmpc_jax.apps.racing.video import write_onboard_video
 
-                write_onboard_video(race.flight.base.track, laps[0].log, Path(out) / "onboard.mp4", race.camera)
+                write_onboard_video(prepared.flight.base.track, laps[0].log, Path(out) / "onboard.mp4",
+                                    prepared.camera)
             if out is not None:
                 write_json_atomic(Path(out) / "metrics.json", book.results)
                 book.write_ticks(out)
@@ -239,12 +320,65 @@ def run_laps(spec: RaceSpec, out: Path | None = None, batch_size: int = 1, progr
     finally:
         if bar is not None:
             bar.close()
-    results = book.flown()
-    if out is not None and results["trajectories"]:
-        laps = len(results["trajectories"])
-        plot_coloured_trajectories(race.flight.base.track, results["trajectories"], Path(out) / "trajectories.png",
-                                   title=f"{spec.controller}, target {spec.speed:g} m/s, {laps} lap(s)")
-    return results
+    if out is not None and book.logs:
+        trajectories = [np.asarray(log.states)[: int(log.num_ticks) + 1] for log in book.logs]
+        plot_coloured_trajectories(prepared.flight.base.track, trajectories, Path(out) / "trajectories.png",
+                                   title=f"{spec.controller}, target {spec.speed:g} m/s, {len(trajectories)} lap(s)")
+    return book
+
+
+def fly(controller: str | Policy = "mppi", world: env_lib.World | None = None, *,
+        config: ControllerConfig | None = None, laps: int = 1, seed: int = 0,
+        episode: episode_lib.EpisodeConfig | None = None, batch_size: int = 1) -> RaceResult:
+    """Fly ``laps`` laps of one's own controller, or of one's own course, and return their laps, metrics and
+    per-tick arrays (as :func:`race` does for a :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec`).
+
+    Args:
+        controller: "mppi" (nominal MPPI) or "pixelmpc" with its ``config``
+            (:class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig`; None: its defaults), or a
+            :class:`~pixelmpc_jax.sim.policies.Policy` of one's own (``init(key, world)``,
+            ``act(state, observation, world) -> (u, state, predicted)``).
+        world: the course, the target speed, the vehicle and the camera
+            (:func:`~pixelmpc_jax.sim.env.make_world`; None: the AlphaPilot course at 14 m/s). PixelMPC with a
+            learned pixel model flies the packaged weights when ``world.dof`` is None.
+        laps: lap i flies PRNG seed ``seed + i`` (the plant's noise and the controller's).
+        episode: the loop (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`: time limit, detector, estimator;
+            None: its defaults, the true state and the detector clipped at the image border).
+        batch_size: laps flown at once (a ``vmap`` over laps).
+
+    Nominal MPPI on a course of one's own, in five lines: docs/closed_loop.md.
+    """
+    if not (isinstance(laps, int) and laps > 0) or not (isinstance(batch_size, int) and batch_size > 0):
+        raise ValueError(f"laps and batch_size must be positive integers, got {laps!r} and {batch_size!r}")
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    world = env_lib.make_world() if world is None else world
+    if not isinstance(world, env_lib.World):
+        raise ValueError(f"world must be a World (make_world), got {type(world).__name__}")
+    episode = episode_lib.EpisodeConfig() if episode is None else episode
+    if isinstance(controller, Policy):
+        if config is not None:
+            raise ValueError("config configures a named controller ('mppi', 'pixelmpc'); a Policy brings its own")
+        runner, name = episode_lib.make_runner(controller, episode), controller.name
+    else:
+        if controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {', '.join(CONTROLLERS)} or a Policy, got {controller!r}")
+        config = ControllerConfig() if config is None else config
+        runner, name = _runner(controller, config, 1, episode)
+        if controller == "pixelmpc" and world.dof is None and config.pixel_model in LEARNED_PIXEL_MODELS:
+            world = world.replace(dof=vdof.load_packaged_vdof() if config.pixel_model == "vdof"
+                                  else dof.load_packaged_dof())
+    flight = _Flight(runner, world, name, 1)
+    batch_size = min(batch_size, laps)
+    seeds, flown = list(range(seed, seed + laps)), []
+    for first in range(0, laps, batch_size):
+        chunk = seeds[first:first + batch_size]
+        padded = chunk + chunk[-1:] * (batch_size - len(chunk))
+        logs = _fly_worlds(flight, env_lib.stack_worlds([world] * batch_size), padded)
+        flown += [_flown_lap(log, lap_track, world.camera, lap_seed, float(world.target_speed), episode.estimator)
+                  for lap_seed, (log, lap_track) in zip(chunk, logs)]
+    return RaceResult.of([lap.record for lap in flown], [lap.ticks for lap in flown], [lap.log for lap in flown],
+                         name)
 
 
 def _progress_bar(spec: RaceSpec):
