@@ -155,11 +155,10 @@ def step_input_checks(dynamics: Callable, state_type: type, T: int, m: int,
 
     ``state`` must be a ``state_type`` whose plan is (T, m); ``x0`` is made an array (in the plan's float type
     if it is an integer or bool state) and checked against ``dynamics`` once per shape and dtype. With ``values``
-    the numbers are checked too (a NaN, a zero quaternion: the ``findings``, run on the host), each failed one
-    named in the ValueError.
+    the numbers are checked too (a NaN, a zero quaternion: the ``findings``, run eagerly: the checked execution asks
+    only once the step has flagged its input), each failed one named in the ValueError.
     """
     checked_state_shapes: set = set()
-    evaluate = jax.jit(findings)
 
     def check(state, x0, params, values=False):
         if not isinstance(state, state_type):
@@ -172,7 +171,7 @@ def step_input_checks(dynamics: Callable, state_type: type, T: int, m: int,
             check_x0(dynamics, x0, m, params)
             checked_state_shapes.add(signature)
         if values:
-            failed = [message for message, sound in evaluate(x0, params).items() if not bool(sound)]
+            failed = [message for message, sound in findings(x0, params).items() if not bool(sound)]
             if failed:
                 raise ValueError("; ".join(failed))
         return state, x0, params
