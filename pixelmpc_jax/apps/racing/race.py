@@ -105,15 +105,10 @@ def _fly_worlds(flight: _Flight, worlds: env_lib.World, seeds: list[int]) -> lis
     return [(log, jax.tree_util.tree_map(lambda leaf, i=lane: leaf[i], flown)) for lane, log in enumerate(logs)]
 
 
-def lap_record(spec: RaceSpec, log, track: track_lib.Track, camera, seed: int) -> dict:
-    """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`), with the filter's figures when the race
-    flies on its estimate (its mean and largest position error), whether the vehicle turned upside down, and the
-    lap's seed."""
-    return _lap_record(log, track, camera, seed, spec.speed, spec.estimator)
-
-
-def _lap_record(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> dict:
-    """:func:`lap_record` of a lap flown at ``target_speed`` on the estimator ``estimator``."""
+def lap_record(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> dict:
+    """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`) at ``target_speed``, with the filter's figures
+    when the lap flies on the estimate of ``estimator`` (its mean and largest position error), whether the vehicle
+    turned upside down, and the lap's seed."""
     lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=target_speed)
     n = int(log.num_ticks)
     if estimator != "truth":
@@ -210,7 +205,7 @@ def fly_batches(race: Race) -> Iterator[list[FlownLap]]:
 
 
 def _flown_lap(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> FlownLap:
-    return FlownLap(_lap_record(log, track, camera, seed, target_speed, estimator),
+    return FlownLap(lap_record(log, track, camera, seed, target_speed, estimator),
                     ticks_lib.lap_ticks(log, track.gates, camera, seed), log, track)
 
 
