@@ -1,7 +1,8 @@
 """The ``pixelmpc`` command's argument types: each checks one argument as it is parsed and returns its value, or
 raises ``argparse.ArgumentTypeError`` with the accepted range (one line, before anything runs); the check of a
 lap's seeds (:func:`seed_range`), which spans two arguments; and the one convention by which a flag sets a field of
-the configuration a command builds (:class:`FieldFlag`, :func:`fields_given`)."""
+the configuration a command builds (:class:`FieldFlag`, :func:`fields_given`), a setting's flag made from its field's
+description (:func:`setting_flag`)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,13 @@ import os
 from pathlib import Path
 from typing import NamedTuple
 
-SEED_MAX = 2**31 - 1  # a PRNG seed is a non-negative int32 (a larger one would wrap onto another seed)
-TARGET_SPEED_MAX = 50.0  # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
-MAX_TIME_S = 600.0  # per lap (a lap of the course takes 20-35 s)
+from pixelmpc_jax import settings
+from pixelmpc_jax.settings import MAX_TIME_RANGE, SEED_RANGE, TARGET_SPEED_RANGE
+
+# The bounds the commands' help names, from the settings' one range (pixelmpc_jax.settings)
+SEED_MAX = SEED_RANGE.hi
+TARGET_SPEED_MAX = TARGET_SPEED_RANGE.hi
+MAX_TIME_S = MAX_TIME_RANGE.hi
 
 
 def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
@@ -33,10 +38,32 @@ def float_in(lo: float, hi: float, *, lo_open: bool = False, unit: str = ""):
 
 
 def float_range(setting_range):
-    """An argparse type from a setting's one range (a :class:`~pixelmpc_jax.control.mppi_checks.Range`: ``lo``,
-    ``hi``, ``lo_open``, ``unit``), the range its configuration checks: the flag and the configuration refuse the
-    same values."""
+    """An argparse type from a setting's one range (a :class:`~pixelmpc_jax.settings.Range`: ``lo``, ``hi``,
+    ``lo_open``, ``unit``), the range its configuration checks: the flag and the configuration refuse the same
+    values."""
     return float_in(setting_range.lo, setting_range.hi, lo_open=setting_range.lo_open, unit=setting_range.unit)
+
+
+def int_range(setting_range):
+    """An argparse type from an integer setting's one range (a :class:`~pixelmpc_jax.settings.Range` with
+    ``integer``), the range its configuration checks."""
+    interval = setting_range.interval
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer in {interval}, got {text!r}") from None
+        if not setting_range.holds(value):
+            raise argparse.ArgumentTypeError(f"must be an integer in {interval}, got {text}")
+        return value
+
+    return parse
+
+
+def range_type(setting_range):
+    """The argparse type of a setting's range: :func:`int_range` for an integer one, else :func:`float_range`."""
+    return int_range(setting_range) if setting_range.integer else float_range(setting_range)
 
 
 def int_in(lo: int, hi: int, *, odd: bool = False):
@@ -74,8 +101,8 @@ def widths(text: str) -> tuple[int, ...]:
     return tuple(int(part) for part in parts)
 
 
-seed = int_in(0, SEED_MAX)
-target_speed = float_in(0.0, TARGET_SPEED_MAX, lo_open=True, unit="m/s")  # a race's target speed
+seed = int_range(SEED_RANGE)
+target_speed = float_range(TARGET_SPEED_RANGE)  # a race's target speed
 SPEEDS_MAX = 200  # the most target speeds one range may name
 
 
@@ -156,6 +183,21 @@ def grid_dir(path: str) -> Path:
     return folder
 
 
+def _existing_file(path: str, what: str) -> Path:
+    """``path`` as a Path if a file is there; else an argparse error ``no {what} at {path}: {why}``."""
+    file = Path(path)
+    if not file.is_file():
+        reason = "it is a directory" if file.is_dir() else "no such file"
+        raise argparse.ArgumentTypeError(f"no {what} at {path!r}: {reason}")
+    return file
+
+
+def grid_file(path: str) -> Path:
+    """An argparse type: a grid file that exists (its contents are read and checked before anything flies:
+    :func:`~pixelmpc_jax.apps.racing.grid_file.read_grid_file`)."""
+    return _existing_file(path, "grid file")
+
+
 def result_dir(path: str) -> Path:
     """An argparse type: a result folder, a grid's (``results.json``) or a race's (``metrics.json``)."""
     folder = Path(path)
@@ -201,11 +243,7 @@ def ticks_file(path: str) -> Path:
 
 def weights_file(path: str) -> Path:
     """An argparse type: an existing file (its contents are checked before anything runs)."""
-    file = Path(path)
-    if not file.is_file():
-        reason = "it is a directory" if file.is_dir() else "no such file"
-        raise argparse.ArgumentTypeError(f"no DOF weights file at {path!r}: {reason}")
-    return file
+    return _existing_file(path, "DOF weights file")
 
 
 def fault(text: str) -> dict:
@@ -296,6 +334,26 @@ class FieldFlag(NamedTuple):
         """Add the flag to ``parser`` (a parser or an argument group), with ``help`` in place of its own."""
         default = {} if self.field is None else {"default": None}
         parser.add_argument(self.flag, help=self.help if help is None else help, **default, **self.options)
+
+
+def setting_flag(flag: str, config, field: str, **options) -> FieldFlag:
+    """The flag ``flag`` of the setting at the dotted path ``field`` of the configuration ``config`` (an instance),
+    described by the field's metadata (:func:`pixelmpc_jax.settings.setting`): its help with the range's interval,
+    and an argparse type of that range (:func:`range_type`), its choices, or ``store_true`` for a bool, so the flag
+    refuses what the configuration refuses. ``options`` add to those keywords or replace them (a metavar, a parser
+    of its own); a ValueError names a field that is not a described setting."""
+    described, _ = settings.field_at(config, field)
+    if not settings.described(described):
+        raise ValueError(f"{flag}: {field} is not a setting described by pixelmpc_jax.settings.setting")
+    meta = described.metadata
+    generated = {}
+    if isinstance(described.default, bool):
+        generated["action"] = "store_true"
+    elif meta["range"] is not None:
+        generated["type"] = range_type(meta["range"])
+    elif meta["choices"] is not None:
+        generated["choices"] = meta["choices"]
+    return FieldFlag(flag, field, settings.help_text(described), {**generated, **options})
 
 
 def fields_given(args, flags) -> dict:

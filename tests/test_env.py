@@ -203,7 +203,7 @@ def test_observe_sees_the_target_gate_and_the_truth_or_the_filter(world):
     same, obs = observe(noisy, state, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(obs.x_est, state.plant.x)
     assert int(obs.target_gate) == 0 and float(obs.position_cov_trace) == 0.0
-    assert bool(obs.detection.found) and 0.0 < float(obs.target_visibility) <= 1.0
+    assert bool(obs.detection.found) and 0.0 < float(env_lib.target_visibility(noisy, same)) <= 1.0
     # gate 0 straight ahead: its centre is near the image centre, moved by the detector's noise (per key)
     np.testing.assert_allclose(obs.detection.centre, [0.5, 0.5], atol=0.05)
     _, again = observe(noisy, state, jax.random.PRNGKey(1))

@@ -11,7 +11,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "pixelmpc_jax"
 # Top to bottom: a module may import its own layer and those before it (and the shared top-level modules).
 LAYERS = ("dynamics", "world", "perception", "control", "sim", "learn", "apps")
-SHARED = {"timing", "strict_json", "platform_info", "host", "devices"}  # imported by any layer
+SHARED = {"timing", "strict_json", "platform_info", "host", "devices", "settings"}  # imported by any layer
 # The package's front door, not a layer: it imports what users call from every layer, the apps' races too, and hands
 # it on in its __all__ (tests/test_public_api.py); no module of the package imports it.
 FACADE = "__init__.py"

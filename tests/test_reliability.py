@@ -136,7 +136,7 @@ def goal_cost(x, u, t, goal):
 @pytest.mark.parametrize(
     "field, value, message",
     [
-        ("temperature", 1e-50, r"temperature \(lambda\) must be a number in \[1e-30, 3.403e\+38\]"),
+        ("temperature", 1e-50, r"MPPIConfig.temperature must be a finite number in \[1e-30, 3.40282e\+38\], got 1e-50"),
         ("temperature", 0.0, "temperature"),
         ("temperature", float("nan"), "temperature"),
         ("temperature", float("inf"), "temperature"),
@@ -148,7 +148,7 @@ def goal_cost(x, u, t, goal):
         ("u_min", (float("nan"), -1.0), r"u_min must be finite numbers in \[-3.403e\+38, 3.403e\+38\]"),
         ("u_max", (float("inf"), 1.0), "u_max must be finite"),
         ("u_max", (1e39, 1.0), "u_max must be finite"),
-        ("control_cost_weight", float("inf"), "control_cost_weight must be a finite number >= 0"),
+        ("control_cost_weight", float("inf"), r"control_cost_weight must be a finite number in \[0, 3.40282e\+38\]"),
         ("control_cost_weight", float("nan"), "control_cost_weight"),
     ],
 )

@@ -80,9 +80,11 @@ def _cmd_device(args) -> int:
 
 def _add_mppi_step(jobs) -> None:
     from pixelmpc_jax.apps.bench.mppi_step import COSTS
+    from pixelmpc_jax.control.mppi_checks import NUM_SAMPLES_RANGE
 
     p = jobs.add_parser("mppi-step", help="median step time of the quadrotor MPPI (the paper's N=512, T=80, K=1)")
-    p.add_argument("--samples", type=arg.int_in(1, 2**20), default=512, help="samples N, in [1, 2^20] (default 512)")
+    p.add_argument("--samples", type=arg.int_range(NUM_SAMPLES_RANGE), default=512,
+                   help=f"samples N, in {NUM_SAMPLES_RANGE.interval} (default 512)")
     p.add_argument("--horizon", type=arg.int_in(1, 10_000), default=80, help="horizon T, in [1, 10000] (default 80)")
     p.add_argument("--repeats", type=arg.positive_int, default=50, help="timed steps (default 50)")
     p.add_argument("--cost", choices=COSTS, default=COSTS[0],

@@ -6,8 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
-from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX
+from pixelmpc_jax.arguments import SEED_MAX
 from pixelmpc_jax.commands import EXIT_INTERRUPTED
+from pixelmpc_jax.settings import MAX_TIME_RANGE
 
 
 def add_collect(sub) -> None:
@@ -16,8 +17,8 @@ def add_collect(sub) -> None:
     p.add_argument("--out", type=arg.writable_dir, default=Path("runs/dof_data"), help="dataset directory")
     p.add_argument("--laps", type=arg.positive_int, default=4, help="laps, speeds spread over 6-14 m/s (default 4)")
     p.add_argument("--seed", type=arg.seed, default=0, help=f"seed of lap 0, in [0, {SEED_MAX}]; lap i uses seed + i")
-    p.add_argument("--max-lap-time", type=arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s"), default=10.0,
-                   help=f"seconds flown per lap, in (0, {MAX_TIME_S:g}] (default 10)")
+    p.add_argument("--max-lap-time", type=arg.float_range(MAX_TIME_RANGE), default=10.0,
+                   help=f"seconds flown per lap, in {MAX_TIME_RANGE.interval} (default 10)")
     p.add_argument("--supersample", type=arg.int_in(1, 9, odd=True), default=1,
                    help="render supersampling, odd, in [1, 9] (default 1)")
     p.add_argument("--paper", action="store_true", help="the paper's size: 10 laps of up to 30 s")

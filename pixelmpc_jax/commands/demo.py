@@ -6,6 +6,7 @@ from __future__ import annotations
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.arguments import SEED_MAX
 from pixelmpc_jax.commands import EXIT_FAILED
+from pixelmpc_jax.control.mppi_checks import NUM_SAMPLES_RANGE
 
 
 def add_demo(sub) -> None:
@@ -15,7 +16,8 @@ def add_demo(sub) -> None:
                    help="waypoint distance ahead, m, in [-50, 50] (default 5)")
     p.add_argument("--seconds", type=arg.float_in(0.025, 600.0, unit="s"), default=4.0,
                    help="flight time, s, in [0.025, 600] (default 4)")
-    p.add_argument("--samples", type=arg.int_in(1, 2**20), default=512, help="MPPI samples, in [1, 2^20] (default 512)")
+    p.add_argument("--samples", type=arg.int_range(NUM_SAMPLES_RANGE), default=512,
+                   help=f"MPPI samples, in {NUM_SAMPLES_RANGE.interval} (default 512)")
     p.add_argument("--seed", type=arg.seed, default=0, help=f"PRNG seed in [0, {SEED_MAX}]")
     p.add_argument("--out", type=arg.writable_dir, default=None, help="write demo.json and demo.png here")
     p.set_defaults(func=_cmd_demo)

@@ -3,8 +3,10 @@
 A race starts from a preset (``--preset``) or a saved race (``--config``), and each flag of :data:`RACE_FLAGS` sets
 the one field of the :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` it names
 (:class:`~pixelmpc_jax.arguments.FieldFlag`: a dotted path into the spec, ``speed``, ``config.mppi.temperature``,
-``guards.detection_gate_px``). :func:`race_spec` reads that table and builds the spec, before anything runs; the
-handler hands it to :func:`~pixelmpc_jax.apps.racing.compare.run_compare`.
+``guards.detection_gate_px``). The flag's help, range and choices are that field's own
+(:func:`~pixelmpc_jax.settings.setting`): a range lives once, and the flag refuses what the configuration refuses.
+:func:`race_spec` reads that table and builds the spec, before anything runs; the handler hands it to
+:func:`~pixelmpc_jax.apps.racing.compare.run_compare`.
 """
 
 from __future__ import annotations
@@ -14,158 +16,81 @@ import sys
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
+from pixelmpc_jax import settings
 from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, LOOPS, PRESETS, preset, with_loop
-from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG, MAPS, RaceSpec
-from pixelmpc_jax.arguments import MAX_TIME_S, SEED_MAX, FieldFlag
+from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.arguments import FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
-from pixelmpc_jax.control.costs import HEADING_WEIGHT_RANGE, VEHICLE_RADIUS_RANGE
-from pixelmpc_jax.control.mppi_checks import NOISE_EXPONENT_RANGE, TEMPERATURE_RANGE
-from pixelmpc_jax.control.pixelmpc import (
-    BORDER_MARGIN_RANGE,
-    C_PIXEL_RANGE,
-    DISTURBANCE_TIME_CONSTANT_RANGE,
-    LOOK_AHEAD_FROM,
-    LOOK_AHEAD_MODELS,
-    LOOK_AHEAD_RANGE,
-    PARTIAL_TARGETS,
-    PIXEL_COSTS,
-    PIXEL_MODELS,
-    T_F_RANGE,
-    TARGET_PRIORS,
-)
 from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
-from pixelmpc_jax.sim.env import DETECTORS, ESTIMATORS, GATE_SWITCHES
 from pixelmpc_jax.sim.faults import FAULT_LEVELS
-from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
 
-# Every flag of the race after --preset/--config, in the order --help lists them. A flag of a controller setting
-# (a field under "config") lists both presets' value in its help.
+_DEFAULT_RACE = RaceSpec()  # the race whose fields describe the settings (building it creates no JAX array)
+
+
+def _setting(flag: str, field: str, **options) -> FieldFlag:
+    """The flag of the race's setting ``field``: help, range or choices from the field's description
+    (:func:`~pixelmpc_jax.arguments.setting_flag`), ``options`` beside them."""
+    return arg.setting_flag(flag, _DEFAULT_RACE, field, **options)
+
+
+# Every flag of the race after --preset/--config, in the order --help lists them: a flag and the field of the race it
+# sets, its help, range and choices read from that field (each setting's range lives once, in its field). A flag of a
+# controller setting (a field under "config") lists both presets' value in its help.
 RACE_FLAGS: tuple[FieldFlag, ...] = (
     FieldFlag("--controller", None, "fly one controller alone: pixelmpc or mppi, the paper's nominal baseline "
               "(default: both, at the same target and seeds)", {"choices": CONTROLLERS, "default": None}),
-    FieldFlag("--dof-weights", "dof_weights", "the learned pixel model's weights: a packaged DOF variant (paper: "
-              "command input; flown: the flown-rate weights; turned: trained with turned rows) or a weights file from "
-              "`pixelmpc train`; with --pixel-model vdof: vdof, the packaged vdof weights (its default), or a file) "
-              "(default: the preset's)", {"metavar": "|".join(PACKAGED_VARIANTS) + "|vdof|FILE"}),
-    FieldFlag("--detector", "detector", "target detection: clipped, the projection of the true gate cut at the image "
-              "border as a camera's detector reports it (the corners in view, a centre from the visible outline); "
-              "ideal, the projection reported whole, in the image or not; or image, OpenCV on rendered frames "
-              "(default: the preset's, clipped)", {"choices": DETECTORS}),
-    FieldFlag("--course", "course", "alphapilot, straight (five gates 20 m apart, the paper's straight lane) or a "
-              "course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc course` makes one) "
-              "(default: the preset's, alphapilot)", {"type": arg.course, "metavar": "|".join(COURSES) + "|FILE"}),
-    FieldFlag("--estimator", "estimator", "state the controller acts on: truth, pf (the paper's particle filter) or "
-              "eskf (an error-state Kalman filter with IMU bias states) (default: the preset's, truth)",
-              {"choices": ESTIMATORS}),
+    _setting("--dof-weights", "dof_weights", metavar="|".join(PACKAGED_VARIANTS) + "|vdof|FILE"),
+    _setting("--detector", "detector"),
+    _setting("--course", "course", type=arg.course, metavar="|".join(COURSES) + "|FILE"),
+    _setting("--estimator", "estimator"),
     FieldFlag("--video", None, "write OUT/onboard.mp4 of PixelMPC's first lap: predicted (green) and actual (red) "
               "pixel", {"action": "store_true"}),
     FieldFlag("--no-compile-cache", None, "compile afresh (by default compiled steps are kept in the user's cache "
               "folder, ~/.cache/pixelmpc-jax, so a second run starts faster)", {"action": "store_true"}),
-    FieldFlag("--pixel-model", "config.pixel_model", "PixelMPC's pixel model: dof, the paper's DOF network; vdof, the "
-              "learned model with velocity and the gate's size; or projection, the PAMPC-style projection of the "
-              "known gate", {"choices": PIXEL_MODELS}),
-    FieldFlag("--t-f", "config.t_f", f"PixelMPC pixel-cost horizon t_f, in {T_F_RANGE.interval} (the MPC "
-              "horizon)", {"type": arg.float_range(T_F_RANGE)}),
-    FieldFlag("--c-pixel", "config.c_pixel", f"PixelMPC pixel-cost weight, in {C_PIXEL_RANGE.interval}",
-              {"type": arg.float_range(C_PIXEL_RANGE)}),
-    FieldFlag("--pixel-cost", "config.pixel_cost", "PixelMPC pixel cost: l1, the paper's distance from the image "
-              "centre, or border, a barrier on the image border that charges only a gate leaving the view",
-              {"choices": PIXEL_COSTS}),
-    FieldFlag("--target-prior", "config.target_prior", "what PixelMPC's pixel cost charges while the target is not "
-              "detected: none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; "
-              "kept, its last pixel moved on by the pixel model since it was last seen; or seeded, kept once seen "
-              "and from the map before", {"choices": TARGET_PRIORS}),
-    FieldFlag("--partial-target", "config.partial_target", "where PixelMPC's target pixel starts when the detector "
-              "reports the gate cut by the image border: detected, the centre of its visible outline (the paper's); "
-              "map, the gate projected from the map and the estimate", {"choices": PARTIAL_TARGETS}),
-    FieldFlag("--look-ahead", "config.look_ahead", "PixelMPC's weight, relative to the target's, of the next gate's "
-              "pixel cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, "
-              f"the paper's; in {LOOK_AHEAD_RANGE.interval}", {"type": arg.float_range(LOOK_AHEAD_RANGE)}),
-    FieldFlag("--look-ahead-model", "config.look_ahead_model", "what predicts the next gate's pixel along the horizon "
-              "with the look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected "
-              "through each predicted pose (map-aided)", {"choices": LOOK_AHEAD_MODELS}),
-    FieldFlag("--look-ahead-from", "config.look_ahead_from", "from which predicted state the look-ahead charges the "
-              "next gate: plane, once the sample has passed the target's plane (a sample that stops short of the gate "
-              "escapes it); plan, from there or from the step the current plan passes it, the earlier",
-              {"choices": LOOK_AHEAD_FROM}),
-    FieldFlag("--border-margin", "config.border_margin", "where the border cost starts, as a fraction of the image "
-              f"inside the border, in {BORDER_MARGIN_RANGE.interval}", {"type": arg.float_range(BORDER_MARGIN_RANGE)}),
-    FieldFlag("--noise-exponent", "config.mppi.noise_exponent", "MPPI sampling noise coloured as 1/f^beta along the "
-              f"horizon, beta in {NOISE_EXPONENT_RANGE.interval} (0: white, the paper's)",
-              {"type": arg.float_range(NOISE_EXPONENT_RANGE)}),
-    FieldFlag("--heading-weight", "config.racing.heading_weight", "share of the racing cost's attitude term that pins "
-              f"the heading to the path, in {HEADING_WEIGHT_RANGE.interval} (1: the paper's)",
-              {"type": arg.float_range(HEADING_WEIGHT_RANGE)}),
-    FieldFlag("--clearance", "config.racing.vehicle_radius", "m: the racing cost's clearance to gate frames, floor "
-              f"and walls (the world keeps the vehicle's 0.1 m), in {VEHICLE_RADIUS_RANGE.interval}",
-              {"type": arg.float_range(VEHICLE_RADIUS_RANGE)}),
-    FieldFlag("--temperature", "config.mppi.temperature", f"MPPI lambda, in {TEMPERATURE_RANGE.interval}",
-              {"type": arg.float_range(TEMPERATURE_RANGE)}),
-    FieldFlag("--samples", "config.mppi.num_samples", "MPPI samples per step, in [1, 2^20]",
-              {"type": arg.int_in(1, 2**20)}),
-    FieldFlag("--speed", "speed", f"target speed, m/s, in (0, {arg.TARGET_SPEED_MAX:g}] (default: the preset's; best "
-              "8.5, the paper's pace; paper 14, the paper's label)", {"type": arg.target_speed}),
-    FieldFlag("--laps", "laps", "laps per controller (default 1)", {"type": arg.positive_int}),
-    FieldFlag("--seed", "seed", f"seed of the first lap, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)",
-              {"type": arg.seed}),
+    _setting("--pixel-model", "config.pixel_model"),
+    _setting("--t-f", "config.t_f"),
+    _setting("--c-pixel", "config.c_pixel"),
+    _setting("--pixel-cost", "config.pixel_cost"),
+    _setting("--target-prior", "config.target_prior"),
+    _setting("--partial-target", "config.partial_target"),
+    _setting("--look-ahead", "config.look_ahead"),
+    _setting("--look-ahead-model", "config.look_ahead_model"),
+    _setting("--look-ahead-from", "config.look_ahead_from"),
+    _setting("--border-margin", "config.border_margin"),
+    _setting("--noise-exponent", "config.mppi.noise_exponent"),
+    _setting("--heading-weight", "config.racing.heading_weight"),
+    _setting("--clearance", "config.racing.vehicle_radius"),
+    _setting("--temperature", "config.mppi.temperature"),
+    _setting("--samples", "config.mppi.num_samples"),
+    _setting("--speed", "speed"),
+    _setting("--laps", "laps"),
+    _setting("--seed", "seed"),
     FieldFlag("--out", None, "output directory", {"type": arg.writable_dir, "default": Path("runs/race")}),
     FieldFlag("--batch", None, "laps per batched (vmapped) call; raise it on a GPU (default 1)",
               {"type": arg.positive_int, "default": 1}),
-    FieldFlag("--perturb", "perturb", "perturb the gates per lap within the AlphaPilot bounds",
-              {"action": "store_true"}),
-    FieldFlag("--map", "map", "with --perturb, what the controller and the filter read: surveyed, the nominal course, "
-              "while the world flies the perturbed gates; known, the perturbed course itself (as perturbed races flew "
-              "before) (default: surveyed)", {"choices": MAPS}),
-    FieldFlag("--gate-switch", "gate_switch", "with --estimator pf or eskf, when the controller's target moves to the "
-              "next gate: estimate, when the estimate crosses the map's gate (a lap whose target then parts from the "
-              "world's ends as target_mismatch); truth, when the true position passes the true gate (as races on a "
-              "filter flew before) (default: estimate)", {"choices": GATE_SWITCHES}),
-    FieldFlag("--camera-tilt", "camera_tilt_deg", "the onboard camera tilted up on its mount by DEG degrees, in "
-              f"[0, {CAMERA_TILT_MAX_DEG:g}], for both controllers, the detector and the measure (default 0, the "
-              "paper's); the packaged learned pixel models are trained for 0, so fly --pixel-model projection",
-              {"type": arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), "metavar": "DEG"}),
-    FieldFlag("--max-time", "max_time_s", f"timeout per lap, s, in (0, {MAX_TIME_S:g}] (default "
-              f"{LAP_TIME_LIMIT_S:g})", {"type": arg.float_in(0.0, MAX_TIME_S, lo_open=True, unit="s")}),
-    FieldFlag("--model-latency", "config.model_latency_ticks", "ticks of actuation latency the controller's model "
-              "predicts across, in [0, 3] (0: none)", {"type": arg.int_in(0, 3)}),
-    FieldFlag("--disturbance-observer", "config.disturbance_time_constant_s", "s: the controller's model learns an "
-              f"external push (wind, model error) with this time constant, in "
-              f"{DISTURBANCE_TIME_CONSTANT_RANGE.interval}",
-              {"type": arg.float_range(DISTURBANCE_TIME_CONSTANT_RANGE)}),
+    _setting("--perturb", "perturb"),
+    _setting("--map", "map"),
+    _setting("--gate-switch", "gate_switch"),
+    _setting("--camera-tilt", "camera_tilt_deg", metavar="DEG"),
+    _setting("--max-time", "max_time_s"),
+    _setting("--model-latency", "config.model_latency_ticks"),
+    _setting("--disturbance-observer", "config.disturbance_time_constant_s"),
     # each --fault entry sets one or more fields of the race's faults (a later entry of a field wins)
     FieldFlag("--fault", "faults", "a fault of the world the controller does not model (repeatable): a setting of "
               "pixelmpc_jax.sim.faults.Faults (wind=3,0,0 m/s; gust=1.5 m/s; mass_factor=1.1; latency_ticks=1; "
               "miss_rate=0.2; map_error_m=0.3; ...) or a named fault at a level "
               f"({', '.join((*FAULT_LEVELS, 'combined'))}=moderate|severe) (default: none)",
               {"type": arg.fault, "action": "append", "metavar": "NAME=VALUE"}),
-    FieldFlag("--detection-gate", "guards.detection_gate_px", "with --estimator pf: reject a detection farther than PX "
-              "pixels from where the filter's particles put the gate (default: off)",
-              {"type": arg.float_in(0.0, 1e4, lo_open=True, unit="px"), "metavar": "PX"}),
-    FieldFlag("--pf-recover", "guards.recover_error_px", "with --estimator pf: re-spread the particles when no "
-              "particle explains a detection within PX pixels summed over its corners, N detections in a row "
-              "(--pf-recover-after; default: off)", {"type": arg.float_in(0.0, 1e5, lo_open=True, unit="px"),
-                                                    "metavar": "PX"}),
-    FieldFlag("--pf-recover-after", "guards.recover_after_ticks", "with --pf-recover: re-spread after N unexplained "
-              "detections in a row (default: 1; 3 lets one false detection pass without a re-spread)",
-              {"type": arg.int_in(1, 1000), "metavar": "N"}),
-    FieldFlag("--pf-imu-bias", "guards.imu_bias_std", "with --estimator pf: the filter estimates its IMU's biases, "
-              "each particle carrying its own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02; default: off)",
-              {"type": arg.imu_bias_std, "metavar": "ACCEL,GYRO"}),
-    FieldFlag("--eskf-map-sigma", "eskf.map_sigma_m", "with --estimator eskf: each gate stands within M m per axis "
-              "(1 sigma) of where the map says, so a gate's corners share that offset in the filter's update (0: an "
-              "exact map; default: 0.2, a tape-measured course)",
-              {"type": arg.float_in(0.0, 100.0, unit="m"), "metavar": "M"}),
-    FieldFlag("--eskf-align", "eskf.align_s", "with --estimator eskf: the filter averages S s of its IMU's readings at "
-              "rest before the lap (on the pad) and learns the gyro bias and the accelerometer's along gravity from "
-              "them (2 is a usual pre-flight wait; default: 0, none)",
-              {"type": arg.float_in(0.0, 60.0, unit="s"), "metavar": "S"}),
-    FieldFlag("--eskf-noise-adapt-rate", "eskf.noise_adapt_rate", "with --estimator eskf: the corners' noise follows "
-              "what the filter's innovations show, moving by RATE of the way at each detection, never below its 2 px "
-              "(0.05 takes a 6 px detector in a few seconds; default: 0, the noise stays 2 px)",
-              {"type": arg.float_in(0.0, 1.0), "metavar": "RATE"}),
+    _setting("--detection-gate", "guards.detection_gate_px", metavar="PX"),
+    _setting("--pf-recover", "guards.recover_error_px", metavar="PX"),
+    _setting("--pf-recover-after", "guards.recover_after_ticks", metavar="N"),
+    _setting("--pf-imu-bias", "guards.imu_bias_std", type=arg.imu_bias_std, metavar="ACCEL,GYRO"),
+    _setting("--eskf-map-sigma", "eskf.map_sigma_m", metavar="M"),
+    _setting("--eskf-align", "eskf.align_s", metavar="S"),
+    _setting("--eskf-noise-adapt-rate", "eskf.noise_adapt_rate", metavar="RATE"),
 )
 
 
@@ -185,28 +110,38 @@ def add_race(sub) -> None:
                         "only what the drone has (--detector image, --estimator eskf, --gate-switch estimate, "
                         "--map surveyed); truth, the controller on the true state (--detector clipped, --estimator "
                         "truth) (default: the starting race's, the presets' truth)")
+    presets = {name: preset(name) for name in ("best", "paper")}
     for flag in RACE_FLAGS:
-        flag.add_to(p, _help(flag))
+        flag.add_to(p, _help(flag, presets))
     p.set_defaults(func=_cmd_race, validate=arg.seed_range, precheck=_check_race)
 
 
-def _help(flag: FieldFlag) -> str:
-    """A flag's help; a controller setting's shows both presets' value of it (building a preset creates no JAX
-    array: no backend starts)."""
-    if flag.field is None or not flag.field.startswith("config."):
+def _help(flag: FieldFlag, presets: dict) -> str:
+    """A flag's help with its default: the value both ``presets`` (``{name: RaceSpec}``) give its field, or each
+    preset's where they differ and for every controller setting (building a preset creates no JAX array: no backend
+    starts). A flag that sets no described setting, or a switch, keeps its own help."""
+    if flag.field is None or flag.options.get("action") == "store_true":
         return flag.help
-    shown = {name: _field_value(preset(name), flag.field) for name in ("best", "paper")}
-    shown = ", ".join(f"{name} {value:g}" if isinstance(value, float) else f"{name} {value}"
-                      for name, value in shown.items())
-    return f"{flag.help} (default: the preset's; {shown})"
+    field, _ = settings.field_at(_DEFAULT_RACE, flag.field)
+    if not settings.described(field):
+        return flag.help
+    values = {name: settings.field_at(race, flag.field)[1] for name, race in presets.items()}
+    shown = {name: _shown(value, field) for name, value in values.items()}
+    if len(set(shown.values())) == 1 and not flag.field.startswith("config."):
+        one = next(iter(values.values()))
+        return f"{flag.help} (default{':' if one is None else ''} {shown['best']})"
+    return f"{flag.help} (default: the preset's; {', '.join(f'{name} {value}' for name, value in shown.items())})"
 
 
-def _field_value(spec: RaceSpec, field: str):
-    """The value of the spec's field at the dotted path ``field``."""
-    value = spec
-    for name in field.split("."):
-        value = getattr(value, name)
-    return value
+def _shown(value, field) -> str:
+    """A setting's value as --help shows it: a float in its shortest form, None as what it means ("off")."""
+    if value is None:
+        return field.metadata["none"]
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, tuple):
+        return ",".join(_shown(v, field) for v in value)
+    return str(value)
 
 
 def _fields_given(args) -> dict:

@@ -16,12 +16,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from pixelmpc_jax.control.mppi_checks import Range
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.settings import Range, check, setting
 from pixelmpc_jax.world import track as track_lib
 
-HEADING_WEIGHT_RANGE = Range(0.0, 1.0)  # RacingCostConfig.heading_weight, and `pixelmpc race --heading-weight`
-VEHICLE_RADIUS_RANGE = Range(0.05, 1.0, unit="m")  # RacingCostConfig.vehicle_radius, and `race --clearance`
 SPEED_CAP_NONE = 1e30  # m/s, the speed cap of the cost without one (max_lateral_acc None): above any target speed
 
 
@@ -110,7 +108,8 @@ class RacingCostConfig:
     corridor_halfwidth: float = 2.0
     crash_value: float = 1000.0
     crash_slab_halfwidth: float = 0.25
-    vehicle_radius: float = 0.1
+    vehicle_radius: float = setting(0.1, range=Range(0.05, 1.0, unit="m"), help="m: the racing cost's clearance to "
+                                    "gate frames, floor and walls (the world keeps the vehicle's 0.1 m)")
     window_behind_m: float = 4.0
     window_ahead_m: float = 8.0
     path_stride: int = 4
@@ -118,11 +117,11 @@ class RacingCostConfig:
     curvature_lookaround_m: float = 3.0
     max_tilt_deg: float | None = 75.0
     progress_weight: float = 0.25
-    heading_weight: float = 1.0
+    heading_weight: float = setting(1.0, range=Range(0.0, 1.0), help="share of the racing cost's attitude term that "
+                                    "pins the heading to the path, in {range} (1: the paper's)")
 
     def __post_init__(self):
-        HEADING_WEIGHT_RANGE.check("RacingCostConfig.heading_weight", self.heading_weight)
-        VEHICLE_RADIUS_RANGE.check("RacingCostConfig.vehicle_radius", self.vehicle_radius)
+        check(self)
 
     def window_length(self, path_spacing: float = 0.25) -> int:
         """Number of path samples in each step's window (static)."""

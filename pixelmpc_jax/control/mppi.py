@@ -56,6 +56,7 @@ plain jit also skips ``Controller.check`` and the compile count. Inside a jit of
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -64,6 +65,10 @@ import jax.numpy as jnp
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.control.mppi_checks import (
+    FLOAT32_MAX,
+    NOISE_EXPONENT_RANGE,
+    NUM_SAMPLES_RANGE,
+    TEMPERATURE_RANGE,
     check_prefix,
     check_x0,
     checked_config,
@@ -74,6 +79,7 @@ from pixelmpc_jax.control.mppi_checks import (
 )
 from pixelmpc_jax.control.rollout import Prefix, rollout_costs, rollout_states
 from pixelmpc_jax.control.sampling import coloured_noise_filter, importance_weights
+from pixelmpc_jax.settings import Range, setting
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +91,8 @@ class MPPIConfig:
     settings live with the quadrotor's controller (:func:`~pixelmpc_jax.control.pixelmpc.paper_mppi_config`).
 
     Attributes:
-        num_samples: N, sampled control sequences per iteration.
+        num_samples: N, sampled control sequences per iteration, in
+            :data:`~pixelmpc_jax.control.mppi_checks.NUM_SAMPLES_RANGE`.
         horizon: T, steps per rollout.
         dt: step length (s); informational for the dynamics the user passes (the paper: 0.025).
         noise_sigma: required; per-channel standard deviation of the control noise, length m (the number of
@@ -101,17 +108,19 @@ class MPPIConfig:
             see :func:`~pixelmpc_jax.control.sampling.coloured_noise_filter`.
     """
 
-    num_samples: int = 512
-    horizon: int = 80
-    dt: float = timing.CONTROL_DT
+    num_samples: int = setting(512, range=NUM_SAMPLES_RANGE, help="MPPI samples per step")
+    horizon: int = setting(80, range=Range(1, math.inf, integer=True), help="MPPI steps per rollout (T)")
+    dt: float = setting(timing.CONTROL_DT, range=Range(0.0, FLOAT32_MAX, lo_open=True, unit="s"),
+                        help="MPPI step length")
     noise_sigma: tuple[float, ...] = dataclasses.field(kw_only=True)
-    temperature: float = 1.0
-    iterations: int = 1
+    temperature: float = setting(1.0, range=TEMPERATURE_RANGE, help="MPPI lambda")
+    iterations: int = setting(1, range=Range(1, math.inf, integer=True), help="MPPI iterations per step (K)")
     u_min: tuple[float, ...] | None = None
     u_max: tuple[float, ...] | None = None
-    control_cost_weight: float = 0.0
+    control_cost_weight: float = setting(0.0, range=Range(0.0, FLOAT32_MAX), help="MPPI control cost weight gamma")
     nominal_sample: bool = True
-    noise_exponent: float = 0.0
+    noise_exponent: float = setting(0.0, range=NOISE_EXPONENT_RANGE, help="MPPI sampling noise coloured as 1/f^beta "
+                                    "along the horizon, beta in {range} (0: white, the paper's)")
 
     def __post_init__(self):
         for name, value in checked_config(self).items():  # the sequences as tuples of floats

@@ -20,70 +20,26 @@ compiles, never broadcast over the samples.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import settings
+from pixelmpc_jax.settings import Range
+
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # 3.4e38: larger numbers (and inf) do not survive float32
 TEMPERATURE_MIN = 1e-30  # a smaller lambda flushes to zero in float32 arithmetic: 0 / 0 = NaN weights
 SIGMA_MIN, SIGMA_MAX = 1e-18, 1e18  # sigma^2 and 1 / sigma^2 (the control cost) stay normal float32 numbers
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-
-
-class Range(NamedTuple):
-    """The one range of a numeric setting: a configuration's ``__post_init__`` checks it (:meth:`check`) and the
-    command line's flag of that setting parses with it (:func:`pixelmpc_jax.arguments.float_range`), so Python and
-    the command line refuse the same values with the same interval.
-
-    Attributes:
-        lo, hi: the bounds, ``hi`` included.
-        lo_open: ``lo`` excluded.
-        unit: the unit named after the interval ("s", "m"), or "".
-    """
-
-    lo: float
-    hi: float
-    lo_open: bool = False
-    unit: str = ""
-
-    @property
-    def interval(self) -> str:
-        """``[lo, hi] unit`` (``(lo, hi]`` with ``lo_open``)."""
-        return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]" + (f" {self.unit}" if self.unit else "")
-
-    def holds(self, value) -> bool:
-        """Whether ``value`` is a number (not a bool) within the range (NaN and inf are not)."""
-        return (_is_number(value) and (value > self.lo if self.lo_open else value >= self.lo)
-                and value <= self.hi)
-
-    def check(self, name: str, value) -> float:
-        """``value`` as a float; a ValueError ``{name} must be a finite number in {interval}, got {value}``."""
-        if not self.holds(value):
-            raise ValueError(f"{name} must be a finite number in {self.interval}, got {value!r}")
-        return float(value)
-
-
-TEMPERATURE_RANGE = Range(TEMPERATURE_MIN, FLOAT32_MAX)  # MPPIConfig.temperature (lambda)
+TEMPERATURE_RANGE = Range(TEMPERATURE_MIN, FLOAT32_MAX)  # MPPIConfig.temperature (lambda): what float32 carries
 NOISE_EXPONENT_RANGE = Range(0.0, 4.0)  # MPPIConfig.noise_exponent (beta)
+NUM_SAMPLES_RANGE = Range(1, 2**20, integer=True)  # MPPIConfig.num_samples (N)
 
 
 def checked_config(config) -> dict[str, tuple[float, ...] | None]:
     """The sequences of an ``MPPIConfig`` as tuples of floats, ``{"noise_sigma", "u_min", "u_max"}``, once every
     field is checked; a ValueError naming the first field out of its range."""
-    for name in ("num_samples", "horizon", "iterations"):
-        value = getattr(config, name)
-        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
-            raise ValueError(f"MPPIConfig.{name} must be a positive integer, got {value!r}")
-    if not (_is_number(config.dt) and 0 < config.dt <= FLOAT32_MAX):
-        raise ValueError(f"MPPIConfig.dt must be a positive finite number, got {config.dt!r}")
-    if not TEMPERATURE_RANGE.holds(config.temperature):
-        raise ValueError(f"MPPIConfig.temperature (lambda) must be a number in [{TEMPERATURE_MIN:g}, "
-                         f"{FLOAT32_MAX:.4g}] (what float32 carries), got {config.temperature!r}")
+    settings.check(config)  # the numbers, each in its field's range (MPPIConfig's metadata)
     fields = {"noise_sigma": _checked_sigma(config.noise_sigma)}
     m = len(fields["noise_sigma"])
     for name in ("u_min", "u_max"):
@@ -93,10 +49,6 @@ def checked_config(config) -> dict[str, tuple[float, ...] | None]:
         if np.any(lo > hi):
             raise ValueError(f"MPPIConfig: u_min > u_max in channels {np.nonzero(lo > hi)[0].tolist()} "
                              f"(u_min={fields['u_min']}, u_max={fields['u_max']})")
-    NOISE_EXPONENT_RANGE.check("MPPIConfig.noise_exponent (beta)", config.noise_exponent)
-    if not (_is_number(config.control_cost_weight) and 0 <= config.control_cost_weight <= FLOAT32_MAX):
-        raise ValueError(f"MPPIConfig.control_cost_weight must be a finite number >= 0, "
-                         f"got {config.control_cost_weight!r}")
     return fields
 
 

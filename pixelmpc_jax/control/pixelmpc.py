@@ -41,11 +41,11 @@ from flax import struct
 from pixelmpc_jax import timing
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import Controller, MPPIConfig, make_mppi
-from pixelmpc_jax.control.mppi_checks import Range
 from pixelmpc_jax.control.rollout import Prefix, TrajectoryCost
 from pixelmpc_jax.dynamics import dof as dof_lib
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics import vdof as vdof_lib
+from pixelmpc_jax.settings import Range, check, setting
 from pixelmpc_jax.world import camera as camera_lib
 
 PIXEL_MODELS = ("dof", "projection", "vdof")
@@ -68,13 +68,14 @@ LOOK_AHEAD_MODELS = ("own", "projection")  # what predicts the next gate's pixel
 LOOK_AHEAD_FROM = ("plane", "plan")
 PIXEL_WEIGHT_MAX = 1e30  # c_pixel * pixel_cost_scale: float32 (3.4e38) holds a horizon of such stage costs
 PAPER_NOISE_SIGMA = (0.2, 0.2, 0.3, 2.2)  # the paper's MPPI noise std per control [wx, wy, wz (rad/s), thrust (N)]
-# The ranges of ControllerConfig's numeric settings: one rule, checked by ControllerConfig and by the flags of
-# `pixelmpc race` that set them (commands/race.py).
+# The ranges of ControllerConfig's numeric settings, in its fields' metadata: one rule, checked by ControllerConfig
+# and by the flags of `pixelmpc race` that set them (pixelmpc_jax.settings).
 T_F_RANGE = Range(0.0, 2.0, unit="s")  # the pixel cost's horizon: at most the paper's 2 s (80 steps of 0.025 s)
 C_PIXEL_RANGE = Range(0.0, PIXEL_WEIGHT_MAX)
 LOOK_AHEAD_RANGE = Range(0.0, 1e3)
 BORDER_MARGIN_RANGE = Range(0.0, 0.5, lo_open=True)
 DISTURBANCE_TIME_CONSTANT_RANGE = Range(timing.CONTROL_DT, 60.0, unit="s")
+MODEL_LATENCY_RANGE = Range(0, 3, integer=True)  # control ticks
 QUATERNION_NORM_RANGE = (0.5, 1.5)  # a state's quaternion this far from unit is not a rotation (a zero one)
 DETECTED_PIXEL_RANGE = (-1.0, 2.0)  # a detected target pixel, normalised (the image is [0, 1]^2), with margin
 
@@ -106,8 +107,7 @@ class ControllerConfig:
     Attributes:
         mppi: sampling settings (the paper's by default).
         racing: the racing cost's settings.
-        t_f: seconds of the horizon over which the pixel cost counts (the paper: 1 or 2), in :data:`T_F_RANGE`
-            ([0, 2] s).
+        t_f: seconds of the horizon over which the pixel cost counts (the paper: 1 or 2), in :data:`T_F_RANGE`.
         c_pixel: the pixel cost weight of Eq. (18) (the paper: 3e6, 6e6, 9e6), in :data:`C_PIXEL_RANGE`.
         pixel_cost_scale: our stage cost is ``c_pixel * pixel_cost_scale * L1`` per step. The paper's
             numbers do not transfer as they stand (its cost's units and step weighting are not given);
@@ -135,9 +135,9 @@ class ControllerConfig:
             gate's centre line. None: counted until the gate is passed, as the other models (for which it is
             always None: a preset's limit does not stop another model's pixel cost).
         model_latency_ticks: control ticks between a command and its effect that the controller's model
-            predicts across (0-3; 0: none, the paper's). The controller in the loop then plans from the
-            estimate rolled forward through the commands it sent and the plant has not applied yet. For a known
-            actuation latency (:class:`~pixelmpc_jax.sim.faults.Faults`); nominal MPPI flies it too.
+            predicts across (in :data:`MODEL_LATENCY_RANGE`; 0: none, the paper's). The controller in the loop then
+            plans from the estimate rolled forward through the commands it sent and the plant has not applied yet.
+            For a known actuation latency (:class:`~pixelmpc_jax.sim.faults.Faults`); nominal MPPI flies it too.
         disturbance_time_constant_s: s; the controller's model adds an external acceleration (wind, a mass, drag or
             thrust off the model's) that the controller in the loop estimates from the residual of its own one-tick
             predictions, with this time constant (offset-free MPC; ``PixelMPCParams.disturbance``). None: no
@@ -173,64 +173,69 @@ class ControllerConfig:
 
     mppi: MPPIConfig = dataclasses.field(default_factory=paper_mppi_config)
     racing: costs.RacingCostConfig = dataclasses.field(default_factory=costs.RacingCostConfig)
-    t_f: float = 1.0
-    c_pixel: float = 9e6
+    t_f: float = setting(1.0, range=T_F_RANGE, help="PixelMPC pixel-cost horizon t_f, in {range} (the MPC horizon)")
+    c_pixel: float = setting(9e6, range=C_PIXEL_RANGE, help="PixelMPC pixel-cost weight")
     pixel_cost_scale: float = 3e-5
-    pixel_model: str = "dof"
+    pixel_model: str = setting(
+        "dof", choices=PIXEL_MODELS, help="PixelMPC's pixel model: dof, the paper's DOF network; vdof, the learned "
+        "model with velocity and the gate's size; or projection, the PAMPC-style projection of the known gate")
     pixel_error_clip: float | None = 1.0
     pixel_deadzone: float = 0.0
-    pixel_cost: str = "l1"
-    border_margin: float = 0.15
+    pixel_cost: str = setting(
+        "l1", choices=PIXEL_COSTS, help="PixelMPC pixel cost: l1, the paper's distance from the image centre, or "
+        "border, a barrier on the image border that charges only a gate leaving the view")
+    border_margin: float = setting(0.15, range=BORDER_MARGIN_RANGE, help="where the border cost starts, as a "
+                                   "fraction of the image inside the border")
     box_size_limit: float | None = None
-    model_latency_ticks: int = 0
-    disturbance_time_constant_s: float | None = None
-    target_prior: str = "none"
-    look_ahead: float = 0.0
-    look_ahead_model: str = "own"
-    partial_target: str = "detected"
-    look_ahead_from: str = "plane"
+    model_latency_ticks: int = setting(0, range=MODEL_LATENCY_RANGE, help="ticks of actuation latency the "
+                                       "controller's model predicts across, in {range} (0: none)")
+    disturbance_time_constant_s: float | None = setting(
+        None, range=DISTURBANCE_TIME_CONSTANT_RANGE, none="no model", help="s: the controller's model learns an "
+        "external push (wind, model error) with this time constant")
+    target_prior: str = setting(
+        "none", choices=TARGET_PRIORS, help="what PixelMPC's pixel cost charges while the target is not detected: "
+        "none, the paper's (no pixel cost); map, its pixel projected from the map and the estimate; kept, its last "
+        "pixel moved on by the pixel model since it was last seen; or seeded, kept once seen and from the map before")
+    look_ahead: float = setting(
+        0.0, range=LOOK_AHEAD_RANGE, help="PixelMPC's weight, relative to the target's, of the next gate's pixel "
+        "cost on the predicted states past the target (its pixel from the map and the estimate); 0: none, the "
+        "paper's; in {range}")
+    look_ahead_model: str = setting(
+        "own", choices=LOOK_AHEAD_MODELS, help="what predicts the next gate's pixel along the horizon with the "
+        "look-ahead: own, PixelMPC's pixel model; projection, the gate's centre from the map projected through each "
+        "predicted pose (map-aided)")
+    partial_target: str = setting(
+        "detected", choices=PARTIAL_TARGETS, help="where PixelMPC's target pixel starts when the detector reports "
+        "the gate cut by the image border: detected, the centre of its visible outline (the paper's); map, the gate "
+        "projected from the map and the estimate")
+    look_ahead_from: str = setting(
+        "plane", choices=LOOK_AHEAD_FROM, help="from which predicted state the look-ahead charges the next gate: "
+        "plane, once the sample has passed the target's plane (a sample that stops short of the gate escapes it); "
+        "plan, from there or from the step the current plan passes it, the earlier")
 
     def __post_init__(self):
-        object.__setattr__(self, "look_ahead", LOOK_AHEAD_RANGE.check("ControllerConfig.look_ahead", self.look_ahead))
-        if self.target_prior not in TARGET_PRIORS:
-            raise ValueError(f"target_prior must be one of {TARGET_PRIORS}, got {self.target_prior!r}")
-        if self.look_ahead_from not in LOOK_AHEAD_FROM:
-            raise ValueError(f"look_ahead_from must be one of {LOOK_AHEAD_FROM}, got {self.look_ahead_from!r}")
+        check(self)  # each setting in its field's range or choices
+        object.__setattr__(self, "look_ahead", float(self.look_ahead))
         if self.look_ahead_from == "plan" and not self.mppi.nominal_sample:
             raise ValueError("look_ahead_from='plan' reads the current plan from MPPI's zero-noise sample: it needs "
                              "mppi.nominal_sample")
-        if self.partial_target not in PARTIAL_TARGETS:
-            raise ValueError(f"partial_target must be one of {PARTIAL_TARGETS}, got {self.partial_target!r}")
-        if self.pixel_model not in PIXEL_MODELS:
-            raise ValueError(f"pixel_model must be one of {PIXEL_MODELS}, got {self.pixel_model!r}")
-        if self.look_ahead_model not in LOOK_AHEAD_MODELS:
-            raise ValueError(f"look_ahead_model must be one of {LOOK_AHEAD_MODELS}, got {self.look_ahead_model!r}")
-        T_F_RANGE.check("ControllerConfig.t_f", self.t_f)
         if not (0.0 <= self.pixel_cost_scale < math.inf):
             raise ValueError(f"pixel_cost_scale must be a finite number >= 0, got {self.pixel_cost_scale!r}")
-        C_PIXEL_RANGE.check("ControllerConfig.c_pixel", self.c_pixel)
         if not (self.c_pixel * self.pixel_cost_scale <= PIXEL_WEIGHT_MAX):
             raise ValueError(f"c_pixel must be a finite number >= 0 with c_pixel * pixel_cost_scale <= "
                              f"{PIXEL_WEIGHT_MAX:g} (a horizon of such costs must stay a float32 number), got "
                              f"{self.c_pixel!r} (scale {self.pixel_cost_scale!r})")
         if not (0.0 <= self.pixel_deadzone < 0.5):
             raise ValueError(f"pixel_deadzone must lie in [0, 0.5), got {self.pixel_deadzone!r}")
-        if self.pixel_cost not in PIXEL_COSTS:
-            raise ValueError(f"pixel_cost must be one of {PIXEL_COSTS}, got {self.pixel_cost!r}")
-        BORDER_MARGIN_RANGE.check("ControllerConfig.border_margin", self.border_margin)
         if self.pixel_error_clip is not None and not (self.pixel_error_clip > 0.0):
             raise ValueError(f"pixel_error_clip must be positive or None, got {self.pixel_error_clip!r}")
         if self.box_size_limit is not None and not (0.0 < self.box_size_limit < math.inf):
             raise ValueError(f"box_size_limit must be a positive finite number or None, got {self.box_size_limit!r}")
-        if isinstance(self.model_latency_ticks, bool) or self.model_latency_ticks not in range(4):
-            raise ValueError(f"model_latency_ticks must be an integer in [0, 3], got {self.model_latency_ticks!r}")
         object.__setattr__(self, "model_latency_ticks", int(self.model_latency_ticks))
         tau = self.disturbance_time_constant_s
-        if tau is not None:
-            DISTURBANCE_TIME_CONSTANT_RANGE.check("ControllerConfig.disturbance_time_constant_s (None: no model)", tau)
-            if tau < self.mppi.dt:
-                raise ValueError(f"ControllerConfig.disturbance_time_constant_s must be at least the step "
-                                 f"{self.mppi.dt:g} s, got {tau!r}")
+        if tau is not None and tau < self.mppi.dt:
+            raise ValueError(f"ControllerConfig.disturbance_time_constant_s must be at least the step "
+                             f"{self.mppi.dt:g} s, got {tau!r}")
         if self.pixel_model != "vdof":  # only vdof predicts a box size: the limit flies nothing elsewhere
             object.__setattr__(self, "box_size_limit", None)
         if self.pixel_model == "projection":  # its own model is the projection

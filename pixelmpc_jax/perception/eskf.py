@@ -77,6 +77,7 @@ from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, STATE_DIM, VEL
 from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorParams, checked_spread, checked_x0
 from pixelmpc_jax.perception.particle_filter import GRAVITY, propagate_preintegrated
+from pixelmpc_jax.settings import Range, check, setting
 from pixelmpc_jax.world import camera as camera_lib
 
 ERROR_DIM = 15  # [dp, dv, dtheta, dba, dbg]
@@ -172,15 +173,27 @@ class ESKFConfig:
     joint_gate: bool = True
     max_delay_ticks: int = 3
     gravity: float = GRAVITY
-    map_sigma_m: float = SURVEYED_MAP_SIGMA_M
-    align_s: float = 0.0
-    noise_adapt_rate: float = 0.0
+    map_sigma_m: float = setting(
+        SURVEYED_MAP_SIGMA_M, range=Range(0.0, 100.0, unit="m"),
+        help="Kalman filter: each gate stands within M, in {range}, per axis (1 sigma) of where the map says, so a "
+             "gate's corners share that offset in the filter's update (0: an exact map; the default, a tape-measured "
+             "course's accuracy)")
+    align_s: float = setting(
+        0.0, range=Range(0.0, 60.0, unit="s"),
+        help="Kalman filter: the filter averages S, in {range}, of its IMU's readings at rest before the lap (on the "
+             "pad) and learns the gyro bias and the accelerometer's along gravity from them (0: none; 2 is a usual "
+             "pre-flight wait)")
+    noise_adapt_rate: float = setting(
+        0.0, range=Range(0.0, 1.0),
+        help="Kalman filter: the corners' noise follows what the filter's innovations show, moving by RATE, in "
+             "{range}, of the way at each detection, never below measurement_sigma_px (0: the noise stays; 0.05 takes "
+             "a 6 px detector in a few seconds)")
     noise_scale_max: float = 25.0
 
     def __post_init__(self):
+        check(self)  # the map's sigma, the alignment and the noise's adaptation, each in its field's range
         for name in ("accel_noise_density", "gyro_noise_density", "accel_bias_walk", "gyro_bias_walk",
-                     "accel_bias_std", "gyro_bias_std", "velocity_walk", "attitude_walk", "border_margin_px",
-                     "map_sigma_m", "align_s"):
+                     "accel_bias_std", "gyro_bias_std", "velocity_walk", "attitude_walk", "border_margin_px"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                       and value >= 0):
@@ -194,9 +207,6 @@ class ESKFConfig:
             raise ValueError(f"joint_gate must be True or False, got {self.joint_gate!r}")
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(f"robust_loss must be one of {ROBUST_LOSSES}, got {self.robust_loss!r}")
-        rate = self.noise_adapt_rate
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 1:
-            raise ValueError(f"noise_adapt_rate must be a number in [0, 1], got {rate!r}")
         top = self.noise_scale_max
         if isinstance(top, bool) or not isinstance(top, (int, float)) or not (math.isfinite(top) and top >= 1):
             raise ValueError(f"noise_scale_max must be a finite number >= 1, got {top!r}")

@@ -34,6 +34,7 @@ from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics.quadrotor import POS, QUAT, VEL
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorParams, checked_spread, checked_x0
+from pixelmpc_jax.settings import Range, check, setting
 from pixelmpc_jax.world import camera as camera_lib
 
 GATE_MIN_SHARE = 0.01  # the weight share of particles that must place the gate near a detection to keep it
@@ -54,26 +55,31 @@ class GuardConfig:
             None: the filter estimates no bias (the paper's).
     """
 
-    detection_gate_px: float | None = None
-    recover_error_px: float | None = None
+    detection_gate_px: float | None = setting(
+        None, range=Range(0.0, 1e4, lo_open=True, unit="px"), none="off", help="particle filter: reject a detection "
+        "farther than PX pixels, in {range}, from where the filter's particles put the gate")
+    recover_error_px: float | None = setting(
+        None, range=Range(0.0, 1e5, lo_open=True, unit="px"), none="off", help="particle filter: re-spread the "
+        "particles when no particle explains a detection within PX pixels, in {range}, summed over its corners, N "
+        "detections in a row (recover_after_ticks)")
     recover_spread: tuple = (1.0, 0.05, 0.5)
-    recover_after_ticks: int = 1
-    imu_bias_std: tuple | None = None
+    recover_after_ticks: int = setting(
+        1, range=Range(1, 1000, integer=True), help="particle filter, with the recovery: re-spread after N "
+        "unexplained detections in a row, N in {range} (3 lets one false detection pass without a re-spread)")
+    imu_bias_std: tuple | None = setting(
+        None, none="off", help="particle filter: the filter estimates its IMU's biases, each particle carrying its "
+        "own, spread by ACCEL m/s^2 and GYRO rad/s (e.g. 0.3,0.02)")
 
     def __post_init__(self):
+        check(self)  # the gate, the recovery's error and its count, each in its field's range
         for name in ("detection_gate_px", "recover_error_px"):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, (int, float)) and 0 < value < math.inf):
-                raise ValueError(f"{name} must be a positive finite number of pixels or None, got {value!r}")
             object.__setattr__(self, name, None if value is None else float(value))
         spread = tuple(float(s) for s in self.recover_spread)
         if len(spread) != 3 or not all(math.isfinite(s) and s >= 0 for s in spread):
             raise ValueError(f"recover_spread must be 3 finite stds >= 0 (position, attitude, velocity), got "
                              f"{self.recover_spread!r}")
         object.__setattr__(self, "recover_spread", spread)
-        after = self.recover_after_ticks
-        if isinstance(after, bool) or not isinstance(after, int) or after < 1:
-            raise ValueError(f"recover_after_ticks must be an integer >= 1, got {after!r}")
         if self.imu_bias_std is not None:
             bias = tuple(float(s) for s in self.imu_bias_std)
             if len(bias) != 2 or not all(math.isfinite(s) and s > 0 for s in bias):

@@ -18,6 +18,11 @@ misses and crashes on it, from the true state. On the true state the controller'
 filter (``EnvConfig.gate_switch="estimate"``) it advances when the estimate crosses the map's gate, and a lap whose
 two targets part for longer than ``EnvConfig.target_mismatch_s`` (or that misses a gate while they differ) ends as
 ``target_mismatch``.
+
+A policy is handed no truth: of the World it gets :class:`PolicyWorld` (the map, the target speed, the camera, the
+pixel model; not the course flown, the vehicle as it flies or the detector's noise), and each tick the
+:class:`Observation` (the estimate, its target and progress, the detection), which holds nothing true beyond the true
+state the "truth" estimator gives as its estimate.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from pixelmpc_jax.perception import eskf as eskf_lib
 from pixelmpc_jax.perception import estimator as estimator_lib
 from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
+from pixelmpc_jax.settings import MAX_TIME_RANGE, check, setting
 from pixelmpc_jax.sim import faults as faults_lib
 from pixelmpc_jax.sim import plant as plant_lib
 from pixelmpc_jax.world import camera as camera_lib
@@ -149,27 +155,32 @@ class EnvConfig:
             ``target_mismatch``; so does a lap that misses a gate while the two differ.
     """
 
-    max_time_s: float = timing.LAP_TIME_LIMIT_S
+    max_time_s: float = setting(timing.LAP_TIME_LIMIT_S, range=MAX_TIME_RANGE, help="timeout per lap")
     progress_window_m: float = 30.0
     missed_gate_margin_m: float = 6.0
-    detector: str = "clipped"
-    estimator: str = "truth"
+    detector: str = setting(
+        "clipped", choices=DETECTORS, help="target detection: clipped, the projection of the true gate cut at the "
+        "image border as a camera's detector reports it (the corners in view, a centre from the visible outline); "
+        "ideal, the projection reported whole, in the image or not; or image, OpenCV on rendered frames")
+    estimator: str = setting(
+        "truth", choices=ESTIMATORS, help="state the controller acts on: truth, pf (the paper's particle filter) or "
+        "eskf (an error-state Kalman filter with IMU bias states)")
     pf: pf_lib.PFConfig = dataclasses.field(default_factory=pf_lib.PFConfig)
     pf_initial_spread: tuple = (0.3, 0.03, 0.2)
     eskf: eskf_lib.ESKFConfig = dataclasses.field(default_factory=eskf_lib.ESKFConfig)
     guards: guards_lib.GuardConfig = dataclasses.field(default_factory=guards_lib.GuardConfig)
     faults: faults_lib.Faults = dataclasses.field(default_factory=faults_lib.Faults)
-    gate_switch: str = "estimate"
+    gate_switch: str = setting(
+        "estimate", choices=GATE_SWITCHES, help="on a filter (pf or eskf), when the controller's target moves to the "
+        "next gate: estimate, when the estimate crosses the map's gate (a lap whose target then parts from the "
+        "world's ends as target_mismatch); truth, when the true position passes the true gate (as races on a filter "
+        "flew before)")
     target_mismatch_s: float = 0.5
 
     def __post_init__(self):
-        for name, choices in (("detector", DETECTORS), ("estimator", ESTIMATORS), ("gate_switch", GATE_SWITCHES)):
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name} must be one of {choices}, got {getattr(self, name)!r}")
+        check(self)  # the timeout, the detector, the estimator and the gate switch, each in its range or choices
         if not self.target_mismatch_s > 0:
             raise ValueError(f"target_mismatch_s must be positive, got {self.target_mismatch_s!r}")
-        if not self.max_time_s > 0:
-            raise ValueError(f"max_time_s must be positive, got {self.max_time_s!r}")
         delay = self.faults.detection_delay_ticks
         if self.estimator == "eskf" and delay > self.eskf.max_delay_ticks:
             raise ValueError(f"the detection delay of {delay} ticks exceeds the Kalman filter's window "
@@ -188,25 +199,52 @@ class EnvConfig:
 
 
 class Observation(NamedTuple):
-    """What a policy sees at a tick.
+    """What a policy sees at a tick: what the drone's own sensors and estimator give it, nothing of the truth
+    (beside the true state the "truth" estimator hands over as its estimate). The metric's visibility of the target
+    (:func:`target_visibility`, from the true pose) is the episode log's, not here, so a policy cannot steer by it.
 
     Attributes:
         x_est: (10,) the estimated state (the true state with the "truth" estimator).
         target_gate: () int32 index of the gate the controller steers for (the world's next gate, or with the
-            estimated switch the gate after the last the estimate crossed; at most the last gate).
+            estimated switch the gate after the last the estimate crossed; at most the last gate). On a filter with
+            ``gate_switch="truth"`` it moves when the true position passes the true gate: that setting hands the
+            policy the world's target on purpose.
         progress_s: () m, the estimate's progress along the desired path.
-        target_visibility: () fraction of the target gate's outline in view from the true pose (what the
-            metrics count, not what a controller could know).
-        detection: the detector's view of ``target_gate`` from the true pose.
+        detection: the detector's report of ``target_gate`` (a measurement, taken from the true pose as a camera
+            takes it).
         position_cov_trace: () m^2, trace of the estimator's position covariance (0 for the truth).
     """
 
     x_est: jax.Array
     target_gate: jax.Array
     progress_s: jax.Array
-    target_visibility: jax.Array
     detection: detector_lib.Detection
     position_cov_trace: jax.Array = 0.0
+
+
+class PolicyWorld(NamedTuple):
+    """What a policy knows of the :class:`World`: the map, the speed asked for, its camera and its pixel model.
+
+    The rest of the World is the truth a drone cannot read: the course as it stands where it differs from the map
+    (``World.course``), the vehicle as it flies (``World.plant_params``; a policy plans on its own model), the
+    detector's noise and dropout. The type lacks them, so a policy that reads one fails when it is traced.
+
+    Attributes:
+        track: the map (``World.track``): the gates, path and start as the drone was told them.
+        target_speed: () m/s.
+        camera: the onboard camera (its calibration).
+        dof: the pixel model's weights (None for controllers without one).
+    """
+
+    track: track_lib.Track
+    target_speed: jax.Array
+    camera: camera_lib.Camera
+    dof: Any = None
+
+
+def policy_world(world: World) -> PolicyWorld:
+    """The part of ``world`` a policy may read (:class:`PolicyWorld`), on every loop: the same arrays, regrouped."""
+    return PolicyWorld(track=world.track, target_speed=world.target_speed, camera=world.camera, dof=world.dof)
 
 
 class SimState(NamedTuple):
@@ -433,13 +471,12 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
                                world.detector_dropout, steered)
         detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
         filter_state, x_est, cov_trace, progress_est, detection = estimate(world, state, detection)
-        visibility = target_visibility(world, state)
         state = state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state)
         if config.switches_on_estimate:
             state, detection = _switch_on_estimate(world, state, x_est, detection)
         observation = Observation(
             x_est=x_est, target_gate=_steered_gate(config, state, track.num_gates), progress_s=progress_est,
-            target_visibility=visibility, detection=detection, position_cov_trace=cov_trace.astype(jnp.float32),
+            detection=detection, position_cov_trace=cov_trace.astype(jnp.float32),
         )
         return state, observation
 

@@ -1,11 +1,13 @@
 """The closed loop: a policy at 40 Hz flying the racing environment, logged tick by tick.
 
 Each 1/40 s tick the driver asks the environment for an observation (:mod:`pixelmpc_jax.sim.env`: detection
-and estimate), the policy for a command (:mod:`pixelmpc_jax.sim.policies`), and the environment for the tick
-flown (plant, gate passage, collisions, the episode's end), then writes the tick into preallocated logs. An
-episode is one ``lax.while_loop`` over ticks, so a finished lap stops computing; a batch of episodes (seeds,
-speeds, course perturbations) is a ``vmap`` of it, split over the devices (:mod:`pixelmpc_jax.devices`),
-and runs until its last member ends.
+and estimate), the policy for a command (:mod:`pixelmpc_jax.sim.policies`; it is given the observation and the
+world as the drone knows it, :class:`~pixelmpc_jax.sim.env.PolicyWorld`, no truth), and the environment for the
+tick flown (plant, gate passage, collisions, the episode's end), then writes the tick into preallocated logs, the
+truth the metrics need (the target's visibility from the true pose) among them. An episode is one
+``lax.while_loop`` over ticks, so a finished lap stops computing; a batch of episodes (seeds, speeds, course
+perturbations) is a ``vmap`` of it, split over the devices (:mod:`pixelmpc_jax.devices`), and runs until its last
+member ends.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ class EpisodeLog(NamedTuple):
         states: (M+1, 10) true state at each tick, the start included.
         controls: (M, 4) commands sent.
         body_rates: (M+1, 3) true body rates.
-        visibility: (M+1,) target-gate visibility at each tick.
+        visibility: (M+1,) target-gate visibility at each tick, from the true pose (the metric's; no policy sees it).
         target: (M+1,) target gate index at each tick.
         detected: (M,) the detector reported the target at each tick.
         detection_uv: (M, 2) the detected target pixel (normalised).
@@ -146,12 +148,13 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
     def closed_loop_episode(world: World, key: jax.Array) -> EpisodeLog:
         key, key_policy, key_reset = jax.random.split(key, 3)
         sim = env.reset(world, key_reset)
-        carry = _Carry(sim=sim, policy_state=policy.init(key_policy, world), key=key, log=empty_log(world, sim))
+        known = env_lib.policy_world(world)  # the policy reads the map, never the course flown or the true vehicle
+        carry = _Carry(sim=sim, policy_state=policy.init(key_policy, known), key=key, log=empty_log(world, sim))
 
         def body(c: _Carry) -> _Carry:
             key, key_step, key_observe = jax.random.split(c.key, 3)
             sim, obs = env.observe(world, c.sim, key_observe)
-            u, policy_state, prediction = policy.act(c.policy_state, obs, world)
+            u, policy_state, prediction = policy.act(c.policy_state, obs, known)
             sim = env.step(world, sim, u, key_step)
             return _Carry(sim=sim, policy_state=policy_state, key=key,
                           log=record(c.log, world, obs, u, prediction, sim))

@@ -2,7 +2,9 @@
 
 A :class:`Policy` is ``init(key, world) -> state``, called once per episode (per-episode constants belong in
 the state), and ``act(state, obs, world) -> (u, state, predicted)``, called every tick with the environment's
-:class:`~pixelmpc_jax.sim.env.Observation`. The driver is :mod:`pixelmpc_jax.sim.episode`.
+:class:`~pixelmpc_jax.sim.env.Observation`; ``world`` is what the drone knows of the world
+(:class:`~pixelmpc_jax.sim.env.PolicyWorld`: the map, never the course flown). The driver is
+:mod:`pixelmpc_jax.sim.episode`.
 """
 
 from __future__ import annotations
@@ -20,21 +22,23 @@ from pixelmpc_jax.control.pixelmpc import paper_mppi_config
 from pixelmpc_jax.devices import Execution, compile_controller
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.dynamics import vdof as vdof_lib
-from pixelmpc_jax.sim.env import Observation, World
+from pixelmpc_jax.sim.env import Observation, PolicyWorld
 
 
 class Policy(NamedTuple):
     """A controller in the loop.
 
     ``init(key, world) -> state`` once per episode; ``act(state, obs, world) -> (u, state, predicted)`` every
-    tick, with ``u`` (4,) the command, ``world`` the :class:`~pixelmpc_jax.sim.env.World` and ``predicted``
-    the (T+1, n) nominal prediction (its columns past the 10 robot states, if any, are the target pixel).
+    tick, with ``u`` (4,) the command, ``obs`` the :class:`~pixelmpc_jax.sim.env.Observation`, ``world`` the
+    :class:`~pixelmpc_jax.sim.env.PolicyWorld` (the map, the target speed, the camera, the pixel model: no truth;
+    the driver hands nothing else) and ``predicted`` the (T+1, n) nominal prediction (its columns past the 10 robot
+    states, if any, are the target pixel).
     ``compiler_options``: the XLA options of its controller's step (:func:`~pixelmpc_jax.devices.compile_controller`),
     for the episode's ``jax.jit``.
     """
 
-    init: Callable[[jax.Array, World], Any]
-    act: Callable[[Any, Observation, World], tuple[jax.Array, Any, jax.Array]]
+    init: Callable[[jax.Array, PolicyWorld], Any]
+    act: Callable[[Any, Observation, PolicyWorld], tuple[jax.Array, Any, jax.Array]]
     name: str
     compiler_options: Any = None
 
@@ -123,7 +127,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
     horizon, dt = mppi_config.horizon, mppi_config.dt
     run = compile_controller(ctrl, execution or Execution())
 
-    def init(key: jax.Array, world: World) -> RacingPolicyState:
+    def init(key: jax.Array, world: PolicyWorld) -> RacingPolicyState:
         hover = quadrotor.hover_control(quad_params)
         pending = jnp.broadcast_to(hover, (latency_ticks, hover.shape[0])) if latency_ticks else None
         observer = (jnp.zeros(3, jnp.float32), jnp.full((quadrotor.STATE_DIM,), jnp.nan, jnp.float32)) \
@@ -133,7 +137,7 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
         return RacingPolicyState(run.placed.init(key, hover), jnp.full((horizon,), jnp.nan, jnp.float32),
                                  costs.racing_constants(world.track, cost_config), pending, *observer, kept)
 
-    def act(state: RacingPolicyState, obs: Observation, world: World):
+    def act(state: RacingPolicyState, obs: Observation, world: PolicyWorld):
         # First tick: no previous plan, every step's path window starts at the current progress.
         step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
         racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config,

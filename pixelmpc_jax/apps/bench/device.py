@@ -36,6 +36,7 @@ from pixelmpc_jax import timing
 from pixelmpc_jax.apps.bench import controller, table1
 from pixelmpc_jax.apps.racing import race as race_lib
 from pixelmpc_jax.apps.racing.presets import preset
+from pixelmpc_jax.control.mppi_checks import NUM_SAMPLES_RANGE
 from pixelmpc_jax.platform_info import device_description
 from pixelmpc_jax.strict_json import write_json_atomic
 
@@ -43,7 +44,7 @@ JSON_NAME = "device.json"
 PLOT_NAME = "device_scaling.png"
 PAPER_SAMPLES, PAPER_HORIZON = 512, 80
 MAX_SAMPLES = 16_384  # the top of the scaling, where MPPI-Generic reports 0.39 ms (T = 100, RTX 4090)
-SAMPLES_LIMIT = 2**20
+SAMPLES_LIMIT = NUM_SAMPLES_RANGE.hi  # what MPPIConfig takes
 LAP_SECONDS_LIMIT = 600.0
 RACE_LAPS = 64
 RACE_PRESET = "best"

@@ -332,7 +332,8 @@ def fly(controller: str | Policy = "mppi", world: env_lib.World | None = None, *
         controller: "mppi" (nominal MPPI) or "pixelmpc" with its ``config``
             (:class:`~pixelmpc_jax.control.pixelmpc.ControllerConfig`; None: its defaults), or a
             :class:`~pixelmpc_jax.sim.policies.Policy` of one's own (``init(key, world)``,
-            ``act(state, observation, world) -> (u, state, predicted)``).
+            ``act(state, observation, world) -> (u, state, predicted)``; its ``world`` is the
+            :class:`~pixelmpc_jax.sim.env.PolicyWorld`, what the drone knows of ``world``).
         world: the course, the target speed, the vehicle and the camera
             (:func:`~pixelmpc_jax.sim.env.make_world`; None: the AlphaPilot course at 14 m/s). PixelMPC with a
             learned pixel model flies the packaged weights when ``world.dof`` is None.

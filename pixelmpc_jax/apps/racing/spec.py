@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -29,15 +30,16 @@ from pixelmpc_jax.dynamics import dof, vdof
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
+from pixelmpc_jax.settings import SEED_RANGE, TARGET_SPEED_RANGE, Range, check, like, setting
 from pixelmpc_jax.sim.controllers import CONTROLLERS
-from pixelmpc_jax.sim.env import DETECTORS, GATE_SWITCHES
+from pixelmpc_jax.sim.env import EnvConfig
 from pixelmpc_jax.sim.episode import EpisodeConfig
 from pixelmpc_jax.sim.faults import Faults
-from pixelmpc_jax.timing import LAP_TIME_LIMIT_S
 from pixelmpc_jax.world.course import COURSES
 
 MAPS = ("surveyed", "known")
 CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
+CAMERA_TILT_RANGE = Range(0.0, CAMERA_TILT_MAX_DEG, unit="deg")
 
 
 def _default_config() -> ControllerConfig:
@@ -75,7 +77,7 @@ class RaceSpec:
         faults: what the world does beyond the controller's model (:class:`~pixelmpc_jax.sim.faults.Faults`;
             none by default).
         camera_tilt_deg: the onboard camera's upward tilt on its mount, deg (0: the paper's), in
-            [0, :data:`CAMERA_TILT_MAX_DEG`]; the detector, the controller and the visibility measure all see through
+            :data:`CAMERA_TILT_RANGE`; the detector, the controller and the visibility measure all see through
             it. The packaged learned pixel models were trained for the untilted camera, so a tilted race flies the
             projection pixel model, nominal MPPI, or weights trained for the tilt (refused where a learned model is
             flown: :meth:`check_weights`).
@@ -90,21 +92,33 @@ class RaceSpec:
 
     controller: str = "mppi"
     config: ControllerConfig = dataclasses.field(default_factory=_default_config)
-    speed: float = 14.0
-    laps: int = 1
-    seed: int = 0
-    perturb: bool = False
-    course: str = "alphapilot"
-    detector: str = "clipped"
-    estimator: str = "truth"
-    max_time_s: float = LAP_TIME_LIMIT_S
-    dof_weights: str | None = None
+    speed: float = setting(14.0, range=TARGET_SPEED_RANGE, help="target speed")
+    laps: int = setting(1, range=Range(1, math.inf, integer=True), help="laps per controller")
+    seed: int = setting(0, range=SEED_RANGE, help="seed of the first lap, in {range}; lap i uses seed + i")
+    perturb: bool = setting(False, help="perturb the gates per lap within the AlphaPilot bounds")
+    course: str = setting("alphapilot", help="alphapilot, straight (five gates 20 m apart, the paper's straight lane) "
+                          "or a course file in the format of pixelmpc_jax/data/alphapilot_course.json (`pixelmpc "
+                          "course` makes one)")
+    detector: str = like(EnvConfig, "detector")
+    estimator: str = like(EnvConfig, "estimator")
+    max_time_s: float = like(EnvConfig, "max_time_s")
+    dof_weights: str | None = setting(
+        None, none="the pixel model's packaged weights",
+        help="the learned pixel model's weights: a packaged DOF variant (paper: command input; flown: the flown-rate "
+             "weights; turned: trained with turned rows) or a weights file from `pixelmpc train`; with the vdof pixel "
+             "model: vdof, the packaged vdof weights (its default), or a file")
     guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
     eskf: ESKFConfig = dataclasses.field(default_factory=ESKFConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)
-    camera_tilt_deg: float = 0.0
-    map: str = "surveyed"
-    gate_switch: str = "estimate"
+    camera_tilt_deg: float = setting(
+        0.0, range=CAMERA_TILT_RANGE, help="the onboard camera tilted up on its mount by DEG degrees, in {range}, for "
+        "both controllers, the detector and the measure; the packaged learned pixel models are trained for 0, so fly "
+        "the projection pixel model")
+    map: str = setting(
+        "surveyed", choices=MAPS, help="with perturbed gates, what the controller and the filter read: surveyed, "
+        "the nominal course, while the world flies the perturbed gates; known, the perturbed course itself (as "
+        "perturbed races flew before)")
+    gate_switch: str = like(EnvConfig, "gate_switch")
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -113,21 +127,10 @@ class RaceSpec:
             raise ValueError(f"unknown course {self.course!r}; choose one of {', '.join(COURSES)} or a course file")
         if not isinstance(self.config, ControllerConfig):
             raise ValueError(f"config must be a ControllerConfig, got {type(self.config).__name__}")
-        if not (isinstance(self.speed, (int, float)) and 0 < self.speed < float("inf")):
-            raise ValueError(f"speed must be a positive finite number of m/s, got {self.speed!r}")
-        if not (isinstance(self.laps, int) and self.laps > 0):
-            raise ValueError(f"laps must be a positive integer, got {self.laps!r}")
-        for name, choices in (("detector", DETECTORS), ("map", MAPS), ("gate_switch", GATE_SWITCHES)):
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
+        check(self)  # each setting in its field's range or choices
         # one spelling per race: floats as floats, no settings that fly nothing, no runtime-only settings
-        object.__setattr__(self, "speed", float(self.speed))
-        object.__setattr__(self, "max_time_s", float(self.max_time_s))
-        if isinstance(self.camera_tilt_deg, bool) or not (isinstance(self.camera_tilt_deg, (int, float))
-                                                          and 0.0 <= self.camera_tilt_deg <= CAMERA_TILT_MAX_DEG):
-            raise ValueError(f"camera_tilt_deg must be an upward tilt in [0, {CAMERA_TILT_MAX_DEG:g}] deg, "
-                             f"got {self.camera_tilt_deg!r}")
-        object.__setattr__(self, "camera_tilt_deg", float(self.camera_tilt_deg))
+        for name in ("speed", "max_time_s", "camera_tilt_deg"):
+            object.__setattr__(self, name, float(getattr(self, name)))
         if self.controller == "mppi":
             object.__setattr__(self, "config", ControllerConfig(
                 mppi=self.config.mppi, racing=self.config.racing, model_latency_ticks=self.config.model_latency_ticks,
