@@ -127,13 +127,16 @@ def pytest_configure(config):
     process keeps its own compilations there too (JAX's persistent cache), so a step that two test files or a
     test and a subprocess compile is compiled once per run. (:data:`RUN_CACHE` tells the run's other processes,
     pytest's own among them, that they belong to it.)"""
+    from pixelmpc_jax.host import compilation_cache_dir, use_compilation_cache
+
     if RUN_CACHE not in os.environ:  # the run's first process
         _use_fast_compilation(config)
         _CACHE_HOME["old"] = os.environ.get("XDG_CACHE_HOME")
         _CACHE_HOME["new"] = tempfile.mkdtemp(prefix="pixelmpc-tests-cache-")
         os.environ["XDG_CACHE_HOME"] = os.environ[RUN_CACHE] = _CACHE_HOME["new"]
-    from pixelmpc_jax.host import use_compilation_cache
-
+        # every Python the tests start that compiles with JAX (a command, a documented example, a process with
+        # other devices) keeps its programs in the run's cache too, where the count of closed-loop programs sees them
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = compilation_cache_dir()
     use_compilation_cache(min_compile_s=_MIN_CACHED_COMPILE_S)
     _record_closed_loop_compilations()
     _run_computations_inline()
@@ -147,8 +150,12 @@ MAX_CLOSED_LOOP_PROGRAMS = 10  # what the suite may compile (tests/test_compilat
 
 
 class _CompileLog(logging.Handler):
-    """Appends ``cache key <TAB> seconds`` to this process's file in the run's folder for every closed-loop program
-    it compiles, from JAX's compiler log (a persistent-cache miss names the key; the write that follows, the time)."""
+    """Appends ``cache key <TAB> seconds <TAB> test`` to this process's file in the run's folder for every closed-loop
+    program it compiles, from JAX's compiler log: a persistent-cache miss names the program's key, and the end of its
+    compilation (:data:`COMPILED`) its time. A program the cache does not keep (one with host callbacks: the image
+    detector) is counted so too."""
+
+    COMPILED = f"Finished XLA compilation of jit({CLOSED_LOOP_PROGRAM.removeprefix('jit_')}) in "
 
     def __init__(self, path: Path):
         super().__init__(logging.DEBUG)
@@ -156,14 +163,15 @@ class _CompileLog(logging.Handler):
 
     def emit(self, record):
         args = record.args if isinstance(record.args, tuple) else ()
-        if not args or not str(args[0]).startswith(CLOSED_LOOP_PROGRAM):
-            return
         thread = record.thread
-        if record.msg.startswith("PERSISTENT COMPILATION CACHE MISS"):
+        if record.msg.startswith("PERSISTENT COMPILATION CACHE MISS") and str(args[0]).startswith(
+                CLOSED_LOOP_PROGRAM):
             self.pending[thread] = args[1]
-        elif "seconds to compile" in record.msg and thread in self.pending:
+        elif isinstance(record.msg, str) and record.msg.startswith(self.COMPILED) and thread in self.pending:
+            seconds = float(record.msg.removeprefix(self.COMPILED).split()[0])
+            test = os.environ.get("PYTEST_CURRENT_TEST", "").rsplit(" (", 1)[0]
             with open(self.path, "a") as out:
-                out.write(f"{self.pending.pop(thread)}\t{float(args[-1]):.3f}\n")
+                out.write(f"{self.pending.pop(thread)}\t{seconds:.3f}\t{test}\n")
 
 
 def _compile_log_dir() -> Path:
@@ -174,25 +182,29 @@ def _record_closed_loop_compilations() -> None:
     """Log every closed-loop program this test process compiles (:class:`_CompileLog`)."""
     folder = _compile_log_dir()
     folder.mkdir(parents=True, exist_ok=True)
-    logger = logging.getLogger("jax._src.compiler")
-    logger.setLevel(logging.DEBUG)
-    logger.addHandler(_CompileLog(folder / f"{os.getpid()}.tsv"))
+    handler = _CompileLog(folder / f"{os.getpid()}.tsv")
+    for name in ("jax._src.compiler", "jax._src.dispatch"):
+        logger = logging.getLogger(name)
+        logger.setLevel(logging.DEBUG)
+        logger.addHandler(handler)
 
 
-def closed_loop_compilations(cache_dir: Path, log_dir: Path) -> dict[str, float]:
-    """Every distinct closed-loop program the run compiled, ``{cache key: compile seconds}``: the run's compilation
-    cache holds each once, from a test process or a command the tests started (JAX records its compile time in
-    whole seconds there), and a test process's log holds its time to the millisecond."""
+def closed_loop_compilations(cache_dir: Path, log_dir: Path) -> dict[str, tuple[float, str]]:
+    """Every distinct closed-loop program the run compiled, ``{cache key: (compile seconds, test)}``: the run's
+    compilation cache holds each once, from a test process or a command the tests started (JAX records its compile
+    time in whole seconds there; such a program's test is "a command"), and a test process's log holds its time to
+    the millisecond and the test that compiled it."""
     from jax._src import compilation_cache
 
     programs = {}
     for entry in sorted(cache_dir.glob(f"{CLOSED_LOOP_PROGRAM}-*-cache")):
         data = compilation_cache.decompress_executable(entry.read_bytes())
-        programs[entry.name.removesuffix("-cache")] = float(compilation_cache.extract_executable_and_time(data)[1])
+        seconds = float(compilation_cache.extract_executable_and_time(data)[1])
+        programs[entry.name.removesuffix("-cache")] = (seconds, "a command the tests started")
     for log in sorted(log_dir.glob("*.tsv")):
         for line in log.read_text().splitlines():
-            key, seconds = line.split("\t")
-            programs[key] = float(seconds)
+            key, seconds, test = line.split("\t")
+            programs[key] = (float(seconds), test)
     return programs
 
 
@@ -205,9 +217,9 @@ def pytest_terminal_summary(terminalreporter, config):
     programs = closed_loop_compilations(Path(compilation_cache_dir()), _compile_log_dir())
     terminalreporter.write_sep("=", "closed-loop programs compiled")
     terminalreporter.write_line(f"{len(programs)} distinct closed-loop programs (at most {MAX_CLOSED_LOOP_PROGRAMS}), "
-                                f"{sum(programs.values()):.1f} s of compilation in all")
-    for key, seconds in sorted(programs.items(), key=lambda item: -item[1]):
-        terminalreporter.write_line(f"  {seconds:7.2f} s  {key[:60]}")
+                                f"{sum(seconds for seconds, _ in programs.values()):.1f} s of compilation in all")
+    for key, (seconds, test) in sorted(programs.items(), key=lambda item: -item[1][0]):
+        terminalreporter.write_line(f"  {seconds:7.2f} s  {key[24:36]}  {test}")
 
 
 def made_once_per_run(name: str, make) -> Path:
@@ -268,6 +280,7 @@ def pytest_unconfigure(config):
     if "new" not in _CACHE_HOME:  # a worker: the folder is the first process's
         return
     os.environ.pop(RUN_CACHE, None)
+    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
     if USER_XLA_FLAGS in os.environ:
         os.environ["XLA_FLAGS"] = os.environ.pop(USER_XLA_FLAGS)
         if not os.environ["XLA_FLAGS"]:

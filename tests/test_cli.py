@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import standard_race
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.racing.spec import RaceSpec
@@ -55,7 +56,7 @@ def test_unwritable_output_directory_is_rejected_before_running(tmp_path, capsys
     [
         (["race", "--controller", "pid"], "invalid choice"),
         (["race", "--speed", "-14"], "argument --speed: must be a finite number in (0, 50] m/s, got -14"),
-        (["race", "--laps", "0"], "must be a positive integer"),
+        (["race", "--laps", "0"], "argument --laps: must be an integer in [1, inf), got 0"),
         (["race", "--laps", "two"], "expected an integer"),
         (["race", "--pixel-cost", "l2"], "invalid choice"),
         (["race", "--border-margin", "0"], "argument --border-margin: must be a finite number in (0, 0.5]"),
@@ -77,21 +78,20 @@ def test_interrupted_race_keeps_the_finished_laps(tmp_path, monkeypatch):
     calls = {"n": 0}
     real = metrics.lap_metrics
 
-    def interrupt_on_second_lap(log, *args, **kwargs):
+    def interrupt_on_second_batch(log, *args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 2:
+        if calls["n"] == standard_race.BATCH + 1:
             raise KeyboardInterrupt
         return real(log, *args, **kwargs)
 
-    monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_lap)
-    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
-                    max_time_s=0.2)
-    results = race.run_laps(spec, out=tmp_path, batch_size=1, progress=False)
-    assert len(results["laps"]) == 1 and results["laps"][0]["seed"] == 4 and results["interrupted"]
+    monkeypatch.setattr(race.metrics_lib, "lap_metrics", interrupt_on_second_batch)
+    spec = standard_race.NOMINAL.replace(laps=3, seed=4)
+    results = race.run_laps(spec, out=tmp_path, batch_size=standard_race.BATCH, progress=False)
+    assert [lap["seed"] for lap in results["laps"]] == [4, 5] and results["interrupted"]  # the first batch
     saved = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=_reject)  # strict JSON
-    assert len(saved["laps"]) == 1 and saved["interrupted"] is True
+    assert len(saved["laps"]) == 2 and saved["interrupted"] is True
     assert set(metrics.LAP_KEYS) <= set(saved["laps"][0])
-    assert saved["aggregate"]["num_laps"] == 1 and "success_rate" in saved["aggregate"]
+    assert saved["aggregate"]["num_laps"] == 2 and "success_rate" in saved["aggregate"]
 
 
 def test_race_flags_make_the_race_spec(monkeypatch, tmp_path):
@@ -210,14 +210,13 @@ def test_the_last_smaller_batch_is_padded_so_the_batched_episode_compiles_once(m
 
     monkeypatch.setattr(race.episode_lib, "make_runner", recording_runner)
     monkeypatch.setattr(race, "_runner", functools.lru_cache(race._runner.__wrapped__))  # this test's runners only
-    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, laps=3, seed=4,
-                    max_time_s=0.2)  # the interrupted race's above: its one-lane batch is compiled once per run
+    spec = standard_race.NOMINAL.replace(laps=3, seed=4)
     results = race.run_laps(spec, batch_size=2, progress=False)
     assert [lap["seed"] for lap in results["laps"]] == [4, 5, 6] and len(results["trajectories"]) == 3
     assert len(shapes) == 2 and shapes[0] == shapes[1] and shapes[0][0][0] == 2
     shapes.clear()
-    race.run_laps(spec.replace(laps=1), batch_size=4, progress=False)
-    assert [s[0][0] for s in shapes] == [1]  # a run shorter than a batch is not padded
+    race.run_laps(spec.replace(laps=2), batch_size=4, progress=False)
+    assert [s[0][0] for s in shapes] == [2]  # a run shorter than a batch is not padded
 
 
 def test_races_that_differ_only_in_their_worlds_fly_one_compiled_runner(monkeypatch):
@@ -226,8 +225,7 @@ def test_races_that_differ_only_in_their_worlds_fly_one_compiled_runner(monkeypa
     from pixelmpc_jax.apps.racing import race
 
     monkeypatch.setattr(race, "_runner", functools.lru_cache(race._runner.__wrapped__))  # this test's runners only
-    spec = RaceSpec("mppi", ControllerConfig(mppi=paper_mppi_config(num_samples=32)), speed=10.0, seed=4,
-                    max_time_s=0.2)
+    spec = standard_race.NOMINAL.replace(seed=4)
     other = spec.replace(speed=9.0, seed=7, course="straight")
     first = race.prepare(spec)
     assert race.prepare(other).flight.runner is first.flight.runner
@@ -235,10 +233,10 @@ def test_races_that_differ_only_in_their_worlds_fly_one_compiled_runner(monkeypa
     assert race.prepare(other.replace(estimator="eskf")).flight.runner is not first.flight.runner
     fewer = other.replace(config=ControllerConfig(mppi=paper_mppi_config(num_samples=16)))
     assert race.prepare(fewer).flight.runner is not first.flight.runner
-    faster = spec.replace(speed=11.0, seed=5)
-    shared = race.run_laps(faster, progress=False)
+    faster = spec.replace(speed=11.0, seed=5, laps=standard_race.BATCH)
+    shared = race.run_laps(faster, batch_size=standard_race.BATCH, progress=False)
     race._runner.cache_clear()
-    own = race.run_laps(faster, progress=False)
+    own = race.run_laps(faster, batch_size=standard_race.BATCH, progress=False)
     np.testing.assert_array_equal(shared["trajectories"][0], own["trajectories"][0])
     assert shared["laps"] == own["laps"]
 

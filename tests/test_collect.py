@@ -3,6 +3,7 @@ excitation, and the collected files through the loaders."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -12,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import standard_race
 from conftest import made_once_per_run
 
 from pixelmpc_jax.learn import collect as C
@@ -23,8 +25,10 @@ from pixelmpc_jax.perception import flow as flow_lib
 from pixelmpc_jax.sim import policies
 
 H, W = 153, 204
-# Two 1 s laps (40 ticks each) with a small MPPI: lap 0 train at 6 m/s, lap 1 test at 14 m/s.
-TINY = C.CollectConfig(laps=2, max_lap_time_s=1.0, num_samples=64, test_laps=(1,), render_batch=16)
+# Two 1 s laps (40 ticks each) with a small MPPI: lap 0 train at 6 m/s, lap 1 test at 14 m/s. Its nominal MPPI is
+# tests/standard_race.py's, the episode the suite compiles once.
+TINY = C.CollectConfig(laps=2, max_lap_time_s=standard_race.MAX_TIME_S, num_samples=standard_race.SAMPLES,
+                       test_laps=(1,), render_batch=16)
 FRAMES = 40
 
 
@@ -283,8 +287,7 @@ def test_excited_policy_adds_held_pulses_within_the_rate_bounds():
 
 
 def test_collect_with_excitation_excites_the_train_laps_only(tmp_path):
-    config = C.CollectConfig(laps=2, max_lap_time_s=0.5, num_samples=64, test_laps=(1,), render_batch=16,
-                             excitation=True)
+    config = dataclasses.replace(TINY, excitation=True)  # its test lap flies TINY's runner
     assert [config.excited(i) for i in range(2)] == [True, False]
     manifest = C.collect(tmp_path, config, progress=False)
     assert manifest["excited_laps"] == [0] and [e["excited"] for e in manifest["laps"]] == [True, False]

@@ -12,17 +12,18 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import standard_race
+from standard_race import BATCH, TICKS
 
 from pixelmpc_jax.apps.racing import compare, presets, race
 from pixelmpc_jax.apps.racing.spec import RaceSpec
-from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.sim import metrics, ticks_compact
 from pixelmpc_jax.sim import ticks as ticks_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 
-SMALL = ControllerConfig(pixel_model="projection", mppi=paper_mppi_config(num_samples=32, horizon=10))
+SMALL = standard_race.PIXELMPC.config
 
 
 def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeypatch, tmp_path):
@@ -42,8 +43,8 @@ def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeyp
 
     monkeypatch.setattr(race, "fly_batches", recorded_batches)
     monkeypatch.setattr(compare, "write_json_atomic", recorded_write)
-    spec = RaceSpec("pixelmpc", SMALL, speed=10.0, laps=3, seed=7, max_time_s=0.2)
-    record = compare.run_compare(spec, out=tmp_path, preset="small", batch_size=2, progress=False)
+    spec = standard_race.PIXELMPC.replace(laps=3, seed=7)
+    record = compare.run_compare(spec, out=tmp_path, preset="small", batch_size=BATCH, progress=False)
     assert order == [("pixelmpc", [7, 8]), ("mppi", [7, 8]), ("pixelmpc", [9]), ("mppi", [9])]
     assert saved_laps == [{"pixelmpc": 2}, {"pixelmpc": 2, "mppi": 2}, {"pixelmpc": 3, "mppi": 2},
                           {"pixelmpc": 3, "mppi": 3}]
@@ -51,16 +52,17 @@ def test_both_controllers_alternate_batch_by_batch_and_record_every_tick(monkeyp
     assert saved["preset"] == "small" and not saved["interrupted"]
     assert saved["controllers"]["mppi"]["race"] == json.loads(json.dumps(presets.nominal_of(spec).record()))
     assert saved["controllers"]["mppi"]["measure"] == metrics.MEASURE
-    # no lap finishes in 0.2 s: nothing to read on the committed frontier, and metrics.json says why
+    # no lap finishes in 1 s: nothing to read on the committed frontier, and metrics.json says why
     assert saved["nominal_frontier"] == compare.frontier_entry(saved)
     assert saved["nominal_frontier"]["why"] == "PixelMPC completed no lap"
     for name in ("pixelmpc", "mppi"):
         record_ticks = ticks_lib.load(tmp_path / f"ticks_{name}.npz")
         laps = saved["controllers"][name]["laps"]
-        assert record_ticks["seed"].tolist() == [7, 8, 9] and record_ticks["states"].shape[:2] == (3, 9)
-        assert record_ticks["num_ticks"].tolist() == [8, 8, 8] and record_ticks["gate_centre"].shape[2] == 3
+        assert record_ticks["seed"].tolist() == [7, 8, 9] and record_ticks["states"].shape[:2] == (3, TICKS + 1)
+        assert record_ticks["num_ticks"].tolist() == [TICKS] * 3 and record_ticks["gate_centre"].shape[2] == 3
         np.testing.assert_array_equal(record_ticks["states"][0], record["flown"][name]["trajectories"][0])
-        assert np.isnan(record_ticks["estimates"][0, 8]).all() and np.isfinite(record_ticks["estimates"][0, :8]).all()
+        assert np.isnan(record_ticks["estimates"][0, TICKS]).all()
+        assert np.isfinite(record_ticks["estimates"][0, :TICKS]).all()
         for i, lap in enumerate(laps):
             recomputed = ticks_lib.lap_visibility(record_ticks, i)
             for key, value in recomputed.items():
@@ -96,11 +98,16 @@ def test_the_side_by_side_table_holds_the_tail():
 
 def test_a_race_stopped_by_sigterm_keeps_the_finished_laps_of_both_controllers(tmp_path):
     """``pixelmpc race --laps 100`` stopped by SIGTERM, as a batch scheduler stops it, once both controllers have
-    flown a lap: it exits 130 and its metrics.json and ticks files hold the finished laps of both."""
-    command = [sys.executable, "-m", "pixelmpc_jax.cli", "race", "--out", str(tmp_path), "--laps", "100",
-               "--pixel-model", "projection", "--samples", "32", "--max-time", "1", "--no-compile-cache"]
+    flown a batch: it exits 130 and its metrics.json and ticks files hold the finished laps of both (the race is
+    tests/standard_race.py's, saved as ``pixelmpc tune`` saves one)."""
+    saved_race, out = tmp_path / "race.json", tmp_path / "out"
+    saved_race.write_text(json.dumps(standard_race.PIXELMPC.record()))
+    # one CPU device, as the test processes have: the laps fly the programs the tests compile (split over the cores,
+    # a batch is a program of its own)
+    command = [sys.executable, "-m", "pixelmpc_jax.cli", "--cpu-devices", "1", "race", "--config", str(saved_race),
+               "--out", str(out), "--laps", "100", "--batch", str(BATCH)]
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    metrics_file, deadline = tmp_path / "metrics.json", time.monotonic() + 400
+    metrics_file, deadline = out / "metrics.json", time.monotonic() + 400
     try:
         while time.monotonic() < deadline and process.poll() is None:
             if metrics_file.exists():
@@ -118,9 +125,10 @@ def test_a_race_stopped_by_sigterm_keeps_the_finished_laps_of_both_controllers(t
     saved = json.loads(metrics_file.read_text())
     assert saved["interrupted"] is True
     laps = {name: len(res["laps"]) for name, res in saved["controllers"].items()}
-    assert set(laps) == {"pixelmpc", "mppi"} and 1 <= laps["mppi"] <= laps["pixelmpc"] <= laps["mppi"] + 1 < 100
+    assert set(laps) == {"pixelmpc", "mppi"} and BATCH <= laps["mppi"] <= laps["pixelmpc"] <= laps["mppi"] + BATCH
+    assert laps["pixelmpc"] < 100
     for name, count in laps.items():
-        assert ticks_lib.load(tmp_path / f"ticks_{name}.npz")["seed"].tolist() == list(range(count))
+        assert ticks_lib.load(out / f"ticks_{name}.npz")["seed"].tolist() == list(range(count))
 
 
 def test_the_presets():

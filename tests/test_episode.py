@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import standard_race
 
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.pixelmpc import paper_mppi_config
@@ -74,6 +75,9 @@ def _golden_json(laps: dict) -> str:
     return "{\n" + ",\n".join(blocks) + "\n}\n"
 
 
+# slow: tests/test_golden_laps.py flies both controllers on the truth and the particle filter bit for bit (within
+# 1e-3 of its first recording on another processor), in the programs the suite compiles anyway
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["mppi_pf", "pixelmpc"])
 def test_seeded_lap_gives_the_recorded_numbers(name):
     """The laps recorded (tests/data/seeded_laps.json) with the loop as it was before its split into
@@ -102,6 +106,7 @@ def small_runner():
     return E.make_runner(policies.nominal_mppi_policy(SMALL), E.EpisodeConfig(max_time_s=8.0))
 
 
+@pytest.mark.slow  # docs/closed_loop.md's example (tests/test_readme.py) flies nominal MPPI through a short course
 def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
     world = env_lib.make_world(straight, target_speed=10.0)
     log = small_runner.single(world, jax.random.PRNGKey(0))
@@ -113,39 +118,25 @@ def test_nominal_mppi_flies_a_short_straight_course(straight, small_runner):
     assert lap["crash"] is None
 
 
-def test_batch_equals_single_runs(straight):
-    config = E.EpisodeConfig(max_time_s=1.5)
-    runner = E.make_runner(policies.nominal_mppi_policy(paper_mppi_config(num_samples=64, horizon=20,
-                                                                      temperature=200.0)), config)
-    seeds = list(range(8))
-    speeds = [8.0 + s for s in seeds]
-    worlds = [env_lib.make_world(straight, target_speed=v) for v in speeds]
+def test_batch_equals_single_runs():
+    """tests/standard_race.py's nominal MPPI as one episode (the data collection's runner) and as a batch of two laps at
+    two speeds: each lane flies its single episode. (A hand-written policy's episode ending on the ground:
+    tests/test_closed_loop_api.py.)"""
+    nominal = standard_race.NOMINAL
+    runner = E.make_runner(nominal.policy(), nominal.episode_config())
+    seeds, speeds = [0, 1], [9.0, 12.0]
+    worlds = [env_lib.make_world(course_lib.load_course(), target_speed=v) for v in speeds]
     keys = jax.vmap(jax.random.PRNGKey)(jnp.asarray(seeds))
     batch = M.unbatch(runner.batch(env_lib.stack_worlds(worlds), keys))
+    assert not np.allclose(batch[0].states, batch[1].states)  # the lanes differ
     for seed, world, batched in zip(seeds, worlds, batch):
         single = runner.single(world, jax.random.PRNGKey(seed))
-        assert int(single.num_ticks) == int(batched.num_ticks)
+        assert int(single.num_ticks) == int(batched.num_ticks) == standard_race.TICKS
         assert int(single.end_cause) == int(batched.end_cause)
         np.testing.assert_allclose(np.asarray(single.states), batched.states, atol=2e-3)
         a, b = M.lap_metrics(single), M.lap_metrics(batched)
         assert a["gates_passed"] == b["gates_passed"] and a["success"] == b["success"]
         assert a["mean_speed"] == pytest.approx(b["mean_speed"], abs=1e-3)
-
-
-def test_ground_crash_ends_the_episode(straight):
-    # A "controller" that cuts the thrust: the drone falls from 3 m and must end on the ground.
-    def init(key, world):
-        return jnp.zeros(())
-
-    def act(state, obs, world):
-        return jnp.zeros(4), state, jnp.zeros((1, 10))
-
-    runner = E.make_runner(policies.Policy(init, act, "off"), E.EpisodeConfig(max_time_s=3.0))
-    log = runner.single(env_lib.make_world(straight), jax.random.PRNGKey(0))
-    lap = M.lap_metrics(log)
-    assert lap["crash"] == "ground" and not lap["success"]
-    # free fall from 3 m (minus the 0.1 m radius) takes ~0.77 s
-    assert 0.7 <= lap["flight_time_s"] <= 0.9
 
 
 def test_speed_cap_follows_the_path_curvature():
@@ -250,23 +241,6 @@ def test_nominal_mppi_completes_alphapilot_laps(speed, least):
 
     results = run_laps(RaceSpec("mppi", speed=speed, laps=10, seed=0), progress=False)
     assert results["aggregate"]["success_rate"] >= least
-
-
-def test_particle_filter_in_the_loop_tracks_the_true_state(straight):
-    from pixelmpc_jax.perception.particle_filter import PFConfig
-
-    config = E.EpisodeConfig(max_time_s=1.5, estimator="pf",
-                             pf=PFConfig(num_particles=512, position_noise_per_second=True))
-    policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=64, horizon=20))
-    log = E.make_runner(policy, config).single(env_lib.make_world(straight, target_speed=6.0), jax.random.PRNGKey(0))
-    n = int(log.num_ticks)
-    assert n == 60
-    error = np.linalg.norm(np.asarray(log.estimates[:n, :3]) - np.asarray(log.states[:n, :3]), axis=1)
-    assert np.all(np.isfinite(error)) and error.mean() < 0.5
-    cov = np.asarray(log.position_cov_trace[:n])
-    assert np.all(cov > 0.0) and np.all(np.isfinite(cov))
-    # the controller acted on the estimate, not the truth
-    assert not np.allclose(np.asarray(log.estimates[:n]), np.asarray(log.states[:n]))
 
 
 def test_bad_episode_config_is_rejected():

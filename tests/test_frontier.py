@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import standard_race
 
 from pixelmpc_jax import cli
 from pixelmpc_jax.apps.experiments import frontier as F
@@ -261,10 +262,20 @@ def test_reproduce_shares_the_frontier_cells_with_the_tables():
     assert paper.preset_of(pace[-1].spec) == "best" and paper.preset_of(pace[3].spec) == "paper"
 
 
+def _small_frontier(cells) -> skeleton.Experiment:
+    """The frontier of nominal MPPI at 8 m/s and ``cells``, laps of tests/standard_race.py's length, 2 laps, its
+    nominal MPPI flying the standard race's sampler."""
+    experiment = F.frontier_experiment((8.0,), cells, standard_race.BATCH, 0, max_time_s=standard_race.MAX_TIME_S)
+    small = standard_race.NOMINAL.config
+    return dataclasses.replace(experiment, cells=tuple(
+        dataclasses.replace(c, spec=c.spec.replace(config=small)) if c.spec.controller == "mppi" else c
+        for c in experiment.cells))
+
+
 def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
-    pixel = F.pixel_cell("projection", "border")
-    cell = grid.Cell(pixel.name, pixel.spec.replace(max_time_s=0.2))
-    frontier = F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=False, max_time_s=0.2)
+    pixel = standard_race.PIXELMPC
+    cell = grid.Cell("pixelmpc_small", pixel.replace(speed=8.0))
+    frontier = skeleton.run(_small_frontier((cell,)), tmp_path, standard_race.BATCH, 0, progress=False)
     assert [p["speed"] for p in frontier["nominal"]] == [8.0] and frontier["missing"] == []
     row = frontier["cells"][0]
     assert row["success_rate"] == 0.0 and row["lap_time_s"] is None and row["frontier_gain"] is None
@@ -272,7 +283,7 @@ def test_a_tiny_frontier_flies_writes_and_resumes(tmp_path, capsys):
     assert (tmp_path / "frontier.png").exists() and "completed no lap" in (tmp_path / "REPORT.md").read_text()
     assert (tmp_path / "laps.png").exists() and "(laps.png)" in (tmp_path / "REPORT.md").read_text()
     capsys.readouterr()
-    F.run_frontier((8.0,), (cell,), tmp_path, laps=1, seed=0, progress=True, max_time_s=0.2)
+    skeleton.run(_small_frontier((cell,)), tmp_path, standard_race.BATCH, 0, progress=True)
     assert capsys.readouterr().out.count("kept from") == 2  # resumed: nothing flown again
 
 

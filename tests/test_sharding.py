@@ -9,26 +9,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import standard_race
 from conftest import xla_flags_for
 
 
 def episodes() -> dict:
-    """Six short nominal MPPI episodes as one batch, on the devices this process has: its device count, states and
-    ticks."""
+    """tests/standard_race.py's nominal MPPI, a batch of its laps at two speeds, on the devices this process has: its
+    device count, states and ticks."""
     import jax
     import jax.numpy as jnp
+    import standard_race
 
-    from pixelmpc_jax.control.pixelmpc import paper_mppi_config
     from pixelmpc_jax.sim import env as env_lib
     from pixelmpc_jax.sim import episode as E
-    from pixelmpc_jax.sim import policies
     from pixelmpc_jax.world import course as C
 
-    course = C.straight_course(num_gates=2, spacing=10.0, first_gate_x=8.0)
-    policy = policies.nominal_mppi_policy(paper_mppi_config(num_samples=32, horizon=10))
-    runner = E.make_runner(policy, E.EpisodeConfig(max_time_s=0.5))
-    worlds = env_lib.stack_worlds([env_lib.make_world(course, target_speed=6.0 + i) for i in range(6)])
-    logs = runner.batch(worlds, jax.vmap(jax.random.PRNGKey)(jnp.arange(6)))
+    nominal = standard_race.NOMINAL
+    runner = E.make_runner(nominal.policy(), nominal.episode_config())
+    worlds = env_lib.stack_worlds([env_lib.make_world(C.load_course(), target_speed=v) for v in (9.0, 12.0)])
+    logs = runner.batch(worlds, jax.vmap(jax.random.PRNGKey)(jnp.arange(standard_race.BATCH)))
     return {"devices": jax.device_count(), "states": np.asarray(logs.states).tolist(),
             "ticks": np.asarray(logs.num_ticks).tolist()}
 
@@ -87,7 +86,7 @@ def run_two_processes(devices_per_process: int = 2) -> list[dict]:
 def test_four_device_run_equals_one_device_run():
     one, four = run(1), run(4)
     assert one["devices"] == 1 and four["devices"] == 4
-    assert one["ticks"] == four["ticks"] == [20] * 6  # 6 episodes: padded to 8 over 4 devices, cut back
+    assert one["ticks"] == four["ticks"] == [standard_race.TICKS] * 2  # padded to 4 over 4 devices, cut back
     np.testing.assert_allclose(np.asarray(four["states"]), np.asarray(one["states"]), atol=1e-4)
 
 
