@@ -4,7 +4,10 @@ paper's into one report): the paper's tables, the speed frontier, the robustness
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import functools
+import re
 from pathlib import Path
 
 from pixelmpc_jax import arguments as arg
@@ -18,18 +21,76 @@ from pixelmpc_jax.control.pixelmpc import T_F_RANGE
 # the best preset beside its target's pixel from the detector for a gate cut by the image border, or none (nominal
 # MPPI's points alone, for another run's --reuse)
 FRONTIER_CELLS = ("all", "border", "preset", "partial", "none")
+# the experiments that fly cells: each takes --executor/--workers, and a grid file may name each
+FLYING = ("table2", "table4", "robustness", "fault-curves", "frontier", "margin-probe", "speed-probe")
+GRID_FILE_REFUSED = ("executor", "workers")  # where the cells fly is the command line's, not the file's
 
 
 def add_experiment(sub) -> None:
     """``pixelmpc experiment``: its jobs as sub-commands."""
     p = sub.add_parser("experiment", help="one experiment on its own, resumable: table2, table4, robustness, "
-                                          "fault-curves, frontier, margin-probe, speed-probe; lap-picture draws "
-                                          "the laps of result folders; detector-agreement compares the detectors "
-                                          "on their frames")
+                                          "fault-curves, frontier, margin-probe, speed-probe; run flies a grid "
+                                          "file's; lap-picture draws the laps of result folders; "
+                                          "detector-agreement compares the detectors on their frames")
     jobs = p.add_subparsers(dest="experiment", metavar="EXPERIMENT", required=True)
     for add in (_add_table2, _add_table4, _add_robustness, _add_fault_curves, _add_frontier, _add_margin_probe,
                 _add_speed_probe, _add_lap_picture, _add_detector_agreement):
         add(jobs)
+    for name in FLYING:
+        _add_executor_flags(jobs.choices[name], default=None)
+    _add_run(jobs)
+
+
+def _engine(text: str) -> str:
+    """An argparse type: where a grid's cells fly (:func:`~pixelmpc_jax.apps.racing.executor.make_executor`): local,
+    dask-local:N, dask://HOST:PORT or tcp://HOST:PORT; a Dask engine only where dask's distributed is installed."""
+    from pixelmpc_jax.apps.racing.executor import CLUSTER_EXTRA, parse_engine
+
+    try:
+        kind, _ = parse_engine(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    if kind != "local":
+        import importlib.util
+
+        if importlib.util.find_spec("distributed") is None:
+            raise argparse.ArgumentTypeError(f"{text} needs dask's distributed scheduler: {CLUSTER_EXTRA}")
+    return text
+
+
+def _add_executor_flags(p, default: str | None) -> None:
+    """``--executor`` and ``--workers``: where an experiment's cells fly (:mod:`pixelmpc_jax.apps.racing.executor`)."""
+    in_process = "in this process, one after another" if default is None else "a pool of pinned local processes"
+    p.add_argument("--executor", type=_engine, default=default, metavar="local|dask-local:N|dask://HOST:PORT",
+                   help="where the cells fly: local, a pool of processes each pinned to a core of its own; "
+                        "dask-local:N, a local Dask cluster of N workers; dask://HOST:PORT, a Dask scheduler's "
+                        f"workers (Dask: pip install 'pixelmpc-jax[cluster]'). Default: {in_process}. This process "
+                        "writes every finished cell, so a run resumes the same on any executor")
+    p.add_argument("--workers", type=arg.positive_int, default=None, metavar="N",
+                   help="processes of the local pool (default: one per usable core, at most one per cell; 1 flies "
+                        "in this process)")
+
+
+def _executor(args) -> dict:
+    """``{"executor": the executor --executor / --workers name}`` for the experiment's function; empty when neither
+    is given, so that a run without them calls the experiment as before executors (its cells in this process)."""
+    if args.executor is None and args.workers is None:
+        return {}
+    from pixelmpc_jax.apps.racing.executor import make_executor
+
+    return {"executor": make_executor(args.executor, args.workers)}
+
+
+def _add_out(p, default: str | None, help: str) -> None:
+    """``--out``: the output folder, ``default`` (a path) or required when None."""
+    if default is None:
+        p.add_argument("--out", type=arg.writable_dir, required=True, help=help)
+    else:
+        p.add_argument("--out", type=arg.writable_dir, default=Path(default), help=help)
+
+
+def _add_report_only(p) -> None:
+    p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
 
 
 def _print_report(out: Path) -> None:
@@ -40,8 +101,7 @@ def _add_table2(jobs) -> None:
     p = jobs.add_parser("table2", help="Tables II and III and Fig. 6: visibility, lap time and smoothness against "
                                        "nominal MPPI over the t_f x c_pixel grid, at the paper's 14 m/s label and its "
                                        "pace, with the best preset beside them (REPORT.md, summary.json, figures)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/table2"),
-                   help="output directory")
+    _add_out(p, "experiments/results/table2", "output directory")
     p.add_argument("--laps", type=arg.positive_int, default=10, help="laps per cell (default 10)")
     p.add_argument("--seed", type=arg.seed, default=SEED,
                    help=f"seed of the first lap, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
@@ -62,7 +122,8 @@ def _cmd_table2(args) -> int:
     from pixelmpc_jax.apps.experiments.paper import visibility_experiment
 
     visibility_experiment(args.out, laps=args.laps, pixel_model=args.pixel_model, quick=args.quick, seed=args.seed,
-                          main=args.main, frontier_speeds=tuple(sorted({v for vs in args.frontier_speeds for v in vs})))
+                          main=args.main, frontier_speeds=tuple(sorted({v for vs in args.frontier_speeds for v in vs})),
+                          **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -72,8 +133,7 @@ def _add_table4(jobs) -> None:
 
     p = jobs.add_parser("table4", help="Table IV, the straight lane, Fig. 6 and Fig. 9: nominal MPPI against PixelMPC "
                                        "on a filter's estimate (REPORT.md, summary.json, figures)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/table4"),
-                   help="output directory")
+    _add_out(p, "experiments/results/table4", "output directory")
     p.add_argument("--laps", type=arg.positive_int, default=25, help="laps per cell (default 25)")
     p.add_argument("--seed", type=arg.seed, default=SEED,
                    help=f"seed of the first lap, in [0, {SEED_MAX}] (default {SEED}, the reproduction's)")
@@ -104,7 +164,8 @@ def _cmd_table4(args) -> int:
 
     estimation_experiment(args.out, laps=args.laps, quick=args.quick, straight=not args.no_straight, seed=args.seed,
                           estimators=tuple(args.estimators), reuse=tuple(args.reuse), who=tuple(args.controllers),
-                          at_labels=not args.paces_only, labels=tuple(sorted(set(args.labels))))
+                          at_labels=not args.paces_only, labels=tuple(sorted(set(args.labels))),
+                          **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -116,8 +177,7 @@ def _add_robustness(jobs) -> None:
     p = jobs.add_parser("robustness", help="the faults of a real flight: nominal MPPI and the best preset at the "
                                            "paper's pace under each fault (REPORT.md, robustness.json, "
                                            "robustness.png)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/robustness"),
-                   help="output directory")
+    _add_out(p, "experiments/results/robustness", "output directory")
     p.add_argument("--quick", action="store_true",
                    help="a smoke run: 2 laps per cell, the moderate level (on the particle filter only unless "
                         "--estimators names others)")
@@ -141,7 +201,7 @@ def _add_robustness(jobs) -> None:
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="other grids' output folders whose finished cells of the same race (the fault-free "
                         "ones, and any other flown the same) are copied, not flown")
-    p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
+    _add_report_only(p)
     p.set_defaults(func=_cmd_robustness)
 
 
@@ -153,7 +213,7 @@ def _cmd_robustness(args) -> int:
                           estimators=tuple(args.estimators) if args.estimators else None,
                           faults=tuple(args.faults) if args.faults else None,
                           levels=tuple(args.levels) if args.levels else None,
-                          controllers=tuple(args.controllers) if args.controllers else None)
+                          controllers=tuple(args.controllers) if args.controllers else None, **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -165,8 +225,7 @@ def _add_fault_curves(jobs) -> None:
     p = jobs.add_parser("fault-curves", help="success against steady wind and detection delay: both controllers on "
                                              "the particle filter and the Kalman filter (REPORT.md, curves.json, "
                                              "fault_curves.png)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("experiments/results/fault_curves"),
-                   help="output directory (resumable)")
+    _add_out(p, "experiments/results/fault_curves", "output directory (resumable)")
     p.add_argument("--quick", action="store_true",
                    help=f"a smoke run: 2 laps per point, the middle and the end of each curve (default: {LAPS} laps "
                         f"at wind {', '.join(f'{w:g}' for w in WIND_M_S)} m/s and delay "
@@ -180,7 +239,7 @@ def _add_fault_curves(jobs) -> None:
                    help="fly and report only these curves (default: both; the fault-free point is on each)")
     p.add_argument("--reuse", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (the robustness grid's) whose finished cells of the same race are copied")
-    p.add_argument("--report-only", action="store_true", help="write the report of the finished cells only")
+    _add_report_only(p)
     p.set_defaults(func=_cmd_fault_curves)
 
 
@@ -189,7 +248,7 @@ def _cmd_fault_curves(args) -> int:
 
     fault_curves_experiment(args.out, quick=args.quick, estimators=tuple(args.estimators),
                             levers=tuple(args.levers or ()), reuse=args.reuse, run=not args.report_only,
-                            curves=tuple(args.curves))
+                            curves=tuple(args.curves), **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -199,7 +258,7 @@ def _add_frontier(jobs) -> None:
 
     p = jobs.add_parser("frontier", help="the speed frontier: PixelMPC's avoidable low-visibility time against "
                                          "nominal MPPI flown slower (frontier.json, REPORT.md, frontier.png)")
-    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder (resumable)")
+    _add_out(p, None, "output folder (resumable)")
     p.add_argument("--laps", type=arg.positive_int, default=None, help="laps per point (default 10; 4 with --quick)")
     p.add_argument("--seed", type=arg.seed, default=0,
                    help=f"first seed, in [0, {SEED_MAX}]; lap i uses seed + i (default 0)")
@@ -278,7 +337,8 @@ def _cmd_frontier(args) -> int:
         changes["laps"] = args.laps
     spec = dataclasses.replace(spec, **changes)
     frontier.run_frontier(spec.nominal_speeds, spec.cells, args.out, laps=spec.laps, seed=args.seed,
-                          course=args.course, camera_tilt_deg=args.camera_tilt, reuse=tuple(args.reuse), loop=args.loop)
+                          course=args.course, camera_tilt_deg=args.camera_tilt, reuse=tuple(args.reuse), loop=args.loop,
+                          **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -286,7 +346,7 @@ def _cmd_frontier(args) -> int:
 def _add_margin_probe(jobs) -> None:
     p = jobs.add_parser("margin-probe", help="the best preset's clearance to the gate frames against the vehicle's "
                                              "own, on the true state (the frontier) and on the filter (Table IV)")
-    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder (resumable)")
+    _add_out(p, None, "output folder (resumable)")
     p.add_argument("--frontier", type=arg.grid_dir, nargs="*", default=(), metavar="DIR",
                    help="grid folders (a frontier run's) whose nominal cells are copied, not flown again")
     p.add_argument("--seed", type=arg.seed, default=SEED,
@@ -297,7 +357,7 @@ def _add_margin_probe(jobs) -> None:
 def _cmd_margin_probe(args) -> int:
     from pixelmpc_jax.apps.experiments.margin_probe import margin_probe
 
-    margin_probe(args.out, args.frontier, args.seed)
+    margin_probe(args.out, args.frontier, args.seed, **_executor(args))
     _print_report(args.out / "truth")
     _print_report(args.out / "pf")
     return 0
@@ -317,7 +377,7 @@ def _add_speed_probe(jobs) -> None:
                    help=f"seconds of the horizon with the pixel cost, in (0, {T_F_RANGE.hi:g}] (default 1)")
     p.add_argument("--dof-weights", type=arg.weights_file, default=None,
                    help="DOF weights file for the dof cells (default: the shipped weights)")
-    p.add_argument("--out", type=arg.writable_dir, default=Path("runs/visibility_probe"), help="output directory")
+    _add_out(p, "runs/visibility_probe", "output directory")
     p.set_defaults(func=_cmd_speed_probe)
 
 
@@ -325,7 +385,7 @@ def _cmd_speed_probe(args) -> int:
     from pixelmpc_jax.apps.experiments.speed_probe import speed_probe
 
     speed_probe(args.out, speed=args.speed, laps=args.laps, models=tuple(args.models), c_pixels=tuple(args.c_pixel),
-                t_f=args.t_f, dof_weights=args.dof_weights)
+                t_f=args.t_f, dof_weights=args.dof_weights, **_executor(args))
     _print_report(args.out)
     return 0
 
@@ -357,7 +417,7 @@ def _add_detector_agreement(jobs) -> None:
     p.add_argument("ticks", type=arg.ticks_file, nargs="+", metavar="TICKS",
                    help="per-tick records of AlphaPilot races (ticks_*.npz, as a race or a grid writes them)")
     p.add_argument("--laps", type=arg.positive_int, default=1, help="laps of each record, from its first (default 1)")
-    p.add_argument("--out", type=arg.writable_dir, required=True, help="output folder")
+    _add_out(p, None, "output folder")
     p.set_defaults(func=_cmd_detector_agreement)
 
 
@@ -366,4 +426,117 @@ def _cmd_detector_agreement(args) -> int:
 
     detector_agreement.run(args.ticks, args.laps, args.out)
     _print_report(args.out)
+    return 0
+
+
+def _add_run(jobs) -> None:
+    p = jobs.add_parser("run", help="an experiment from a grid file (experiments/grids/*.toml: a named experiment "
+                                    "and its options, or explicit cells), checked whole before anything flies; its "
+                                    "cells fly on an executor, by default a pool of pinned processes, one per core")
+    p.add_argument("grid", type=arg.grid_file, metavar="GRID", help="the grid file (TOML)")
+    _add_executor_flags(p, default="local")
+    p.add_argument("--out", type=arg.writable_dir, default=None,
+                   help="output folder (resumable; default: the file's out, else the experiment's own default)")
+    p.add_argument("--reuse", type=arg.grid_dir, nargs="+", default=(), metavar="DIR",
+                   help="grid folders whose finished cells of the same race, laps and seed are copied, not flown "
+                        "(added to the file's own, where the experiment takes reuse)")
+    p.set_defaults(func=_cmd_run, precheck=functools.partial(_check_grid_file, jobs=jobs))
+
+
+def _check_grid_file(args, jobs) -> None:
+    """Read the grid file and check all of it: a ValueError names the file and the first problem. A named
+    experiment's options are parsed by that experiment's own parser into ``args.grid_args``."""
+    from pixelmpc_jax.apps.racing.grid_file import CELLS, read_grid_file
+
+    grid = read_grid_file(args.grid)
+    args.grid_file, args.grid_args = grid, None
+    if grid.experiment == CELLS:
+        if (args.out or grid.out) is None:
+            raise ValueError(f"grid file {grid.path}: it names no output folder: add out = \"...\" or give --out")
+        return
+    parser = jobs.choices[grid.experiment]
+    try:
+        args.grid_args = _parse_options(parser, grid, args)
+    except ValueError as err:
+        raise ValueError(f"grid file {grid.path}: {err}") from None
+    args.grid_outputs = [getattr(args.grid_args, action.dest) for action in parser._actions
+                         if action.type is arg.writable_dir and getattr(args.grid_args, action.dest, None) is not None]
+    problem = args.grid_args.validate(args.grid_args) if getattr(args.grid_args, "validate", None) else None
+    if problem:
+        raise ValueError(f"grid file {grid.path}: {_option_names(problem)}")
+    if getattr(args.grid_args, "precheck", None) is not None:
+        args.grid_args.precheck(args.grid_args)
+
+
+def _parse_options(parser: argparse.ArgumentParser, grid, args) -> argparse.Namespace:
+    """A named experiment's options (the file's, with the command line's ``--out`` and ``--reuse``) parsed as its
+    command's flags: ``laps = 4`` as ``--laps 4``, a list as several values, ``true`` as a switch."""
+    flags = {action.dest: action for action in parser._actions if action.option_strings and action.dest != "help"}
+    options = {key.replace("-", "_"): value for key, value in grid.options.items()}
+    if args.out is not None:
+        options["out"] = str(args.out)
+    if args.reuse:
+        if "reuse" not in flags:
+            raise ValueError(f"--reuse: {grid.experiment} takes no reuse folders")
+        reuse = options.get("reuse", [])
+        options["reuse"] = [*(reuse if isinstance(reuse, list) else [reuse]), *map(str, args.reuse)]
+    argv = []
+    for key, value in options.items():
+        if key in GRID_FILE_REFUSED:
+            raise ValueError(f"{key} is where the cells fly: give --{key} on the command line, not in the file")
+        action = flags.get(key)
+        if action is None:
+            raise ValueError(f"unknown key {key!r} for experiment {grid.experiment}; it takes "
+                             f"{', '.join(sorted(set(flags) - set(GRID_FILE_REFUSED)))}")
+        argv += _option_argv(key, action, value)
+
+    def refuse(message):
+        raise ValueError(_option_names(message))
+
+    parser.error = refuse  # one line naming the file's key, not an exit
+    try:
+        return parser.parse_args(argv)
+    finally:
+        del parser.error
+
+
+def _option_argv(key: str, action: argparse.Action, value) -> list[str]:
+    """One option of a grid file as the flags of its command."""
+    flag = action.option_strings[-1]
+    if action.nargs == 0:  # a switch
+        if not isinstance(value, bool):
+            raise ValueError(f"{key} is a switch: write {key} = true or false, got {value!r}")
+        return [flag] if value else []
+    values = value if isinstance(value, list) else [value]
+    if action.nargs is None and len(values) != 1:
+        raise ValueError(f"{key} takes one value, got {value!r}")
+    if any(isinstance(v, (bool, dict, list)) for v in values):
+        raise ValueError(f"{key} takes numbers or strings, got {value!r}")
+    return [flag, *(str(v) for v in values)]
+
+
+def _option_names(message: str) -> str:
+    """An argparse message with its flags named as a grid file's keys (``argument --frontier-speeds`` ->
+    ``frontier_speeds``)."""
+    return re.sub(r"(?:argument )?--([a-z][a-z0-9-]*)", lambda m: m.group(1).replace("-", "_"), message)
+
+
+def _cmd_run(args) -> int:
+    from pixelmpc_jax.apps.racing.grid_file import CELLS
+
+    grid = args.grid_file
+    if grid.experiment != CELLS:
+        job = args.grid_args
+        job.executor, job.workers = args.executor, args.workers
+        for out in args.grid_outputs:
+            arg.make_output_dir(out)
+        return job.func(job)
+    from pixelmpc_jax.apps.experiments import skeleton
+    from pixelmpc_jax.apps.racing.executor import make_executor
+
+    out = args.out or grid.out
+    arg.make_output_dir(out)
+    skeleton.run(skeleton.cells_experiment(grid.cells), out, grid.laps, grid.seed, reuse=tuple(args.reuse),
+                 executor=make_executor(args.executor, args.workers))
+    _print_report(out)
     return 0

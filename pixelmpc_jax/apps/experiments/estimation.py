@@ -272,7 +272,7 @@ def estimation_figures(summary: dict, out: Path, cells: list[Cell]) -> str:
 def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progress: bool = True,
                           dof_params=None, straight: bool = True, run: bool = True, seed: int = 0,
                           reuse=(), estimators: tuple = ESTIMATORS, who: tuple = WHO, at_labels: bool = True,
-                          labels: tuple = RACE_LABELS) -> dict:
+                          labels: tuple = RACE_LABELS, executor=None) -> dict:
     """Table IV at the labels and the paces (``quick``: the 16 m/s pace only), the straight lane, Fig. 6 and Fig. 9
     into ``out``, laps from ``seed``, flown and written by :func:`~pixelmpc_jax.apps.experiments.skeleton.run`;
     cells a folder in ``reuse`` holds are copied, not flown. With ``run=False`` only the report of the cells already
@@ -280,7 +280,8 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
     onboard loop); the straight lane on the particle filter (the paper's figures it answers are the particle
     filter's). Table IV flies the paper's ``labels`` (of :data:`RACE_LABELS`) at their paces and, with ``at_labels``,
     at their own targets. Only the controllers of ``who`` fly: a run split over processes by controller or by label
-    joins with ``reuse``."""
+    joins with ``reuse``.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     cells = race_cells(labels, quick=quick, estimators=estimators, who=who, at_labels=at_labels)
     lanes = straight_cells(quick=quick, who=who) if straight else []
     experiment = Experiment(
@@ -288,4 +289,4 @@ def estimation_experiment(out: Path, laps: int = 25, quick: bool = False, progre
         summarise=lambda results: {"table_iv": summarise(results, cells), "straight_lane": summarise(results, lanes)},
         report=estimation_report, plot=lambda summary, folder: estimation_figures(summary, folder, cells + lanes),
         record=lambda summary: summary)
-    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run, executor=executor)

@@ -162,10 +162,7 @@ def markdown_report(rows: list[dict], device: str, missing: list[str]) -> str:
              "## Steady wind", "", *_curve_table(rows, "wind"), "",
              "## Detection delay", "", *_curve_table(rows, "detection_delay"), "",
              "## Every point", "", *_detail_table(rows)]
-    if missing:
-        lines += ["", f"Not yet run (the experiment resumes with them): {', '.join(missing)}."]
-    wall = sum(r["wall_time_s"] or 0.0 for r in rows)
-    lines += ["", f"Wall time of the cells flown here: {wall / 60:.1f} min."]
+    lines += skeleton.report_end(rows, missing)
     return "\n".join(lines) + "\n"
 
 
@@ -211,12 +208,13 @@ def _figure(rows: list[dict], out: Path) -> str:
 
 def fault_curves_experiment(out: Path, quick: bool = False, progress: bool = True, estimators: tuple = ESTIMATORS,
                             levers: tuple = (), reuse=(), run: bool = True,
-                            curves: tuple = tuple(CURVES)) -> list[dict]:
+                            curves: tuple = tuple(CURVES), executor=None) -> list[dict]:
     """Fly the ``curves`` (default both) into ``out`` (resumable per cell; :data:`LAPS` laps per point,
     :data:`QUICK_LAPS` and three points per curve when ``quick``) and write the report of their points; returns the
     rows. ``reuse``: grid folders (the robustness
     grid's) whose finished cells answer a point here (the fault-free races, and the moderate wind, 3 m/s, and the
-    one-tick delay on the same seeds) and are copied, not flown."""
+    one-tick delay on the same seeds) and are copied, not flown.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     points = curve_cells(estimators, levers, quick, curves)
     experiment = Experiment(tuple(p.cell for p in points), summarise=lambda results: summarise(results, points),
                             report=lambda rows, missing: markdown_report(rows, device_line(), missing),
@@ -224,4 +222,4 @@ def fault_curves_experiment(out: Path, quick: bool = False, progress: bool = Tru
                                                                "curves": {k: list(v) for k, v in CURVES.items()}},
                             record_file="curves.json")
     return skeleton.run(experiment, out, QUICK_LAPS if quick else LAPS, robust_lib.SEED, progress, reuse=reuse,
-                        flies=run)
+                        flies=run, executor=executor)

@@ -300,15 +300,16 @@ def frontier_experiment(nominal_speeds, cells, laps: int, seed: int, max_time_s:
 
 def run_frontier(nominal_speeds, cells, out: Path, laps: int = 10, seed: int = 0, progress: bool = True,
                  dof_params=None, max_time_s: float = LAP_TIME_LIMIT_S, course: str | None = None,
-                 camera_tilt_deg: float | None = None, reuse=(), loop: str | None = None) -> dict:
+                 camera_tilt_deg: float | None = None, reuse=(), loop: str | None = None, executor=None) -> dict:
     """Fly the frontier (:func:`frontier_experiment`) into ``out`` with
     :func:`~pixelmpc_jax.apps.experiments.skeleton.run` (resumable per cell) and write ``frontier.json``,
     ``REPORT.md`` and ``frontier.png``; returns the frontier. Only the cells of this run (settings, laps, seed,
     weights) count. Interrupted (Ctrl-C), the finished cells are kept, the outputs are written from them, and the
     KeyboardInterrupt is raised again. A cell whose race a finished cell of a grid folder in ``reuse`` already flew
-    (the same settings, laps and seed, e.g. a tune validation's nominal points) is copied from there."""
+    (the same settings, laps and seed, e.g. a tune validation's nominal points) is copied from there.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     experiment = frontier_experiment(nominal_speeds, cells, laps, seed, max_time_s, course, camera_tilt_deg, loop)
-    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, executor=executor)
 
 
 def _f(value, digits: int = 2, sigma=None) -> str:

@@ -66,17 +66,20 @@ def filter_report(rows: list[dict], missing: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def margin_probe(out: Path, frontier_folders=(), seed: int = SEED, progress: bool = True) -> dict:
+def margin_probe(out: Path, frontier_folders=(), seed: int = SEED, progress: bool = True, executor=None) -> dict:
     """Fly both clearances on the true state (against the nominal frontier, in ``out/truth``) and on the filter (in
     ``out/pf``), laps from ``seed``; nominal cells the grid folders ``frontier_folders`` flew are copied. Returns
-    ``{"truth": the frontier, "filter": the filter rows}``."""
+    ``{"truth": the frontier, "filter": the filter rows}``.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     out = Path(out)
     spaced = clearances()
     truth_cells = [Cell(f"{name}_v{spec.speed:g}", spec) for name, spec in spaced.items()]
     truth = frontier.frontier_experiment(frontier.DEFAULT_SPEEDS, truth_cells, TRUTH_LAPS, seed,
                                          spaced["margin"].max_time_s)
-    built = skeleton.run(truth, out / "truth", TRUTH_LAPS, seed, progress, reuse=frontier_folders)
+    built = skeleton.run(truth, out / "truth", TRUTH_LAPS, seed, progress, reuse=frontier_folders,
+                         executor=executor)
     cells = filter_cells()
     filtered = Experiment(tuple(cells), summarise=lambda results: filter_rows(results, cells), report=filter_report,
                           record=lambda rows: rows)
-    return {"truth": built, "filter": skeleton.run(filtered, out / "pf", FILTER_LAPS, seed, progress)}
+    return {"truth": built,
+            "filter": skeleton.run(filtered, out / "pf", FILTER_LAPS, seed, progress, executor=executor)}

@@ -317,14 +317,16 @@ def tables_experiment(cells: list[Cell], pixel_model: str = "dof", gains=None, a
 
 def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", quick: bool = False,
                           progress: bool = True, dof_params=None, run: bool = True, seed: int = 0, reuse=(),
-                          frontier_dir: Path | None = None, frontier_speeds=(), main: bool = False) -> list[dict]:
+                          frontier_dir: Path | None = None, frontier_speeds=(), main: bool = False,
+                          executor=None) -> list[dict]:
     """Tables II/III and Fig. 6 at the paper's label and its pace (``pixel_model="projection"`` for the PAMPC-style
     comparison; ``main``: the paper's main cell only, :func:`table_cells`), laps from ``seed``, flown and written by
     :func:`~pixelmpc_jax.apps.experiments.skeleton.run`. Cells a folder in ``reuse`` already holds are copied, not
     flown. The frontier gains are read against nominal MPPI at ``frontier_speeds`` in ``frontier_dir`` (flown with
     the same laps and seed); with ``frontier_speeds`` and no ``frontier_dir``, those points are flown into ``out``
     itself; no gains without either. With ``run=False`` only the report of the cells already finished in ``out`` is
-    written."""
+    written.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     cells = table_cells(pixel_model, quick, main)
     names = {cell.name for cell in cells}
     also_flown = () if frontier_dir else tuple(nominal_cell(v) for v in frontier_speeds
@@ -335,4 +337,4 @@ def visibility_experiment(out: Path, laps: int = 10, pixel_model: str = "dof", q
         return gains_against(results, cells, gains_dir, frontier_speeds, laps, seed)
 
     experiment = tables_experiment(cells, pixel_model, gains if gains_dir else None, also_flown)
-    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run)
+    return skeleton.run(experiment, out, laps, seed, progress, dof_params, reuse, flies=run, executor=executor)

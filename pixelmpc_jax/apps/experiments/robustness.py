@@ -368,10 +368,7 @@ def markdown_report(rows: list[dict], device: str, missing: list[str]) -> str:
              "![success per fault, level and loop](robustness.png)", "",
              "## Every cell (lap time over the completed laps, figures mean ± 2σ over the laps)", "",
              *_detail_table(rows), "", "## The fault levels", "", *_levels_table()]
-    if missing:
-        lines += ["", f"Not yet run (the experiment resumes with them): {', '.join(missing)}."]
-    wall = sum(r["wall_time_s"] or 0.0 for r in rows)
-    lines += ["", f"Wall time of the cells flown here: {wall / 60:.1f} min."]
+    lines += skeleton.report_end(rows, missing)
     return "\n".join(lines) + "\n"
 
 
@@ -422,7 +419,7 @@ def robustness_figure(rows: list[dict], out: Path) -> str:
 def robustness_experiment(out: Path, quick: bool = False, progress: bool = True, levers: tuple = (),
                           reuse=(), run: bool = True, estimators: tuple | None = None,
                           faults: tuple | None = None, levels: tuple | None = None,
-                          controllers: tuple | None = None) -> list[dict]:
+                          controllers: tuple | None = None, executor=None) -> list[dict]:
     """Fly the robustness grid into ``out`` (resumable per cell, each cell its own laps from :data:`SEED`) and write
     its report (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns the rows. ``estimators``, ``faults``,
     ``levels`` and ``controllers`` keep a part of the grid (:func:`robustness_cells`): the report then covers that part.
@@ -430,6 +427,7 @@ def robustness_experiment(out: Path, quick: bool = False, progress: bool = True,
     ``reuse``: other grids' output folders whose finished cells answer a cell here (the same race, laps and seed:
     the fault-free races) and are copied, not flown. ``run=False``: only the report of the cells already finished.
     A cell counts only where its recorded race is the one asked: a preset changed since it flew leaves it unrun.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process).
     """
     cells = robustness_cells(quick=quick, levers=levers, estimators=estimators, faults=faults, levels=levels,
                              controllers=controllers)
@@ -437,4 +435,4 @@ def robustness_experiment(out: Path, quick: bool = False, progress: bool = True,
         tuple(rc.cell for rc in cells), summarise=lambda results: summarise(results, cells),
         report=lambda rows, missing: markdown_report(rows, device_line(), missing), plot=robustness_figure,
         record=robustness_record, record_file="robustness.json", cell_laps={rc.cell.name: rc.laps for rc in cells})
-    return skeleton.run(experiment, out, None, SEED, progress, reuse=reuse, flies=run)
+    return skeleton.run(experiment, out, None, SEED, progress, reuse=reuse, flies=run, executor=executor)

@@ -57,13 +57,13 @@ class Experiment:
 
 
 def fly(experiment: Experiment, out: Path, laps: int | None, seed: int, progress: bool = True, dof_params=None,
-        reuse=()) -> None:
-    """Fly the experiment's cells not finished in ``out`` (:func:`grid.run_grid`), the cells of one number of laps
-    at a time, the most laps first."""
+        reuse=(), executor=None) -> None:
+    """Fly the experiment's cells not finished in ``out`` (:func:`grid.run_grid`, on ``executor``: None flies them
+    one after another in this process), the cells of one number of laps at a time, the most laps first."""
     counts = sorted({experiment.laps_of(cell, laps) for cell in experiment.cells}, reverse=True)
     for count in counts:
         grid.run_grid([cell for cell in experiment.cells if experiment.laps_of(cell, laps) == count], out,
-                      laps=count, seed=seed, progress=progress, dof_params=dof_params, reuse=reuse)
+                      laps=count, seed=seed, progress=progress, dof_params=dof_params, reuse=reuse, executor=executor)
 
 
 def finished(experiment: Experiment, out: Path, laps: int | None, seed: int, dof_params=None) -> dict:
@@ -86,9 +86,10 @@ def write(experiment: Experiment, summary, missing: list[str], out: Path) -> Non
 
 
 def run(experiment: Experiment, out: Path, laps: int | None, seed: int = 0, progress: bool = True, dof_params=None,
-        reuse=(), flies: bool = True):
+        reuse=(), flies: bool = True, executor=None):
     """Fly ``experiment`` into ``out`` (``laps`` laps per cell but its ``cell_laps``, from ``seed``, with the DOF
-    weights ``dof_params``, None for the packaged ones; cells a folder in ``reuse`` already flew are copied),
+    weights ``dof_params``, None for the packaged ones; cells a folder in ``reuse`` already flew are copied; on
+    ``executor``, :mod:`~pixelmpc_jax.apps.racing.executor`, None for this process),
     summarise the finished cells and write the outputs (:func:`write`); returns the summary. ``flies=False``:
     only the outputs of the cells already finished. Interrupted, the outputs of the finished cells are written and
     the KeyboardInterrupt is raised again."""
@@ -96,7 +97,7 @@ def run(experiment: Experiment, out: Path, laps: int | None, seed: int = 0, prog
     interrupted = False
     if flies:
         try:
-            fly(experiment, out, laps, seed, progress, dof_params, reuse)
+            fly(experiment, out, laps, seed, progress, dof_params, reuse, executor)
         except KeyboardInterrupt:
             interrupted = True
     results = finished(experiment, out, laps, seed, dof_params)
@@ -106,6 +107,45 @@ def run(experiment: Experiment, out: Path, laps: int | None, seed: int = 0, prog
     if interrupted:
         raise KeyboardInterrupt(f"interrupted: {len(missing)} cell(s) not finished; run again to resume")
     return summary
+
+
+def cells_experiment(cells) -> Experiment:
+    """An experiment of explicit cells (a grid file's, :mod:`~pixelmpc_jax.apps.racing.grid_file`): its summary is
+    each finished cell's success rate and lap time (``summary.json``), its report their table."""
+
+    def summarise(results: dict) -> list[dict]:
+        return [{"cell": cell.name, "settings": cell.spec.changed_settings(), **_cell_row(results[cell.name])}
+                for cell in cells if cell.name in results]
+
+    def report(rows: list[dict], missing: list[str]) -> str:
+        lines = ["# Grid of cells", "", "| cell | laps | success | lap time [s] | worst lap [s] |",
+                 "|---|---|---|---|---|"]
+        for row in rows:
+            worst = "-" if row["worst_lap_s"] is None else f"{row['worst_lap_s']:.2f}"
+            lines.append(f"| {row['cell']} | {row['laps']} | {row['success_rate'] * 100:.0f}% | "
+                         f"{grid.fmt(row['lap_time_s'], 2)} | {worst} |")
+        if missing:
+            lines += ["", f"Not finished: {', '.join(missing)}."]
+        return "\n".join(lines) + "\n"
+
+    return Experiment(tuple(cells), summarise=summarise, report=report, record=lambda rows: rows)
+
+
+def _cell_row(done: dict) -> dict:
+    """A finished cell's laps, success rate, lap time (mean and two sigma) and worst finished lap."""
+    times = [lap["lap_time_s"] for lap in done["laps"] if lap.get("success") and lap.get("lap_time_s") is not None]
+    return {"laps": len(done["laps"]), "success_rate": done["aggregate"]["success_rate"],
+            "lap_time_s": done["aggregate"].get("lap_time_s"), "worst_lap_s": max(times) if times else None}
+
+
+def report_end(rows: list[dict], missing: list[str]) -> list[str]:
+    """A report's closing lines: the cells not run yet (the experiment resumes with them), and the wall time of the
+    cells ``rows`` flown here (each row's ``wall_time_s``)."""
+    lines = []
+    if missing:
+        lines += ["", f"Not yet run (the experiment resumes with them): {', '.join(missing)}."]
+    wall = sum(r["wall_time_s"] or 0.0 for r in rows)
+    return lines + ["", f"Wall time of the cells flown here: {wall / 60:.1f} min."]
 
 
 def episode_end(lap: dict) -> str | None:

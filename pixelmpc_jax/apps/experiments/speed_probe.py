@@ -113,10 +113,12 @@ def tradeoff_figure(results: dict, cells: list[Cell], out: Path, speed: float) -
 
 
 def speed_probe(out: Path, speed: float = 8.0, laps: int = 4, models=("projection", "dof"), c_pixels=(9e6,),
-                t_f: float = 1.0, dof_weights: Path | None = None, progress: bool = True) -> dict:
+                t_f: float = 1.0, dof_weights: Path | None = None, progress: bool = True,
+                executor=None) -> dict:
     """Fly the probe's cells (:func:`cells_for`) from seed 0 into ``out``, the DOF cells with the weights file
     ``dof_weights`` (None: the packaged weights), and write ``REPORT.md`` and ``tradeoff.png``
-    (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns ``{cell name: race results}`` of the cells."""
+    (:func:`~pixelmpc_jax.apps.experiments.skeleton.run`); returns ``{cell name: race results}`` of the cells.
+    ``executor``: where the cells fly (:mod:`~pixelmpc_jax.apps.racing.executor`; None: in this process)."""
     cells = cells_for(speed, models, c_pixels, t_f)
     dof_params, weights_note = None, ""
     if dof_weights is not None:
@@ -128,4 +130,4 @@ def speed_probe(out: Path, speed: float = 8.0, laps: int = 4, models=("projectio
     experiment = Experiment(tuple(cells), summarise=lambda results: results,
                             report=lambda results, missing: report(results, cells, speed, weights_note),
                             plot=lambda results, folder: tradeoff_figure(results, cells, folder, speed))
-    return skeleton.run(experiment, out, laps, 0, progress, dof_params)
+    return skeleton.run(experiment, out, laps, 0, progress, dof_params, executor=executor)

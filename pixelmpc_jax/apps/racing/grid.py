@@ -10,14 +10,18 @@ weights); otherwise it is flown again and replaced.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 from pixelmpc_jax.apps.racing import race
+from pixelmpc_jax.apps.racing.executor import Executor
 from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim import ticks as ticks_lib
@@ -186,8 +190,80 @@ def _add_to_compact_record(out: Path, name: str, shared: tuple[Path, str, dict] 
             ticks_compact.update(out / ticks_compact.FILE_NAME, {name: races[shared_name]})
 
 
+@dataclasses.dataclass(frozen=True)
+class CellTask:
+    """One cell's race to fly (:func:`fly_cell`), as an executor's task: it pickles to another process.
+
+    Attributes:
+        name: the cell's name.
+        spec: the race, with the run's laps, seed and DOF weights (:meth:`Cell.race`).
+        batch_size: laps per vmapped batch.
+        dof_params: the DOF weights flown (None: the packaged ones), as NumPy arrays.
+        progress: a progress bar over the laps (in-process only: workers fly silently).
+    """
+
+    name: str
+    spec: RaceSpec
+    batch_size: int
+    dof_params: object = None
+    progress: bool = False
+
+
+@dataclasses.dataclass
+class FlownCell:
+    """What flying a cell returns to the process that writes the grid (:func:`fly_cell`).
+
+    Attributes:
+        results: the race's results (``laps``, ``aggregate``, ...) less its arrays, its race and key.
+        trajectories: (T_i + 1, 10) flown states per lap.
+        covariances: (T_i,) position covariance trace per tick per lap, with a filter (else empty).
+        ticks: the per-tick records of the laps (:mod:`~pixelmpc_jax.sim.ticks`).
+        camera: the camera the laps were seen with.
+        wall_time_s: seconds the race took where it flew.
+    """
+
+    results: dict
+    trajectories: list
+    covariances: list
+    ticks: list
+    camera: object
+    wall_time_s: float
+
+
+def fly_cell(task: CellTask) -> FlownCell:
+    """Fly one cell's race (:func:`~pixelmpc_jax.apps.racing.race.run_laps`): the task an executor runs."""
+    start = time.perf_counter()
+    res = race.run_laps(task.spec, batch_size=task.batch_size, progress=task.progress, dof_params=task.dof_params)
+    trajectories, covariances = res.pop("trajectories"), res.pop("covariances")
+    lap_ticks, camera = res.pop("ticks", []), res.pop("camera", None)
+    for kind in ("visibility", "estimates", "race", "key"):  # the cell records its race itself (cell_record)
+        res.pop(kind, None)
+    return FlownCell(res, trajectories, covariances, lap_ticks, camera, time.perf_counter() - start)
+
+
+def _write_flown(out: Path, results: dict, cell: Cell, spec: RaceSpec, flown: FlownCell) -> None:
+    """Add a flown cell to the grid in ``out``: its results (with its ``config``, ``seed``, DOF fingerprint and wall
+    time) into ``results`` and ``results.json`` (atomically), its trajectories, per-tick record (and its part of the
+    compact record) and covariances beside it. A race cut short (Ctrl-C inside the cell) is not written: the
+    KeyboardInterrupt is raised again with the finished cells kept."""
+    path = out / "results.json"
+    res = flown.results
+    if res.get("interrupted") or len(res["laps"]) < spec.laps:
+        raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
+                                f"{path}; run again to resume")
+    results[cell.name] = {**res, "config": cell_record(cell), "seed": spec.seed,
+                          "dof_weights_sha256": spec.dof_fingerprint(), "wall_time_s": flown.wall_time_s}
+    write_json_atomic(path, results)
+    np.savez_compressed(out / f"trajectories_{cell.name}.npz", *flown.trajectories)
+    if flown.ticks:
+        ticks_lib.write(out / f"ticks_{cell.name}.npz", flown.ticks, flown.camera, spec.speed)
+        _add_to_compact_record(out, cell.name)
+    if flown.covariances:
+        np.savez_compressed(out / f"covariances_{cell.name}.npz", *flown.covariances)
+
+
 def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_size: int | None = None,
-             progress: bool = True, dof_params=None, reuse=()) -> dict:
+             progress: bool = True, dof_params=None, reuse=(), executor: Executor | None = None) -> dict:
     """Run every cell not yet in ``out/results.json``; returns ``{cell name: race results}``.
 
     Each cell flies its race with ``laps``, ``seed`` and the DOF weights ``dof_params`` (None: the packaged
@@ -203,54 +279,68 @@ def run_grid(cells: list[Cell], out: Path, laps: int = 10, seed: int = 0, batch_
     ``ticks_compact.npz`` (what the measure reads, small enough to commit: :mod:`~pixelmpc_jax.sim.ticks_compact`)
     and, with the particle filter, ``covariances_<cell>.npz`` (its position covariance trace per tick). A cell whose
     race a finished cell in one of the ``reuse`` folders already answers (:func:`find_shared`) is copied from there,
-    not flown again (its results name it in ``shared_from``). Interrupted (Ctrl-C),
-    the finished cells stay in ``results.json`` and the KeyboardInterrupt is raised again: a grid never returns
-    as if it were complete."""
+    not flown again (its results name it in ``shared_from``).
+
+    ``executor`` (:mod:`~pixelmpc_jax.apps.racing.executor`) flies the cells left as its tasks, each in whichever
+    worker is free, while this process writes each cell as it completes (the files and resume are the same); a cell
+    that fails is named with its error, the others are written, and a RuntimeError naming the failed cells is raised
+    at the end. None: the cells fly one after another here, a failure raised at once (as before executors).
+    Interrupted (Ctrl-C, SIGTERM under the ``pixelmpc`` command), the finished cells stay in ``results.json``, the
+    executor's workers are stopped and the KeyboardInterrupt is raised again: a grid never returns as if it were
+    complete."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    path = out / "results.json"
     results = load_results(out)
     batch_size = batch_size or default_batch_size(laps)
     weights = None if dof_params is None else dof_weights_hash(dof_params)
-    for cell in cells:
-        spec = cell.race(laps, seed, weights)
-        done = results.get(cell.name)
-        if is_current(done, spec):
-            if progress:
-                print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
-            continue
-        shared = find_shared(spec, [folder for folder in reuse if Path(folder).resolve() != out.resolve()])
-        if shared is not None:
-            results[cell.name] = _copy_shared(shared, out, cell.name)
-            write_json_atomic(path, results)
-            _add_to_compact_record(out, cell.name, shared)
-            if progress:
-                print(f"[{cell.name}] shared from {results[cell.name]['shared_from']}")
-            continue
-        start = time.perf_counter()
-        res = race.run_laps(spec, batch_size=batch_size, progress=progress, dof_params=dof_params)
-        trajectories = res.pop("trajectories")
-        covariances = res.pop("covariances")
-        lap_ticks, camera = res.pop("ticks", []), res.pop("camera", None)
-        for kind in ("visibility", "estimates"):
-            res.pop(kind, None)
-        res.pop("race", None), res.pop("key", None)  # the cell records its race below (cell_record)
-        if res.get("interrupted") or len(res["laps"]) < laps:  # interrupted inside the cell: keep what is done
-            raise KeyboardInterrupt(f"interrupted in cell {cell.name}: {len(results)} finished cell(s) kept in "
-                                    f"{path}; run again to resume")
-        res["config"] = cell_record(cell)
-        res["seed"] = seed
-        res["dof_weights_sha256"] = spec.dof_fingerprint()
-        res["wall_time_s"] = time.perf_counter() - start
-        results[cell.name] = res
-        write_json_atomic(path, results)
-        np.savez_compressed(out / f"trajectories_{cell.name}.npz", *trajectories)
-        if lap_ticks:
-            ticks_lib.write(out / f"ticks_{cell.name}.npz", lap_ticks, camera, spec.speed)
-            _add_to_compact_record(out, cell.name)
-        if covariances:
-            np.savez_compressed(out / f"covariances_{cell.name}.npz", *covariances)
+    specs = {cell.name: cell.race(laps, seed, weights) for cell in cells}
+    to_fly = [cell for cell in cells if not _kept_or_shared(cell, specs[cell.name], out, results, reuse, progress)]
+    if executor is None:
+        for cell in to_fly:
+            task = CellTask(cell.name, specs[cell.name], batch_size, dof_params, progress)
+            _write_flown(out, results, cell, specs[cell.name], fly_cell(task))
+        return results
+    host_params = None if dof_params is None else jax.tree_util.tree_map(np.asarray, dof_params)
+    tasks = [CellTask(cell.name, specs[cell.name], batch_size, host_params) for cell in to_fly]
+    by_name = {cell.name: cell for cell in to_fly}
+    failed = {}
+    bar = tqdm(total=len(tasks), unit="cell", desc=out.name, disable=not progress or not tasks)
+    try:
+        with contextlib.closing(executor.run(fly_cell, tasks)) as completed:
+            for task, flown, error in completed:
+                if error is None:
+                    _write_flown(out, results, by_name[task.name], task.spec, flown)
+                else:
+                    failed[task.name] = error
+                    bar.write(f"[{task.name}] failed: {error}")
+                bar.update(1)
+    finally:
+        bar.close()
+        executor.close()
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {len(tasks)} cell(s) failed ({', '.join(failed)}); the others are in "
+                           f"{out / 'results.json'}. First: [{next(iter(failed))}] {next(iter(failed.values()))}")
     return results
+
+
+def _kept_or_shared(cell: Cell, spec: RaceSpec, out: Path, results: dict, reuse, progress: bool) -> bool:
+    """Whether ``cell`` needs no flying: kept from ``results`` (it answers ``spec``) or copied from a folder of
+    ``reuse`` (:func:`find_shared`; added to ``results`` and ``results.json``)."""
+    path = out / "results.json"
+    done = results.get(cell.name)
+    if is_current(done, spec):
+        if progress:
+            print(f"[{cell.name}] kept from {path} ({len(done['laps'])} laps)")
+        return True
+    shared = find_shared(spec, [folder for folder in reuse if Path(folder).resolve() != out.resolve()])
+    if shared is None:
+        return False
+    results[cell.name] = _copy_shared(shared, out, cell.name)
+    write_json_atomic(path, results)
+    _add_to_compact_record(out, cell.name, shared)
+    if progress:
+        print(f"[{cell.name}] shared from {results[cell.name]['shared_from']}")
+    return True
 
 
 def fmt(entry: dict | None, digits: int = 1) -> str:
