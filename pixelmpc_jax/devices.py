@@ -190,8 +190,9 @@ def compile_controller(ctrl, execution: Execution = Execution()) -> CompiledCont
     kernels), without the input checks and without the compile count. What the options buy depends on the problem:
     a unicycle on one core of a 2-core AMD EPYC, 1.72 (plain) against 1.41 ms at 512 x 50 and 8.40 against 6.17 ms
     at 2048 x 50; PixelMPC (its DOF's products) on the same core, loaded, 22.1 against 24.1 ms at 512 x 80 and 91.0
-    against 98.4 ms at 2048 x 80 (2026-12-03). ``pixelmpc bench`` times the two in one run
-    (``apps/bench/jit_paths.py``) and says which is the faster."""
+    against 98.4 ms at 2048 x 80, and in a process with both cores, idle, 19.7 against 14.4 ms at 512 x 80 and
+    57.7 / 55.2 / 52.3 against 59.0 / 54.5 / 53.4 ms at 2048 x 80 in three runs (equal within 2 %; 2026-12-03).
+    ``pixelmpc bench`` times the two in one run (``apps/bench/jit_paths.py``) and says which is the faster."""
     placed, shardings = ctrl, None
     if execution.sample_devices > 1:
         shardings = sample_shardings(execution.sample_devices, ctrl.config.num_samples)
