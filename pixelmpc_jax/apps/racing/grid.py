@@ -86,38 +86,13 @@ def recorded_race(done: dict) -> RaceSpec | None:
     """The race a finished cell's results ``done`` were flown as; None if they name no race this version knows.
 
     A setting a record lacks counts as its default (older files record fewer settings), and results written
-    before the seed and the weights were recorded count as seed 0 and the packaged weights: the defaults they
-    were flown with."""
-    settings = _nested_settings({k: v for k, v in done.get("config", {}).items() if k != "name"})
+    before the weights were recorded count as the packaged weights: the default they were flown with."""
+    settings = {k: v for k, v in done.get("config", {}).items() if k != "name"}
     try:
         return RaceSpec.from_record({**settings, "laps": len(done.get("laps", [])), "seed": done.get("seed", 0),
                                      "dof_weights": done.get("dof_weights_sha256")})
     except ValueError:  # an unknown setting (a record of another version), no laps
         return None
-
-
-_FLAT_SETTINGS = {"t_f": "t_f", "c_pixel": "c_pixel", "pixel_model": "pixel_model", "temperature": "mppi.temperature",
-                  "num_samples": "mppi.num_samples"}  # results.json files written before RaceSpec held the config
-
-
-def _nested_settings(settings: dict) -> dict:
-    """A cell's recorded settings as :meth:`RaceSpec.record` writes them. Files written before the spec held the
-    controller's configuration record its settings flat (``t_f``, ``temperature``, ``options`` as dotted names);
-    they are read into the configuration's nested fields (a ``None`` temperature was the default)."""
-    if "config" in settings:
-        return settings
-    config: dict = {}
-    flat = {_FLAT_SETTINGS[k]: settings.pop(k) for k in list(settings) if k in _FLAT_SETTINGS}
-    flat.update(settings.pop("options", None) or {})
-    for dotted, value in flat.items():
-        if value is None:
-            continue
-        *parents, name = dotted.split(".")
-        node = config
-        for parent in parents:
-            node = node.setdefault(parent, {})
-        node[name] = value
-    return {**settings, "config": config}
 
 
 def flies_race(done: dict | None, spec: RaceSpec) -> bool:
