@@ -20,7 +20,6 @@ training config) sits in the same file.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -250,13 +249,7 @@ def read_checkpoint(path) -> DOFCheckpoint:
     mismatched-architecture file, naming what differs (expected vs found)."""
     path = Path(path)
     payload = network_weights.read_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, "DOF")
-    try:
-        found_arch = json.loads(payload["architecture"])
-        config = json.loads(payload["config"])
-        state = payload["dof_params"]
-        extra = payload.get("extra", {}) or {}
-    except (KeyError, TypeError, ValueError) as err:
-        raise ValueError(f"{path}: DOF checkpoint header is damaged: {err!r}") from err
+    found_arch, config, state, extra = network_weights.read_header(path, payload, "dof_params", "DOF")
     differences = network_weights.architecture_differences(architecture(), found_arch)
     if differences:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(differences))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -85,6 +86,17 @@ def read_file(path: Path, file_format: str, version: int, model: str) -> dict:
     if payload.get("format_version") != version:
         raise ValueError(f"{path}: format_version expected {version}, found {payload.get('format_version')!r}")
     return payload
+
+
+def read_header(path: Path, payload: Mapping, params_key: str, model: str) -> tuple[dict, dict, object, dict]:
+    """A checkpoint payload's (:func:`read_file`) architecture record, configuration, parameters' tree (under
+    ``params_key``) and extra record; a ValueError ``{path}: {model} checkpoint header is damaged`` where one is
+    missing or unreadable."""
+    try:
+        return (json.loads(payload["architecture"]), json.loads(payload["config"]), payload[params_key],
+                payload.get("extra", {}) or {})
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {model} checkpoint header is damaged: {err!r}") from err
 
 
 def architecture_differences(expected: Mapping, found: Mapping) -> list[str]:

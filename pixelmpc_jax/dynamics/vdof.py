@@ -29,7 +29,6 @@ training record, written atomically.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -236,11 +235,8 @@ def read_vdof_checkpoint(path) -> VDOFCheckpoint:
     wrong) for a corrupted, truncated, foreign or mismatched file."""
     path = Path(path)
     payload = network_weights.read_file(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, "vdof")
+    found, config, state, extra = network_weights.read_header(path, payload, "params", "vdof")
     try:
-        found = json.loads(payload["architecture"])
-        config = json.loads(payload["config"])
-        state = payload["params"]
-        extra = payload.get("extra", {}) or {}
         hidden = tuple(int(h) for h in found["hidden_sizes"])
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{path}: vdof checkpoint header is damaged: {err!r}") from err

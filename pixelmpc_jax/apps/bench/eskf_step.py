@@ -20,7 +20,7 @@ import json
 import jax
 
 from pixelmpc_jax import devices
-from pixelmpc_jax.apps.bench.measure import make_row, measure
+from pixelmpc_jax.apps.bench.measure import make_row, measure, spread
 from pixelmpc_jax.apps.bench.particle_filter_step import estimator_scene
 from pixelmpc_jax.perception import eskf
 from pixelmpc_jax.perception.estimator import EstimatorParams
@@ -64,9 +64,7 @@ def run_eskf_step(repeats: int = 200) -> dict:
     device = device_line()
     result.update(device=device, target_ms=TICK_TARGET_MS)
     print(f"device: {device}")
-    print(f"ESKF step: median {result['median_ms']:.3f} ms (mean {result['mean_ms']:.3f} +- "
-          f"{result['two_sigma_ms']:.3f} ms 2sigma, p95 {result['p95_ms']:.3f} ms, max {result['max_ms']:.3f} ms, "
-          f"{result['repeats']} repeats); bar {TICK_TARGET_MS:g} ms: "
+    print(f"ESKF step: {spread(result, 3, result['repeats'], p95=True)}; bar {TICK_TARGET_MS:g} ms: "
           f"{'met' if result['median_ms'] <= TICK_TARGET_MS else 'NOT met'}")
     print(json.dumps({k: v for k, v in result.items() if k != "device"}))
     return result

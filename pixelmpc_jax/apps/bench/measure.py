@@ -104,6 +104,16 @@ def make_row(group: str, name: str, num_samples: int | None, horizon: int | None
     return row
 
 
+def spread(result: dict, digits: int = 2, repeats: int | None = None, p95: bool = False) -> str:
+    """A timing's line for a bench's printout: ``median M ms (mean m +- s ms 2sigma[, p95 P ms], max X ms[, N
+    repeats])`` with ``digits`` decimals."""
+    f = f".{digits}f"
+    tail = (f", p95 {result['p95_ms']:{f}} ms" if p95 else "") + f", max {result['max_ms']:{f}} ms"
+    tail += f", {repeats} repeats" if repeats is not None else ""
+    return (f"median {result['median_ms']:{f}} ms (mean {result['mean_ms']:{f}} +- {result['two_sigma_ms']:{f}} ms "
+            f"2sigma{tail})")
+
+
 def fmt_ms(row: dict) -> str:
     """'mean +- 2sigma (max)' in ms, or the row's status."""
     if row.get("median_ms") is None:

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from pixelmpc_jax import timing
-from pixelmpc_jax.apps.bench.measure import measure
+from pixelmpc_jax.apps.bench.measure import measure, spread
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
 from pixelmpc_jax.control.pixelmpc import PAPER_NOISE_SIGMA
@@ -65,9 +65,7 @@ def run_mppi_step(samples: int = 512, horizon: int = 80, repeats: int = 50, cost
     rollouts_per_s = samples * horizon / (result["median_ms"] / 1e3)
     print(f"device: {device['platform']} ({device['device_kind']}; {device['cpu_model']}, "
           f"{device['cpu_count']} cores), jax {device['jax']}")
-    print(f"quadrotor MPPI step ({cost} cost), N={samples}, T={horizon}: "
-          f"median {result['median_ms']:.2f} ms "
-          f"(mean {result['mean_ms']:.2f} +- {result['two_sigma_ms']:.2f} ms 2sigma, max {result['max_ms']:.2f} ms, "
-          f"{repeats} repeats); {rollouts_per_s / 1e6:.2f} M model steps/s")
+    print(f"quadrotor MPPI step ({cost} cost), N={samples}, T={horizon}: {spread(result, 2, repeats)}; "
+          f"{rollouts_per_s / 1e6:.2f} M model steps/s")
     print(json.dumps({k: v for k, v in result.items() if k != "device"}))
     return result

@@ -20,7 +20,7 @@ import json
 import jax
 
 from pixelmpc_jax import devices, timing
-from pixelmpc_jax.apps.bench.measure import make_row, measure
+from pixelmpc_jax.apps.bench.measure import make_row, measure, spread
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import particle_filter as pf
 from pixelmpc_jax.perception.estimator import EstimatorParams
@@ -85,10 +85,8 @@ def run_pf_step(particles: int = 6400, repeats: int = 50) -> dict:
     device = device_line()
     result.update(num_particles=particles, device=device, predict_only=baseline)
     print(f"device: {device}")
-    print(f"particle filter step, P={particles}: median {result['median_ms']:.3f} ms (mean {result['mean_ms']:.3f} "
-          f"+- {result['two_sigma_ms']:.3f} ms 2sigma, max {result['max_ms']:.3f} ms, {repeats} repeats); "
+    print(f"particle filter step, P={particles}: {spread(result, 3, repeats)}; "
           f"{particles / (result['median_ms'] / 1e3) / 1e6:.2f} M particle-updates/s")
-    print(f"baseline predict only: median {baseline['median_ms']:.3f} ms (mean {baseline['mean_ms']:.3f} "
-          f"+- {baseline['two_sigma_ms']:.3f} ms 2sigma, max {baseline['max_ms']:.3f} ms)")
+    print(f"baseline predict only: {spread(baseline, 3)}")
     print(json.dumps({k: v for k, v in result.items() if k not in ("device", "predict_only")}))
     return result
