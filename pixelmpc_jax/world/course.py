@@ -48,13 +48,10 @@ GATE_WIDTH = 1.8  # m, inner opening of the AlphaPilot gates
 GATE_HEIGHT = 1.85  # m
 
 
-_outer_corners_jit = jax.jit(gate_outer_corners)
-
-
 def _hall(gates: Gate, start_position, path_points, ceiling_min: float = HALL_CEILING):
     pts = np.concatenate(
         [
-            np.asarray(_outer_corners_jit(gates)).reshape(-1, 3),
+            np.asarray(gate_outer_corners(gates)).reshape(-1, 3),  # eager: the same bits as jitted
             np.asarray(start_position)[None],
             np.asarray(path_points),
         ]
