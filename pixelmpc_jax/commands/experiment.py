@@ -13,9 +13,9 @@ from pathlib import Path
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.experiments.reproduce import SEED
 from pixelmpc_jax.apps.racing.presets import LOOPS
-from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_MAX_DEG
+from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_RANGE
 from pixelmpc_jax.arguments import SEED_MAX
-from pixelmpc_jax.control.pixelmpc import T_F_RANGE
+from pixelmpc_jax.control.pixelmpc import C_PIXEL_RANGE, T_F_RANGE
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
 # the best preset beside its target's pixel from the detector for a gate cut by the image border, or none (nominal
@@ -279,9 +279,9 @@ def _add_frontier(jobs) -> None:
     p.add_argument("--course", type=arg.course, default=None, metavar="|".join(COURSES) + "|FILE",
                    help="the course every cell flies: a name or a course file (`pixelmpc course`; default "
                         "alphapilot)")
-    p.add_argument("--camera-tilt", type=arg.float_in(0.0, CAMERA_TILT_MAX_DEG, unit="deg"), default=None,
+    p.add_argument("--camera-tilt", type=arg.float_range(CAMERA_TILT_RANGE), default=None,
                    metavar="DEG",
-                   help=f"the camera tilted up on its mount by DEG degrees, in [0, {CAMERA_TILT_MAX_DEG:g}], for every "
+                   help=f"the camera tilted up on its mount by DEG degrees, in {CAMERA_TILT_RANGE.interval}, for every "
                         "cell, nominal MPPI's too (default: the cells' own, the paper's 0); the packaged learned pixel "
                         "models are trained for 0, so with a tilt only nominal MPPI's points (--cells none) fly as "
                         "they should")
@@ -371,10 +371,11 @@ def _add_speed_probe(jobs) -> None:
     p.add_argument("--laps", type=arg.positive_int, default=4, help="laps per cell (default 4)")
     p.add_argument("--models", nargs="+", default=["projection", "dof"], choices=["projection", "dof"],
                    help="the pixel models of the PixelMPC cells (default projection dof)")
-    p.add_argument("--c-pixel", type=arg.float_in(0.0, 1e30, lo_open=True), nargs="+", default=[9e6],
-                   help="pixel cost weights, in (0, 1e30] (default 9e6)")
-    p.add_argument("--t-f", type=arg.float_in(0.0, T_F_RANGE.hi, lo_open=True, unit="s"), default=1.0,
-                   help=f"seconds of the horizon with the pixel cost, in (0, {T_F_RANGE.hi:g}] (default 1)")
+    p.add_argument("--c-pixel", type=arg.float_range(C_PIXEL_RANGE._replace(lo_open=True)), nargs="+", default=[9e6],
+                   help=f"pixel cost weights, in {C_PIXEL_RANGE._replace(lo_open=True).interval} (default 9e6)")
+    p.add_argument("--t-f", type=arg.float_range(T_F_RANGE._replace(lo_open=True)), default=1.0,
+                   help=f"seconds of the horizon with the pixel cost, in {T_F_RANGE._replace(lo_open=True).interval} "
+                        "(default 1)")
     p.add_argument("--dof-weights", type=arg.weights_file, default=None,
                    help="DOF weights file for the dof cells (default: the shipped weights)")
     _add_out(p, "runs/visibility_probe", "output directory")
