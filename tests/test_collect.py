@@ -286,6 +286,9 @@ def test_excited_policy_adds_held_pulses_within_the_rate_bounds():
     assert 0 < np.max(np.abs(np.asarray(u[1:3]) - np.asarray(base_u[1:3]))) < 1.5
 
 
+# ~20 s (a collection of its own): test_excited_policy_adds_held_pulses_within_the_rate_bounds covers the excitation,
+# the tiny collection the rest of this file reads covers collect
+@pytest.mark.slow
 def test_collect_with_excitation_excites_the_train_laps_only(tmp_path):
     config = dataclasses.replace(TINY, excitation=True)  # its test lap flies TINY's runner
     assert [config.excited(i) for i in range(2)] == [True, False]

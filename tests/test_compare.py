@@ -96,6 +96,9 @@ def test_the_side_by_side_table_holds_the_tail():
     assert rows["laps > 10 % over median"] == ["1 (33.3 %)", "0 (0.0 %)"]
 
 
+# ~50 s (a race process of its own): test_both_controllers_alternate_batch_by_batch_and_record_every_tick covers what
+# both controllers record, tests/test_host_signals.py a command stopped by SIGTERM keeping what it finished
+@pytest.mark.slow
 def test_a_race_stopped_by_sigterm_keeps_the_finished_laps_of_both_controllers(tmp_path):
     """``pixelmpc race --laps 100`` stopped by SIGTERM, as a batch scheduler stops it, once both controllers have
     flown a batch: it exits 130 and its metrics.json and ticks files hold the finished laps of both (the race is

@@ -329,6 +329,9 @@ def test_resume_across_the_stages_equals_an_uninterrupted_run(hand_made_data, tm
 
 # at the test run's cheapest compilation its fingerprints came to 54 % of their tolerance (112 % with the LLVM
 # modules split), its training data rounded otherwise: it runs as a user's run compiles (tests/conftest.py)
+# ~35 s (compiled as shipped, a process of its own): test_a_few_training_steps_lower_the_loss_in_both_stages and
+# test_resume_across_the_stages_equals_an_uninterrupted_run cover the pipeline; this pins its weights bit for bit
+@pytest.mark.slow
 @pytest.mark.compiled_as_shipped
 def test_the_pipeline_trains_vdof_as_the_trainer_it_replaced(hand_made_data):
     """60 one-step and 40 rollout steps on the hand-made lap give the weights the trainer the pipeline replaced
