@@ -18,6 +18,9 @@ and how it runs, for every layer:
 * :func:`compile_estimator`: a pure estimator (:class:`~pixelmpc_jax.perception.estimator.Estimator`) compiled
   (:class:`CompiledEstimator`): its ``init``, ``step`` and ``align`` jitted, the step's inputs checked before the call
   and its compilations counted.
+* :func:`compiled`: any other library function compiled where it runs at the top level (a rendered frame, its exact
+  flow, a course's desired path): the library layers call no ``jax.jit`` themselves, their callers compile here,
+  one jitted function per library function and set of static arguments.
 * :func:`compiler_options`: on one CPU device, the products go to YNNPACK (``Execution.cpu_matmul``).
 * :func:`shard_batch`, :func:`gather_batch`: batches of episodes over every device, across processes too;
   :func:`batch_shardings`: a training batch's rows over the devices.
@@ -26,6 +29,7 @@ and how it runs, for every layer:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -38,6 +42,13 @@ SAMPLE_AXIS = "samples"
 BATCH_AXIS = "batch"
 CPU_MATMULS = ("auto", "xla", "ynnpack")  # Execution.cpu_matmul
 YNNPACK_MATMULS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_DOT"}
+# "auto" on one CPU device: YNNPACK's kernels for a step whose largest matrix product is smaller than this many
+# multiply-adds, XLA's own from it up. PixelMPC's step (its DOF's products of N x 128 x 128), T = 80, on a 2-core AMD
+# EPYC, both cores, idle, median ms with XLA's kernels against YNNPACK's, interleaved (2026-12-03): N = 512 21.0 /
+# 15.4 (YNNPACK 1.36x faster), 1024 28.2 / 27.7 and 27.5 / 27.6 (equal), 1536 46.3 / 44.1 (1.05x), 2048 53.1 / 55.8
+# (XLA's 1.05x faster). A unicycle's largest product (the weighted update, N x 100) gains 1.5x from YNNPACK at 512
+# and 2048 alike.
+AUTO_XLA_FROM_MACS = 2048 * 128 * 128
 
 
 # --------------------------------------------------------------------------------------------------
@@ -126,17 +137,41 @@ def replicate(tree, shardings: SampleShardings | None):
 # --------------------------------------------------------------------------------------------------
 
 
-def compiler_options(cpu_matmul: str, sample_devices: int) -> dict | None:
+def compiler_options(cpu_matmul: str, sample_devices: int, largest_product: int | None = None) -> dict | None:
     """The XLA options a step is compiled with (``jax.jit(..., compiler_options=...)``), for
     ``Execution.cpu_matmul``: "ynnpack" hands the products and the bias and ReLU after them to YNNPACK, which
     splits even a 512 x 128 x 128 product over a CPU's cores (XLA's own kernel runs it on one); "xla" keeps
     XLA's; "auto" (the default) takes YNNPACK for a step on one CPU device and XLA's where the samples are
-    split over devices already (each core then has its own share). Other platforms ignore the option."""
+    split over devices already (each core then has its own share) or where the step's ``largest_product``
+    (multiply-adds, :func:`largest_product`; None: not known yet) reaches :data:`AUTO_XLA_FROM_MACS`, where XLA's
+    own kernels were measured as fast or faster. Other platforms ignore the option."""
     if cpu_matmul not in CPU_MATMULS:
         raise ValueError(f"cpu_matmul must be one of {CPU_MATMULS}, got {cpu_matmul!r}")
     if cpu_matmul == "xla" or (cpu_matmul == "auto" and (sample_devices > 1 or jax.default_backend() != "cpu")):
         return None
+    if cpu_matmul == "auto" and largest_product is not None and largest_product >= AUTO_XLA_FROM_MACS:
+        return None
     return dict(YNNPACK_MATMULS)
+
+
+def largest_product(closed_jaxpr) -> int:
+    """The multiply-adds of the largest matrix product (``dot_general``) in a traced program
+    (``jax.make_jaxpr(fn)(*args)``), its loops' and branches' bodies included (a product inside a ``lax.scan``
+    counts once per iteration, as one kernel call); 0 if it has none."""
+    from jax.extend.core import jaxprs_in_params
+
+    def walk(jaxpr) -> int:
+        best = 0
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name == "dot_general":
+                (_, rhs_contract), (_, rhs_batch) = eqn.params["dimension_numbers"]
+                lhs, rhs = (v.aval.shape for v in eqn.invars)
+                free = [d for i, d in enumerate(rhs) if i not in rhs_contract and i not in rhs_batch]
+                best = max(best, int(np.prod(lhs, dtype=np.int64)) * int(np.prod(free, dtype=np.int64)))
+            best = max([best, *(walk(sub) for sub in jaxprs_in_params(eqn.params))])
+        return best
+
+    return walk(closed_jaxpr.jaxpr)
 
 
 def counted_jit(fn: Callable, options: dict | None = None) -> tuple[Callable, Callable[[], int]]:
@@ -150,6 +185,21 @@ def counted_jit(fn: Callable, options: dict | None = None) -> tuple[Callable, Ca
         return fn(*args)
 
     return jax.jit(traced, compiler_options=options), lambda: traces[0]
+
+
+@functools.cache
+def compiled(fn: Callable, static_argnames: str | tuple[str, ...] = ()) -> Callable:
+    """The library function ``fn`` compiled as one program (``jax.jit`` with ``static_argnames``), the same jitted
+    function for the same ``fn`` and ``static_argnames`` on every call in the process.
+
+    The library layers (``dynamics/``, ``world/``, ``perception/``, ``control/``) write pure functions and call no
+    ``jax.jit`` (tests/test_layers.py); who runs one of them at the top level, on the host, compiles it here: a
+    command rendering frames (``compiled(render.render_batch, ("supersample", "chunk"))``), a course built from its
+    file (its desired path, :func:`pixelmpc_jax.world.course.load_course`). Being the same function each time, it
+    compiles once per new input signature (shapes, dtypes, static values) and never again for the same one, however
+    many times it is asked for (``fn`` is a module's function: a lambda made anew for each call would compile anew);
+    inside a larger jit it is traced inline, as ``fn`` itself would be."""
+    return jax.jit(fn, static_argnames=static_argnames)
 
 
 class CompiledController(NamedTuple):
@@ -167,8 +217,12 @@ class CompiledController(NamedTuple):
             must keep it at 1.
         shardings: with ``sample_devices`` > 1, where the step's samples and its other inputs live (put params
             there once with ``jax.device_put(params, shardings.replicated)`` to save a copy per call); else None.
-        compiler_options: the XLA options ``step`` compiles with (:func:`compiler_options`); a larger jitted
-            function that composes ``placed.step`` passes them to its own ``jax.jit``.
+        compiler_options: the XLA options for ``placed.step`` before a step is seen (:func:`compiler_options`
+            with the largest product unknown); a larger jitted function that composes ``placed.step`` (a
+            closed-loop episode) passes them to its own ``jax.jit``.
+        step_options: ``() -> dict | None``, the options ``step`` was compiled with, chosen at its first call:
+            with ``cpu_matmul="auto"`` the traced step's largest product decides (:func:`largest_product`); a
+            ValueError before the first call.
     """
 
     init: Callable
@@ -177,6 +231,7 @@ class CompiledController(NamedTuple):
     num_compilations: Callable[[], int]
     shardings: SampleShardings | None
     compiler_options: dict | None
+    step_options: Callable[[], dict | None]
 
 
 def compile_controller(ctrl, execution: Execution = Execution()) -> CompiledController:
@@ -186,12 +241,15 @@ def compile_controller(ctrl, execution: Execution = Execution()) -> CompiledCont
     are placed whole on every device; a ValueError if those devices are not present or the samples do not split
     evenly over them.
 
+    The step is jitted at its first call: with ``cpu_matmul="auto"`` on one CPU device its traced program's largest
+    product picks the kernels (:func:`compiler_options`; a trace more at that call, no compile more).
+
     A plain ``jax.jit(ctrl.step)`` computes the same step without :func:`compiler_options` (XLA's default CPU
-    kernels), without the input checks and without the compile count. What the options buy depends on the problem:
+    kernels), without the input checks and without the compile count; where "auto" keeps XLA's kernels (PixelMPC's
+    DOF at 2048 samples or more) it compiles the same program. What the options buy depends on the problem:
     a unicycle on one core of a 2-core AMD EPYC, 1.72 (plain) against 1.41 ms at 512 x 50 and 8.40 against 6.17 ms
-    at 2048 x 50; PixelMPC (its DOF's products) on the same core, loaded, 22.1 against 24.1 ms at 512 x 80 and 91.0
-    against 98.4 ms at 2048 x 80, and in a process with both cores, idle, 19.7 against 14.4 ms at 512 x 80 and
-    57.7 / 55.2 / 52.3 against 59.0 / 54.5 / 53.4 ms at 2048 x 80 in three runs (equal within 2 %; 2026-12-03).
+    at 2048 x 50; PixelMPC on both cores, idle, in one ``pixelmpc bench suite --quick`` (2026-12-03), 24.3 against
+    18.4 ms at 512 x 80 (YNNPACK's kernels) and 53.1 against 53.0 ms at 2048 x 80 (XLA's: the same program).
     ``pixelmpc bench`` times the two in one run (``apps/bench/jit_paths.py``) and says which is the faster."""
     placed, shardings = ctrl, None
     if execution.sample_devices > 1:
@@ -199,18 +257,32 @@ def compile_controller(ctrl, execution: Execution = Execution()) -> CompiledCont
         split = ctrl.with_sample_placement(lambda white: jax.lax.with_sharding_constraint(white, shardings.samples))
         placed = split._replace(init=lambda key, u_init: replicate(split.init(key, u_init), shardings))
     options = compiler_options(execution.cpu_matmul, execution.sample_devices)
-    step_jit, num_compilations = counted_jit(placed.step, options)
+    compiled: dict = {}  # the step's jit, made at its first call: "auto" reads the traced step's largest product
 
     def step(state, x0, params):
         state, x0, params = ctrl.check(state, x0, params)
-        out = step_jit(*replicate((state, x0, params), shardings))
+        args = replicate((state, x0, params), shardings)
+        if not compiled:
+            chosen = options
+            if execution.cpu_matmul == "auto" and options is not None:
+                chosen = compiler_options("auto", execution.sample_devices,
+                                          largest_product(jax.make_jaxpr(placed.step)(*args)))
+            compiled["jit"], compiled["count"] = counted_jit(placed.step, chosen)
+            compiled["options"] = chosen
+        out = compiled["jit"](*args)
         if execution.checked and bool(out[2].input_rejected):
             ctrl.check(state, x0, params, values=True)  # raises, naming each failed check
             raise ValueError("the step's input was rejected (info.input_rejected)")
         return out
 
-    return CompiledController(init=placed.init, step=step, placed=placed, num_compilations=num_compilations,
-                              shardings=shardings, compiler_options=options)
+    def step_options():
+        if not compiled:
+            raise ValueError("the step has not been called yet: its options are chosen at its first call")
+        return compiled["options"]
+
+    return CompiledController(init=placed.init, step=step, placed=placed,
+                              num_compilations=lambda: compiled["count"]() if compiled else 0,
+                              shardings=shardings, compiler_options=options, step_options=step_options)
 
 
 class CompiledEstimator(NamedTuple):

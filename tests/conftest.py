@@ -92,11 +92,23 @@ def jit_as_shipped(jitted, **jit_kwargs):
 
 
 def _render_batches_as_shipped() -> None:
-    """Compile :func:`pixelmpc_jax.world.render.render_batch` optimised (:func:`jit_as_shipped`): a rendered frame is
-    the one long program several test files run (hundreds of thousands of rays)."""
+    """Compile :func:`pixelmpc_jax.world.render.render_batch` optimised (:func:`jit_as_shipped`) where its callers
+    compile it (``devices.compiled(render.render_batch, ("supersample", "chunk"))``): a rendered frame is the one long
+    program several test files run (hundreds of thousands of rays). Every other function, and ``render_batch`` traced
+    inside another jit, compiles as the run does. (The package's callers name it ``devices.compiled``, looked up when
+    they call it, so they get this one.)"""
+    import jax
+
+    from pixelmpc_jax import devices
     from pixelmpc_jax.world import render
 
-    render.render_batch = jit_as_shipped(render.render_batch, static_argnames=("supersample", "chunk"))
+    compiled = devices.compiled
+    shipped = jit_as_shipped(jax.jit(render.render_batch), static_argnames=("supersample", "chunk"))
+
+    def compiled_as_shipped(fn, static_argnames=()):
+        return shipped if fn is render.render_batch else compiled(fn, static_argnames)
+
+    devices.compiled = compiled_as_shipped
 
 
 def _run_computations_inline() -> None:
@@ -292,13 +304,18 @@ def pytest_unconfigure(config):
     shutil.rmtree(_CACHE_HOME["new"], ignore_errors=True)
 
 
-# The files that compile the most (closed-loop episodes, subprocesses), heaviest first, as ``--durations`` measured
-# them. They are handed out first: with one file to a worker (``--dist loadfile``), a run that hands out its longest
-# files last ends on one worker while the other waits.
-HEAVIEST_FIRST = ("test_collect.py", "test_golden_laps.py", "test_episode.py", "test_detector.py", "test_train.py",
-                  "test_particle_filter.py", "test_pixelmpc.py", "test_compare.py", "test_eskf.py", "test_vdof.py",
-                  "test_flow.py", "test_env.py", "test_evaluate.py", "test_sharding.py", "test_sample_devices.py",
-                  "test_mppi.py", "test_frontier.py", "test_cli.py", "test_faults.py")
+# The files that take the longest (closed-loop episodes, subprocesses, compilations), heaviest first, as
+# ``--durations`` measured them (a run on an idle 2-core AMD EPYC, 2026-12-03). They are handed out first: with one
+# file to a worker (``--dist loadfile``), a run that hands out its longest files last ends on one worker while the
+# other waits. xdist's own order (``--loadscope-reorder``, its default: the files with the most tests first) would
+# hand out the heavy files with few tests (the golden laps, the sharding) last, so pyproject.toml turns it off.
+HEAVIEST_FIRST = ("test_pixelmpc.py", "test_eskf.py", "test_readme.py", "test_particle_filter.py", "test_train.py",
+                  "test_env.py", "test_sharding.py", "test_sample_devices.py", "test_detector.py", "test_collect.py",
+                  "test_faults.py", "test_mppi.py", "test_golden_laps.py", "test_evaluate.py", "test_reliability.py",
+                  "test_costs.py", "test_vdof.py", "test_cli.py", "test_compare.py", "test_gate_paint.py",
+                  "test_perception_levers.py", "test_closed_loop_api.py", "test_quadrotor.py", "test_render.py",
+                  "test_tune.py", "test_flow.py", "test_frontier.py", "test_imu_realism.py", "test_episode.py",
+                  "test_dof.py")
 
 
 def _heaviest_first(items) -> None:

@@ -377,6 +377,14 @@ def test_what_a_run_skipped_is_not_measured_in_the_json_the_table_and_the_plot(r
     assert written["documented compile path <= plain jax.jit (N=512, 2048; T=80)"] == suite.NOT_MEASURED
 
 
+def test_the_documented_path_is_equal_where_it_keeps_xlas_kernels_and_must_be_faster_where_it_does_not():
+    row = {"plain_over_documented": 0.97, "documented_kernels": "xla"}  # the plain jit's own program: noise
+    assert suite._documented_target(row) is True
+    assert suite._documented_target({**row, "documented_kernels": "ynnpack"}) is False
+    assert suite._documented_target({**row, "plain_over_documented": 1.3, "documented_kernels": "ynnpack"}) is True
+    assert suite._documented_target(None) == suite.NOT_MEASURED
+
+
 def test_the_documented_compile_path_is_timed_against_a_plain_jit_in_one_run(recorded_smoke_run):
     from pixelmpc_jax.apps.bench import jit_paths
 

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.perception import flow as F
 from pixelmpc_jax.world import camera as C
 from pixelmpc_jax.world import course as course_lib
@@ -37,15 +38,16 @@ def aee_table(camera):
     """AEE (px) of Farneback against the exact flow over the valid pixels, per motion and pose."""
     course = course_lib.load_course()
     starts = [R.pose_before_gate(course.gate(g), d, lat, h, yaw, roll) for g, d, lat, h, yaw, roll in POSES]
-    firsts = R.render_batch(course, jnp.stack(starts), camera)
+    render_batch = devices.compiled(R.render_batch, ("supersample", "chunk"))
+    firsts = render_batch(course, jnp.stack(starts), camera)
     nexts_x = jnp.stack([R.advance_pose(x, DT, v, w) for _, v, w in MOTIONS for x in starts])
-    nexts = R.render_batch(course, nexts_x, camera)
+    nexts = render_batch(course, nexts_x, camera)
     table = {}
     for m, (name, _, _) in enumerate(MOTIONS):
         row = []
         for p, x0 in enumerate(starts):
             k = m * len(starts) + p
-            exact, valid = R.exact_flow(x0, nexts_x[k], firsts.depth[p], camera)
+            exact, valid = devices.compiled(R.exact_flow)(x0, nexts_x[k], firsts.depth[p], camera)
             measured = F.farneback(np.asarray(firsts.grey[p]), np.asarray(nexts.grey[k]))
             row.append((F.average_endpoint_error(measured, exact, valid), float(np.abs(exact).max())))
         table[name] = row

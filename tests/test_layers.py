@@ -99,6 +99,30 @@ def test_the_scan_finds_a_wrong_import(tmp_path, source, own, bad):
     assert bool(violations(path, tmp_path)) == bad
 
 
+# The library: pure functions, compiled by their callers (the runners, the commands; on the host through
+# pixelmpc_jax.devices: compile_controller, compile_estimator, compiled), never by themselves.
+LIBRARY = ("dynamics", "world", "perception", "control")
+
+
+def jit_sites(path: Path) -> list[str]:
+    """Where ``path`` compiles: ``jax.jit`` (called, as a decorator, in a ``partial``) or ``jit`` taken from jax."""
+    name = path.relative_to(PACKAGE) if path.is_relative_to(PACKAGE) else path.name
+    jits = {"jit", "pjit"}
+    return [f"{name}:{node.lineno}" for node in ast.walk(ast.parse(path.read_text()))
+            if (isinstance(node, ast.Attribute) and node.attr in jits and isinstance(node.value, ast.Name)
+                and node.value.id == "jax")
+            or (isinstance(node, ast.ImportFrom) and node.module == "jax" and {a.name for a in node.names} & jits)]
+
+
+def test_the_library_layers_compile_nothing(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text('"""Not a jax.jit."""\nimport jax\nfrom functools import partial\nfrom jax import jit\n'
+                     '@partial(jax.jit, static_argnames="n")\ndef f(x, n):\n    return x\n')
+    assert jit_sites(probe) == ["probe.py:4", "probe.py:5"]  # the scan sees both, not the docstring
+    found = [site for layer in LIBRARY for path in sorted((PACKAGE / layer).rglob("*.py")) for site in jit_sites(path)]
+    assert found == [], "jit in the library (its callers compile: pixelmpc_jax.devices.compiled):\n" + "\n".join(found)
+
+
 def test_every_app_has_its_place_in_the_order():
     apps = sorted(path.name for path in (PACKAGE / "apps").iterdir() if path.is_dir() and path.name != "__pycache__")
     assert apps == sorted(APPS)

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.world import camera as C
 from pixelmpc_jax.world import course as course_lib
@@ -12,6 +13,10 @@ from pixelmpc_jax.world import render as R
 
 GATE_X = 20.0
 DISTANCE = 6.0
+# the renderer is pure; its callers compile it (pixelmpc_jax.devices.compiled), as these tests do
+render = devices.compiled(R.render, ("supersample",))
+render_batch = devices.compiled(R.render_batch, ("supersample", "chunk"))
+exact_flow = devices.compiled(R.exact_flow)
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +33,7 @@ def single_gate():
 def ahead(single_gate, camera):
     """A frame from DISTANCE m straight before the gate, level, heading +x."""
     x = quadrotor.hover_state((GATE_X - DISTANCE, 0.0, 3.0), yaw=0.0)
-    return x, R.render(single_gate, x, camera)
+    return x, render(single_gate, x, camera)
 
 
 def test_frame_shapes_and_dtypes(ahead, camera):
@@ -96,19 +101,28 @@ def test_hall_depth_straight_ahead(ahead, single_gate, camera):
 def test_render_batch_matches_single_renders(single_gate, camera):
     x0 = quadrotor.hover_state((GATE_X - 8.0, 0.3, 2.8), yaw=0.1)
     x1 = R.advance_pose(x0, 1 / 40, speed=10.0, body_rates=(0.5, -0.3, 1.0))
-    batch = R.render_batch(single_gate, jnp.stack([x0, x1]), camera)
+    batch = render_batch(single_gate, jnp.stack([x0, x1]), camera)
     for k, x in enumerate((x0, x1)):
-        single = R.render(single_gate, x, camera)
+        single = render(single_gate, x, camera)
         np.testing.assert_array_equal(batch.gate_id[k], single.gate_id)
         np.testing.assert_allclose(batch.depth[k], single.depth, rtol=1e-5)
         assert np.abs(np.asarray(batch.rgb[k], int) - np.asarray(single.rgb, int)).max() <= 1
 
 
+def test_a_compiled_render_compiles_once_for_new_poses(single_gate, camera):
+    assert devices.compiled(R.render, ("supersample",)) is render  # asked again: the same compiled function
+    x = quadrotor.hover_state((GATE_X - 8.0, 0.3, 2.8), yaw=0.1)
+    render(single_gate, x, camera, supersample=1)
+    compiled = render._cache_size()
+    render(single_gate, x.at[0].add(0.5), camera, supersample=1)
+    assert render._cache_size() == compiled
+
+
 def test_bad_supersample_and_batch_shape(single_gate, camera):
     with pytest.raises(ValueError, match="odd"):
-        R.render(single_gate, single_gate.start, camera, supersample=2)
+        render(single_gate, single_gate.start, camera, supersample=2)
     with pytest.raises(ValueError, match=r"\(B, 10\)"):
-        R.render_batch(single_gate, single_gate.start, camera)
+        render_batch(single_gate, single_gate.start, camera)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -123,7 +137,7 @@ def _depth_map(camera, seed=0):
 
 def test_zero_motion_gives_zero_flow(camera):
     x = quadrotor.hover_state((1.0, -2.0, 3.0), yaw=0.7)
-    flow, valid = R.exact_flow(x, x, _depth_map(camera), camera)
+    flow, valid = exact_flow(x, x, _depth_map(camera), camera)
     assert bool(valid.all())
     assert float(jnp.abs(flow).max()) < 1e-3
 
@@ -134,7 +148,7 @@ def test_pure_yaw_gives_the_rotational_flow(camera, yaw_step):
     y' = y / (cos - x sin), whatever the depth."""
     x0 = quadrotor.hover_state((1.0, -2.0, 3.0), yaw=0.7)
     x1 = x0.at[quadrotor.QUAT].set(quadrotor.quat_from_yaw(0.7 + yaw_step))
-    flow, valid = R.exact_flow(x0, x1, _depth_map(camera), camera)
+    flow, valid = exact_flow(x0, x1, _depth_map(camera), camera)
     uu, vv = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     xn, yn = (uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy
     c, s = np.cos(yaw_step), np.sin(yaw_step)
@@ -154,7 +168,7 @@ def test_forward_translation_expands_from_the_centre(camera):
     dz = 0.25
     x1 = x0.at[0].add(dz)
     depth = _depth_map(camera, seed=1)
-    flow, valid = R.exact_flow(x0, x1, depth, camera)
+    flow, valid = exact_flow(x0, x1, depth, camera)
     uu, vv = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
     gain = dz / (np.asarray(depth) - dz)
     expected = np.stack([(uu - camera.cx) * gain, (vv - camera.cy) * gain], axis=-1)

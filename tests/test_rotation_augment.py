@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.learn import rotation_augment as ra
 from pixelmpc_jax.world import camera as camera_lib
@@ -42,9 +43,10 @@ def test_turned_exact_flow_equals_exact_flow_of_the_turned_pose():
     x1 = x1.at[quadrotor.QUAT].set(quadrotor.quat_multiply(x0[quadrotor.QUAT], quadrotor.quat_exp(w, DT)))
     delta = jnp.asarray([-0.9, 1.3, 0.6])
     x1_turned = x1.at[quadrotor.QUAT].set(quadrotor.quat_multiply(x1[quadrotor.QUAT], quadrotor.quat_exp(delta, DT)))
-    depth = render_lib.render(track, x0, camera, supersample=1).depth
-    flow, valid = render_lib.exact_flow(x0, x1, depth, camera)
-    flow_turned, valid_turned = render_lib.exact_flow(x0, x1_turned, depth, camera)
+    depth = devices.compiled(render_lib.render, ("supersample",))(track, x0, camera, supersample=1).depth
+    exact_flow = devices.compiled(render_lib.exact_flow)
+    flow, valid = exact_flow(x0, x1, depth, camera)
+    flow_turned, valid_turned = exact_flow(x0, x1_turned, depth, camera)
     H, W = depth.shape
     uu, vv = jnp.meshgrid(jnp.arange(W) + 0.5, jnp.arange(H) + 0.5)
     pixels = jnp.stack([uu, vv], -1).reshape(-1, 2)

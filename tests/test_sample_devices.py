@@ -161,6 +161,7 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
         state = ctrl.init(jax.random.PRNGKey(0), np.asarray([0.0, 0.0, 0.0, 9.81], np.float32))
         steps[matmul] = ctrl.step(state, problem.x0, problem.params)
         assert ctrl.compiler_options == devices.compiler_options(matmul, 1)
+        assert ctrl.step_options() == ctrl.compiler_options  # 64 x 128 x 128: below AUTO_XLA_FROM_MACS
     (u_x, s_x, i_x), (u_y, s_y, i_y) = steps["xla"], steps["auto"]
     np.testing.assert_allclose(u_y, u_x, atol=1e-5)
     np.testing.assert_allclose(i_y.costs, i_x.costs, rtol=1e-5)
@@ -168,3 +169,37 @@ def test_cpu_matmul_auto_takes_ynnpack_on_one_cpu_device_only_and_gives_the_same
     small = pixelmpc_lib.paper_mppi_config(num_samples=64, horizon=12)
     policy = make_policy("pixelmpc", pixelmpc_lib.ControllerConfig(mppi=small, t_f=0.15))
     assert policy.compiler_options == devices.YNNPACK_MATMULS  # the episode's jit compiles with them
+
+
+def test_cpu_matmul_auto_keeps_xlas_kernels_where_the_steps_largest_product_is_large():
+    """"auto" reads the traced step at its first call: a product of AUTO_XLA_FROM_MACS multiply-adds or more (inside
+    the rollout's scan and the samples' vmap) keeps XLA's kernels, the plain jit's own options; a smaller one takes
+    YNNPACK's. Either way the step computes what the plain jit does."""
+    import jax
+    import jax.numpy as jnp
+
+    from pixelmpc_jax.control.mppi import MPPIConfig, make_mppi
+
+    width = 128
+    weights = jnp.eye(width, dtype=jnp.float32) * 0.5
+
+    def dynamics(x, u, params):  # one sample: a (width,) state through a width x width product
+        return jnp.tanh(x @ weights) + u[0]
+
+    def cost(x, u, t, params):
+        return jnp.sum(x**2)
+
+    x0 = jnp.ones(width, jnp.float32)
+    for num_samples, kernels in ((devices.AUTO_XLA_FROM_MACS // width**2, None), (64, devices.YNNPACK_MATMULS)):
+        config = MPPIConfig(num_samples=num_samples, horizon=3, noise_sigma=(0.5,), u_min=(-1.0,), u_max=(1.0,))
+        ctrl = make_mppi(config, dynamics, cost)
+        state = ctrl.init(jax.random.PRNGKey(0), jnp.zeros(1))
+        assert devices.largest_product(jax.make_jaxpr(ctrl.step)(state, x0, None)) == num_samples * width * width
+        compiled = devices.compile_controller(ctrl)
+        with pytest.raises(ValueError, match="first call"):
+            compiled.step_options()
+        u, _, _ = compiled.step(state, x0, None)
+        assert compiled.step_options() == kernels and compiled.num_compilations() == 1
+        u_plain, _, _ = jax.jit(ctrl.step)(state, x0, None)
+        np.testing.assert_allclose(u, u_plain, atol=1e-5)
+    assert devices.largest_product(jax.make_jaxpr(lambda x: x + 1.0)(x0)) == 0

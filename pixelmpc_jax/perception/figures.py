@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pixelmpc_jax import timing  # noqa: E402
+from pixelmpc_jax import devices, timing  # noqa: E402
 from pixelmpc_jax.perception import flow as flow_lib  # noqa: E402
 from pixelmpc_jax.world import camera as camera_lib  # noqa: E402
 from pixelmpc_jax.world import render as render_lib  # noqa: E402
@@ -34,10 +34,9 @@ def render_figure(
         Farneback against the exact flow over the valid pixels.
     """
     camera = camera or camera_lib.default_camera()
-    frames = render_lib.render_batch(
-        track, np.stack([np.asarray(x_robot), np.asarray(x_next)]), camera, supersample=supersample
-    )
-    exact, valid = render_lib.exact_flow(x_robot, x_next, frames.depth[0], camera)
+    render_batch = devices.compiled(render_lib.render_batch, ("supersample", "chunk"))
+    frames = render_batch(track, np.stack([np.asarray(x_robot), np.asarray(x_next)]), camera, supersample=supersample)
+    exact, valid = devices.compiled(render_lib.exact_flow)(x_robot, x_next, frames.depth[0], camera)
     exact, valid = np.asarray(exact), np.asarray(valid)
     measured = flow_lib.farneback(
         np.asarray(frames.grey[0]), np.asarray(frames.grey[1]), shape=(camera.height, camera.width)

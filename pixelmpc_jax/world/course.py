@@ -7,6 +7,11 @@ course file (:func:`generate_course`).
 A built course gets its hall (``HALL_MARGIN`` around every gate frame, the start and the desired path; the
 ceiling at ``max(HALL_CEILING, highest point + 3 m)``) and its desired path with the number of path points P
 fixed from the nominal length; a perturbed course keeps both (see :mod:`pixelmpc_jax.world.track`).
+
+Building a course is a job on the host (a file read and checked, P from the path's length); the path's two pure
+halves run there as compiled programs through :func:`pixelmpc_jax.devices.compiled`, never a jit of the world's own
+(:func:`move_gates` likewise, for a perturbed lap's course built on the host). :func:`perturb_course` is pure: it is
+traced inside its caller's jit.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.strict_json import write_json_atomic
 from pixelmpc_jax.world.track import (
@@ -31,10 +37,12 @@ from pixelmpc_jax.world.track import (
     PATH_RUNOUT,
     Gate,
     Track,
-    build_nominal_path,
     build_path,
+    dense_path,
     gate_outer_corners,
     make_gate,
+    path_point_count,
+    resample_path,
 )
 
 COURSE_FILE = Path(__file__).resolve().parent.parent / "data" / "alphapilot_course.json"
@@ -62,10 +70,24 @@ def _hall(gates: Gate, start_position, path_points, ceiling_min: float = HALL_CE
     return jnp.asarray(hall_min, jnp.float32), jnp.asarray(hall_max, jnp.float32)
 
 
+def _host_path(start_position: jax.Array, gates: Gate, num_points: int | None = None):
+    """:func:`~pixelmpc_jax.world.track.build_path` on the host, P = ``num_points`` or, with None, fixed from the
+    path's length (points about ``PATH_SPACING`` apart: a new course's path, whose P its perturbed versions keep; not
+    jit-able, P depends on the geometry). Its two halves run as compiled programs
+    (:func:`pixelmpc_jax.devices.compiled`), one each, as every course has been built: op by op they round otherwise,
+    and one program of both rounds otherwise again."""
+    points, derivs, s_dense, gate_s = devices.compiled(dense_path)(start_position, gates.centre, gates.normal)
+    if num_points is None:
+        num_points = path_point_count(float(s_dense[-1]))
+    resample = devices.compiled(resample_path, "num_points")
+    pts, tan, s = resample(points, derivs, s_dense, num_points=num_points)
+    return pts, tan, s, gate_s
+
+
 def _assemble(names, gates: Gate, start, bounds) -> Track:
     """A Track with its path (P from the nominal length) and hall."""
     start = jnp.asarray(start, jnp.float32)
-    pts, tan, s, gate_s = build_nominal_path(start[:3], gates)
+    pts, tan, s, gate_s = _host_path(start[:3], gates)
     hall_min, hall_max = _hall(gates, start[:3], pts)
     return Track(
         gates=gates,
@@ -280,12 +302,33 @@ def course_title(course: str) -> str:
 
 
 def perturb_course(track: Track, key: jax.Array, bounds=None) -> Track:
-    """The track with each gate moved by ``[dx, dy, dyaw]`` drawn uniformly in ``[-b, b]`` (m, m, deg).
+    """The track with its gates moved (:func:`perturb_gates`), its path rebuilt with the same number of samples and
+    its hall kept.
+
+    Pure and deterministic for a key; jit- and vmap-able (over keys): it compiles nothing itself, the caller's jit
+    traces it. On the host, ``move_gates(track, perturb_gates(track, key))`` builds the same course with the path's
+    halves compiled as a loaded course's are (:func:`move_gates`), within float rounding of this one.
+    """
+    gates = perturb_gates(track, key, bounds)
+    pts, tan, s_path, gate_s = build_path(track.start[:3], gates, track.num_path_points)
+    return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
+
+
+def move_gates(track: Track, gates: Gate) -> Track:
+    """The track with ``gates`` (the same G, moved within its hall), its path rebuilt on the host with the same number
+    of samples (the path's halves compiled, as :func:`load_course` builds one) and its hall kept. Not jit-able; a
+    perturbed lap's course (``move_gates(track, perturb_gates(track, key))``, the gates moved op by op) has the bits
+    every perturbed race has flown."""
+    pts, tan, s_path, gate_s = _host_path(track.start[:3], gates, track.num_path_points)
+    return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
+
+
+def perturb_gates(track: Track, key: jax.Array, bounds=None) -> Gate:
+    """The track's gates, each moved by ``[dx, dy, dyaw]`` drawn uniformly in ``[-b, b]`` (m, m, deg).
 
     ``bounds``: (G, 3) or (3,), default ``track.perturbation_bounds`` (the AlphaPilot per-gate bounds).
-    The gate keeps its size and direction of travel; the yaw turns it about world z through its centre.
-    The path is rebuilt with the same number of samples and the hall is kept. Pure and deterministic for
-    a key; jit- and vmap-able (over keys).
+    The gate keeps its size and direction of travel; the yaw turns it about world z through its centre. Pure and
+    deterministic for a key; jit- and vmap-able (over keys).
     """
     b = track.perturbation_bounds if bounds is None else jnp.asarray(bounds, jnp.float32)
     b = jnp.broadcast_to(jnp.abs(b), (track.num_gates, 3))
@@ -297,9 +340,7 @@ def perturb_course(track: Track, key: jax.Array, bounds=None) -> Track:
     rz = jnp.stack(
         [jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2
     )  # (G, 3, 3)
-    gates = track.gates.replace(centre=centre, rotation=rz @ track.gates.rotation)
-    pts, tan, s_path, gate_s = build_path(track.start[:3], gates, track.num_path_points)
-    return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
+    return track.gates.replace(centre=centre, rotation=rz @ track.gates.rotation)
 
 
 # --------------------------------------------------------------------------------------------------

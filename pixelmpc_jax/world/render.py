@@ -11,11 +11,17 @@ hall, gate-local metres for the frames): nine octaves from 4 m down to 1.6 cm wa
 faded out once its wavelength falls below ~3 pixel footprints at the hit (so the texture is
 band-limited before sampling), then the image is supersampled ``s x s`` and box-filtered. That keeps the
 images rich at every scale Farneback's pyramid looks at and keeps brightness constant between frames.
-Gate ``g`` has its own hue (``gate_colour``) so a colour detector can tell gates apart; the hall is
-nearly grey.
+By default gate ``g`` has its own hue (``gate_colour``) so a colour detector can tell gates apart; with the
+"alike" paint (:data:`GATE_PAINTS`, :func:`gate_palette`) every gate wears one paint, :data:`ALIKE_HUE`, as racing
+gates do, and telling them apart is the estimator's job. The hall is nearly grey.
 
 Everything is a pure function of one pose, vmapped over (sub)pixels; ``render_batch`` maps it over a
 batch of poses. The gate loop is a ``lax.scan`` (memory O(rays), not O(rays x gates)).
+
+Nothing here compiles itself: inside a closed loop the episode's jit traces :func:`render` (the image detector), and
+a caller that renders at the top level compiles through :func:`pixelmpc_jax.devices.compiled`, one compiled function
+per static argument set (``devices.compiled(render_batch, ("supersample", "chunk"))``, ``devices.compiled(render,
+("supersample",))``, ``devices.compiled(exact_flow)``): called op by op it would run a frame far slower.
 """
 
 from __future__ import annotations
@@ -55,6 +61,9 @@ _HALL_BASE = np.asarray(
 )
 GATE_SATURATION = 0.85
 NUM_GATE_HUES = 12  # 30 deg apart; gate g and g + 12 share a paint
+# How the gates are painted: "hues", each gate its own hue (gate_hue); "alike", every gate the one paint ALIKE_HUE.
+GATE_PAINTS = ("hues", "alike")
+ALIKE_HUE = 1.0 / NUM_GATE_HUES  # orange (30 deg), one of the 12 hues, far from the nearly grey hall
 
 
 def gate_hue(gate_id: int) -> float:
@@ -68,9 +77,16 @@ def gate_colour(gate_id: int) -> np.ndarray:
     return np.asarray(colorsys.hsv_to_rgb(gate_hue(gate_id), GATE_SATURATION, 1.0))
 
 
-def gate_palette(num_gates: int) -> np.ndarray:
-    """(G, 3) RGB in [0, 1], one paint per gate."""
-    return np.stack([gate_colour(g) for g in range(num_gates)]) if num_gates else np.zeros((0, 3))
+def gate_palette(num_gates: int, paint: str = "hues") -> np.ndarray:
+    """(G, 3) RGB in [0, 1], each gate's paint: its own hue (``paint="hues"``, :func:`gate_colour`) or, with
+    ``paint="alike"``, :data:`ALIKE_HUE` for every gate (:data:`GATE_PAINTS`)."""
+    if paint not in GATE_PAINTS:
+        raise ValueError(f"paint must be one of {', '.join(GATE_PAINTS)}, got {paint!r}")
+    if not num_gates:
+        return np.zeros((0, 3))
+    if paint == "alike":
+        return np.tile(np.asarray(colorsys.hsv_to_rgb(ALIKE_HUE, GATE_SATURATION, 1.0)), (num_gates, 1))
+    return np.stack([gate_colour(g) for g in range(num_gates)])
 
 
 @struct.dataclass
@@ -277,16 +293,17 @@ def _cast(origin, d, hall_min, hall_max, gate_origin_local, gate_rotation, half_
 # --------------------------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("supersample",))
-def render(track, x_robot: jax.Array, camera: camera_lib.Camera, supersample: int = 3) -> Frame:
+def render(track, x_robot: jax.Array, camera: camera_lib.Camera, supersample: int = 3,
+           palette: jax.Array | None = None) -> Frame:
     """Render one frame of ``track`` from robot state ``x_robot`` (10,).
 
     Args:
         track: a ``Track`` (uses ``gates``, ``hall_min``, ``hall_max``).
         x_robot: (10,) robot state; only position and attitude are used.
         camera: intrinsics and mount; the image is ``camera.height`` x ``camera.width``.
-        supersample: odd sub-samples per pixel side (3 -> 3 x 3 box-filtered; 1 -> none). Depth and
+        supersample: odd sub-samples per pixel side (3 -> 3 x 3 box-filtered; 1 -> none; static under jit). Depth and
             gate id are those of the centre sub-sample, i.e. of the ray through the pixel centre.
+        palette: (G, 3) RGB in [0, 1], each gate's paint (:func:`gate_palette`); None: each gate its own hue.
 
     Returns:
         Frame with rgb (H, W, 3) uint8, grey (H, W) uint8, depth (H, W) float32 m, gate_id (H, W) int32.
@@ -303,7 +320,7 @@ def render(track, x_robot: jax.Array, camera: camera_lib.Camera, supersample: in
 
     centre, rotation, half_out, half_in = _gate_arrays(track.gates, dtype)
     gate_origin_local = jnp.einsum("gji,gj->gi", rotation, origin[None, :] - centre)  # (G, 3)
-    palette = jnp.asarray(gate_palette(centre.shape[0]), dtype)
+    palette = jnp.asarray(gate_palette(centre.shape[0]) if palette is None else palette, dtype)
     hall_min = jnp.asarray(track.hall_min, dtype)
     hall_max = jnp.asarray(track.hall_max, dtype)
     f = jnp.sqrt(jnp.asarray(camera.fx, dtype) * jnp.asarray(camera.fy, dtype))
@@ -341,11 +358,11 @@ def render(track, x_robot: jax.Array, camera: camera_lib.Camera, supersample: in
     )
 
 
-@partial(jax.jit, static_argnames=("supersample", "chunk"))
 def render_batch(
-    track, x_robots: jax.Array, camera: camera_lib.Camera, supersample: int = 3, chunk: int | None = 4
+    track, x_robots: jax.Array, camera: camera_lib.Camera, supersample: int = 3, chunk: int | None = 4,
+    palette: jax.Array | None = None
 ) -> Frame:
-    """Render a batch of poses ``x_robots`` (B, 10) -> Frame with a leading B axis.
+    """Render a batch of poses ``x_robots`` (B, 10) -> Frame with a leading B axis (``palette``: :func:`render`'s).
 
     ``chunk`` poses are vmapped at a time (``lax.map``'s batch size; each frame is already vectorised
     over ray tiles, so 1 is fastest on a CPU; larger chunks suit an accelerator); ``None`` vmaps all.
@@ -355,7 +372,7 @@ def render_batch(
         raise ValueError(f"x_robots must have shape (B, 10), got {x_robots.shape}")
 
     def one(x):
-        return render(track, x, camera, supersample=supersample)
+        return render(track, x, camera, supersample=supersample, palette=palette)
 
     if chunk is None:
         return jax.vmap(one)(x_robots)
@@ -364,7 +381,6 @@ def render_batch(
     return jax.lax.map(one, x_robots, batch_size=min(int(chunk), x_robots.shape[0]))
 
 
-@jax.jit
 def exact_flow(x_t: jax.Array, x_t1: jax.Array, depth_t: jax.Array, camera: camera_lib.Camera):
     """True optical flow of the static scene from pose ``x_t`` to pose ``x_t1``.
 

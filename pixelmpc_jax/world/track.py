@@ -23,6 +23,9 @@ Geometry choices (the paper's FlightGoggles hall is not in the facts file):
   ``PATH_SPACING`` (0.25 m), which makes it C1 in arc length (unit tangent continuous). The number of
   path points P is fixed when a course is loaded; a perturbed course keeps P (its spacing changes by a
   few percent) so that perturbed tracks share shapes: they stack, vmap and never recompile.
+
+Every function here is pure and compiles nothing itself: the caller's jit traces it, and a caller that runs one at
+the top level compiles it through :func:`pixelmpc_jax.devices.compiled` (a new course's path: ``world/course.py``).
 """
 
 from __future__ import annotations
@@ -303,9 +306,8 @@ def _hermite(p0, p1, m0, m1, tau):
     return points, derivs
 
 
-@jax.jit
-def _dense_path(start_position: jax.Array, centres: jax.Array, normals: jax.Array):
-    """Densely sampled Hermite chain start -> gates -> run-out.
+def dense_path(start_position: jax.Array, centres: jax.Array, normals: jax.Array):
+    """Densely sampled Hermite chain start -> gates -> run-out (``_DENSE_PER_SEGMENT`` samples a segment).
 
     Returns:
         points: (N, 3), derivatives: (N, 3), arc length s: (N,), gate arc lengths: (G,).
@@ -328,8 +330,9 @@ def _dense_path(start_position: jax.Array, centres: jax.Array, normals: jax.Arra
     return points, derivs, s, gate_s
 
 
-def _resample(points, derivs, s, num_points: int):
-    """Uniform arc-length resampling of a dense polyline -> points (P, 3), unit tangents (P, 3), s (P,)."""
+def resample_path(points, derivs, s, num_points: int):
+    """Uniform arc-length resampling of a dense polyline (:func:`dense_path`'s points, derivatives, arc length)
+    -> points (P, 3), unit tangents (P, 3), s (P,); P = ``num_points``, static under jit."""
     s_new = jnp.linspace(0.0, s[-1], num_points, dtype=points.dtype)
     idx = jnp.clip(jnp.searchsorted(s, s_new, side="right") - 1, 0, s.shape[0] - 2)
     ds = s[idx + 1] - s[idx]
@@ -340,33 +343,25 @@ def _resample(points, derivs, s, num_points: int):
     return pts, tan, s_new
 
 
-_resample_jit = jax.jit(_resample, static_argnames="num_points")
-
-
 def build_path(start_position: jax.Array, gates: Gate, num_points: int):
-    """The desired path through ``gates`` (leading axis G) from ``start_position`` (3,).
+    """The desired path through ``gates`` (leading axis G) from ``start_position`` (3,): :func:`dense_path`, then
+    :func:`resample_path` to ``num_points`` samples.
 
-    Pure and jit-able with ``num_points`` static.
+    Pure and jit-able with ``num_points`` static (a perturbed course's path, inside the caller's jit or vmap). A new
+    course's path, whose P comes from its length (:func:`path_point_count`), is built on the host from the two
+    halves, each compiled by its caller (:func:`pixelmpc_jax.world.course.load_course` and the other builders).
 
     Returns:
         points (P, 3), unit tangents (P, 3), arc length s (P,), gate arc lengths (G,).
     """
-    points, derivs, s, gate_s = _dense_path(start_position, gates.centre, gates.normal)
-    pts, tan, s_new = _resample_jit(points, derivs, s, num_points=num_points)
+    points, derivs, s, gate_s = dense_path(start_position, gates.centre, gates.normal)
+    pts, tan, s_new = resample_path(points, derivs, s, num_points=num_points)
     return pts, tan, s_new, gate_s
 
 
-def _num_path_points(length: float) -> int:
+def path_point_count(length: float) -> int:
+    """P for a path ``length`` m long: samples about ``PATH_SPACING`` apart, both ends included."""
     return int(math.ceil(length / PATH_SPACING)) + 1
-
-
-def build_nominal_path(start_position: jax.Array, gates: Gate):
-    """:func:`build_path` with P fixed from the path's length (points about ``PATH_SPACING`` apart): a new
-    course's path, whose P its perturbed versions keep. Not jit-able (P depends on the geometry)."""
-    points, derivs, s_dense, gate_s = _dense_path(start_position, gates.centre, gates.normal)
-    num_points = _num_path_points(float(s_dense[-1]))
-    pts, tan, s = _resample_jit(points, derivs, s_dense, num_points=num_points)
-    return pts, tan, s, gate_s
 
 
 class PathQuery(NamedTuple):

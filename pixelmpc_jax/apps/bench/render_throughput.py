@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.apps.bench.measure import measure
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.platform_info import device_line
@@ -52,14 +53,16 @@ def run_render_throughput(batches=(8, 32), repeats: int = 10, supersample: int =
         f"image {camera.width} x {camera.height}, supersample {supersample} "
         f"({camera.width * camera.height * supersample**2} rays/frame), {track.num_gates} gates"
     )
+    render_one = devices.compiled(render.render, ("supersample",))
+    render_batch = devices.compiled(render.render_batch, ("supersample", "chunk"))
     results = []
     single = path_poses(track, 1)[0]
     for s in sorted({1, supersample}):
-        stats = measure(lambda s=s: render.render(track, single, camera, supersample=s), repeats=repeats)
+        stats = measure(lambda s=s: render_one(track, single, camera, supersample=s), repeats=repeats)
         results.append(report(f"render, 1 frame/call, ss {s}", 1, stats))
     for batch in batches:
         poses = path_poses(track, batch)
-        stats = measure(lambda p=poses: render.render_batch(track, p, camera, supersample=supersample),
+        stats = measure(lambda p=poses: render_batch(track, p, camera, supersample=supersample),
                         repeats=repeats)
         results.append(report(f"render_batch, B={batch}, ss {supersample}", batch, stats))
     return results

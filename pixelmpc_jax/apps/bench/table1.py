@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pixelmpc_jax import timing
+from pixelmpc_jax import devices, timing
 from pixelmpc_jax.apps.bench.measure import make_row, measure, run_in_child
 from pixelmpc_jax.apps.bench.problems import bench_dof_params
 from pixelmpc_jax.dynamics import dof as dof_lib
@@ -177,7 +177,7 @@ def detector_row(repeats: int = 30) -> dict:
     track = course_lib.load_course()
     camera = camera_lib.default_camera()
     gate = jax.tree_util.tree_map(lambda a: a[0], track.gates)
-    frame = render.render(track, render.pose_before_gate(gate, 6.0), camera)
+    frame = devices.compiled(render.render, ("supersample",))(track, render.pose_before_gate(gate, 6.0), camera)
     rgb = np.asarray(frame.rgb)
     found = bool(detector.detect_from_image(rgb, 0, camera).found)
     stats = measure(lambda: detector.detect_from_image(rgb, 0, camera), repeats=repeats)

@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pixelmpc_jax import timing
+from pixelmpc_jax import devices, timing
 from pixelmpc_jax.sim.episode import EpisodeLog
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
@@ -45,8 +45,9 @@ def annotated_frames(track, log: EpisodeLog, camera: camera_lib.Camera | None = 
     ticks = range(0, n, every)
     if max_frames is not None:
         ticks = list(ticks)[:max_frames]
+    render = devices.compiled(render_lib.render, ("supersample",))
     for k in ticks:
-        frame = render_lib.render(track, states[k], camera, supersample=1)
+        frame = render(track, states[k], camera, supersample=1)
         rgb = np.asarray(frame.rgb)
         rgb = cv2.resize(rgb, (camera.width * scale, camera.height * scale), interpolation=cv2.INTER_NEAREST)
         if detected[k]:
