@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.dynamics import quadrotor
 from pixelmpc_jax.perception import detector as D
 from pixelmpc_jax.world import camera as C
@@ -21,6 +22,7 @@ PX = np.array([204.0, 153.0])
 FOUND_AGREEMENT = 0.98
 CENTRE_MEDIAN_PX, CENTRE_P95_PX = 0.5, 1.5
 FLOWN_LAP = Path(__file__).resolve().parent / "data" / "detector_lap.npz"  # :func:`record_flown_lap`
+render_batch = devices.compiled(R.render_batch, ("supersample", "chunk"))  # the renderer is pure: its caller compiles
 # (gate index, distance, lateral, height, yaw offset, roll): fully visible gates on the AlphaPilot course.
 VISIBLE = (
     (0, 8.0, 0.0, 0.0, 0.0, 0.0),
@@ -47,7 +49,7 @@ def course():
 def rendered(course, camera):
     poses = jnp.stack([R.pose_before_gate(course.gate(g), *rest) for g, *rest in VISIBLE])
     partial = R.pose_before_gate(course.gate(1), 5.0, 1.0, -0.4, 0.3)  # gate cut by the right image edge
-    frames = R.render_batch(course, jnp.concatenate([poses, partial[None]]), camera)
+    frames = render_batch(course, jnp.concatenate([poses, partial[None]]), camera)
     return poses, partial, frames
 
 
@@ -255,7 +257,7 @@ def test_a_sliver_of_opening_at_the_image_border_gives_no_false_corner(course, c
     geometry's, within 1 px; the bottom-right one, 0.4 px inside the border, is not."""
     state = jnp.asarray([17.370054, -8.827042, 6.0462513, 0.5428202, -0.17202003, 0.25113127, 0.7827441,
                          -0.24827197, 8.98472, 0.4692008], jnp.float32)
-    frame = R.render_batch(course, state[None], camera, supersample=1)
+    frame = render_batch(course, state[None], camera, supersample=1)
     seen = D.detect_from_image(np.asarray(frame.rgb[0]), 0, camera)
     ideal = D.detect_from_geometry(course.gate(0), state, camera, gate_id=0)
     visible = np.asarray(seen.corners_visible)

@@ -9,6 +9,11 @@ From geometry there are two: :func:`detect_from_geometry`, the ideal projection 
 in the image or not), and :func:`detect_in_view`, what a camera's detector reports of the same gate (the corners
 inside the image, and with a corner out of view a centre from what is visible, as :func:`detect_from_image` takes
 it: a YOLO box is clipped at the image border too).
+
+With gates that look alike (one paint, ``render.GATE_PAINTS``), an image cannot say which gate it shows:
+:func:`detect_candidates_from_image` reports the gate-like components in view as :class:`Candidates` (up to a fixed
+K, padded, with a found mask), and the estimator side names the gate
+(:mod:`pixelmpc_jax.perception.association`).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from pixelmpc_jax import devices
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 
@@ -48,6 +54,36 @@ class Detection:
     corners: jax.Array
     corners_visible: jax.Array
     gate_id: jax.Array
+
+
+@struct.dataclass
+class Candidates:
+    """The gate-like components an image shows, when the gates look alike: K slots, the largest first, padded.
+
+    Attributes:
+        found: (K,) bool, the slot holds a component.
+        centre: (K, 2) normalised uv of each component's gate centre (as :class:`Detection`'s; 0.5 where empty).
+        bbox: (K, 4) ``[u_min, v_min, u_max, v_max]`` normalised, each component's box (zeros where empty).
+        corners: (K, 4, 2) normalised uv of each component's opening corners (zeros where not visible).
+        corners_visible: (K, 4) bool.
+        target: () int32, the gate the loop looks for (the one the association names a candidate for).
+    """
+
+    found: jax.Array
+    centre: jax.Array
+    bbox: jax.Array
+    corners: jax.Array
+    corners_visible: jax.Array
+    target: jax.Array
+
+
+def candidates_template(max_candidates: int) -> Candidates:
+    """The shapes and dtypes of :class:`Candidates` with ``max_candidates`` slots (a host callback's result)."""
+    k = int(max_candidates)
+    return Candidates(
+        found=jax.ShapeDtypeStruct((k,), jnp.bool_), centre=jax.ShapeDtypeStruct((k, 2), jnp.float32),
+        bbox=jax.ShapeDtypeStruct((k, 4), jnp.float32), corners=jax.ShapeDtypeStruct((k, 4, 2), jnp.float32),
+        corners_visible=jax.ShapeDtypeStruct((k, 4), jnp.bool_), target=jax.ShapeDtypeStruct((), jnp.int32))
 
 
 def _not_found(gate_id: int) -> Detection:
@@ -247,8 +283,16 @@ def gate_mask(
 ) -> np.ndarray:
     """(H, W) uint8 {0, 255}: pixels within +-``hue_tol_deg`` of gate ``gate_id``'s hue
     (``render.gate_hue``; paints are 30 deg apart), saturated and bright enough (OpenCV uint8 HSV)."""
+    return paint_mask(rgb, render_lib.gate_hue(gate_id), hue_tol_deg, min_saturation, min_value)
+
+
+def paint_mask(
+    rgb: np.ndarray, hue: float, hue_tol_deg: float = 10.0, min_saturation: int = 110, min_value: int = 40
+) -> np.ndarray:
+    """(H, W) uint8 {0, 255}: pixels within +-``hue_tol_deg`` of the paint's ``hue`` (in [0, 1)), saturated and
+    bright enough (OpenCV uint8 HSV)."""
     hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV)  # H in [0, 180)
-    hue = render_lib.gate_hue(gate_id) * 180.0
+    hue = hue * 180.0
     dh = np.abs(hsv[..., 0].astype(np.float32) - hue)
     dh = np.minimum(dh, 180.0 - dh)
     mask = (dh <= hue_tol_deg / 2.0) & (hsv[..., 1] >= min_saturation) & (hsv[..., 2] >= min_value)
@@ -383,6 +427,61 @@ def detect_from_image(
     )
 
 
+def detect_candidates_from_image(
+    rgb_or_frame,
+    target: int,
+    max_candidates: int,
+    camera: camera_lib.Camera | None = None,
+    hue: float = render_lib.ALIKE_HUE,
+    min_pixels: int = 6,
+    hue_tol_deg: float = 10.0,
+) -> Candidates:
+    """Every gate-like component of one paint (``hue``, the gates painted alike) in a rendered RGB image, as
+    :class:`Candidates`: each 8-connected component of the paint with ``min_pixels`` or more, the largest
+    ``max_candidates`` of them, largest first; each reported as :func:`detect_from_image` reports its gate (its box,
+    its opening's corners, the centre from them). Which gate each shows is not known here; ``target`` (the gate the
+    loop looks for) is passed on for the association.
+
+    Raises:
+        ValueError: the image is not uint8 (H, W, 3) of the camera's size.
+    """
+    camera = camera or camera_lib.default_camera()
+    H, W = camera.height, camera.width
+    image = rgb_or_frame.rgb if isinstance(rgb_or_frame, render_lib.Frame) else rgb_or_frame
+    rgb = _check_rgb(image, (H, W))
+    k = int(max_candidates)
+    found, centre = np.zeros(k, bool), np.full((k, 2), 0.5, np.float32)
+    bbox, corners = np.zeros((k, 4), np.float32), np.zeros((k, 4, 2), np.float32)
+    visible = np.zeros((k, 4), bool)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(paint_mask(rgb, hue, hue_tol_deg), connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = [1 + int(i) for i in np.argsort(-areas, kind="stable") if areas[i] >= min_pixels][:k]
+    scale = np.array([W, H], np.float64)
+    for slot, label in enumerate(order):
+        component = (labels == label).astype(np.uint8) * 255
+        box_px, slot_corners, slot_visible, slot_centre = _component_report(component, W, H)
+        found[slot], centre[slot] = True, slot_centre / scale
+        bbox[slot] = box_px / np.tile(scale, 2)
+        corners[slot] = np.where(slot_visible[:, None], slot_corners / scale, 0.0)
+        visible[slot] = slot_visible
+    return Candidates(found=found, centre=centre, bbox=bbox, corners=corners, corners_visible=visible,
+                      target=np.int32(target))
+
+
+def _component_report(component: np.ndarray, width: int, height: int):
+    """One painted component (H, W) uint8 {0, 255} as a gate: its box (4,) in pixels, its opening's corners (4, 2)
+    in pixels, their visibility (4,) and the gate centre's image (2,) in pixels (:func:`detect_from_image`'s)."""
+    contours, hierarchy = cv2.findContours(component, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    hierarchy = hierarchy[0]
+    outers = [i for i in range(len(contours)) if hierarchy[i][3] < 0]
+    main = max(outers, key=lambda i: cv2.contourArea(contours[i]) + len(contours[i]))
+    ys, xs = np.nonzero(component)
+    bbox_px = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
+    opening = _opening(component, contours, hierarchy, main)
+    corners, visible = _opening_corners(opening, component, width, height)
+    return bbox_px, corners, visible, _gate_centre(corners, visible, bbox_px)
+
+
 def _gate_frame(mask: np.ndarray, contours, hierarchy: np.ndarray) -> tuple[int, np.ndarray]:
     """The main (largest) outer component's contour index, and the frame (H, W) uint8: the mask's pixels of
     every sizeable outer component (occlusion can split the frame), for the box."""
@@ -496,7 +595,8 @@ def image_agreement(track, states, targets, camera: camera_lib.Camera | None = N
     targets = np.asarray(targets, np.int32)
     gates = jax.tree_util.tree_map(lambda leaf: leaf[targets], track.gates)
     geometric = jax.device_get(jax.vmap(detect_in_view, in_axes=(0, 0, None))(gates, states, camera))
-    frames = np.asarray(render_lib.render_batch(track, states, camera, supersample=1).rgb)
+    render_batch = devices.compiled(render_lib.render_batch, ("supersample", "chunk"))
+    frames = np.asarray(render_batch(track, states, camera, supersample=1).rgb)
     seen = [detect_from_image(frame, int(gate), camera) for frame, gate in zip(frames, targets)]
     found_image = np.asarray([bool(det.found) for det in seen])
     scale = np.asarray([camera.width, camera.height])

@@ -8,7 +8,9 @@ Three pure functions over a :class:`SimState` pytree, built for a frozen :class:
   from the true pose (the projection cut to the image, the ideal projection, or the rendered frame through OpenCV),
   the estimate (the truth, the particle filter of Section V-D, or the error-state Kalman filter of
   :mod:`pixelmpc_jax.perception.eskf`, updated with the last tick's IMU and this detection) and, on a filter, the
-  controller's gate switch from that estimate: what a policy acts on.
+  controller's gate switch from that estimate: what a policy acts on. With the gates painted alike
+  (``EnvConfig.gate_paint``) the frame shows gate-like shapes, not a gate's name: the estimator names the target's
+  among them (:mod:`pixelmpc_jax.perception.association`) before its update.
 - ``step(world, state, u, key) -> SimState``: one 1/40 s control tick, 24 plant substeps at 960 Hz, then
   gate passage and collisions on the flown segment, progress along the desired path, and the episode's end.
 
@@ -37,6 +39,7 @@ from flax import struct
 
 from pixelmpc_jax import timing
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import association as association_lib
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import eskf as eskf_lib
 from pixelmpc_jax.perception import estimator as estimator_lib
@@ -44,10 +47,13 @@ from pixelmpc_jax.perception import filter_guards as guards_lib
 from pixelmpc_jax.perception import particle_filter as pf_lib
 from pixelmpc_jax.settings import MAX_TIME_RANGE, check, setting
 from pixelmpc_jax.sim import faults as faults_lib
+from pixelmpc_jax.sim import imu as imu_lib
 from pixelmpc_jax.sim import plant as plant_lib
+from pixelmpc_jax.sim import start_error as start_lib
 from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
+from pixelmpc_jax.world.render import GATE_PAINTS
 
 # Episode end causes beyond the track's crash causes.
 CRASH_MISSED_GATE = 4
@@ -153,6 +159,23 @@ class EnvConfig:
         target_mismatch_s: with the estimated switch, a lap whose controller steers for another gate than the
             world's next one (a gate already passed, or one skipped) for longer than this ends as
             ``target_mismatch``; so does a lap that misses a gate while the two differ.
+        gate_paint: with the image detector, how the rendered gates are painted (``render.GATE_PAINTS``): "hues",
+            each gate its own hue, so the detector finds the target gate by its colour; "alike", one paint for all, so
+            the detector reports the gate-like components in view
+            (:func:`~pixelmpc_jax.perception.detector.detect_candidates_from_image`) and the estimator names the
+            target's among them from its estimate and the map
+            (:func:`~pixelmpc_jax.perception.association.make_associating`; a rejected or ambiguous association makes
+            no update and is counted in ``Observation.association``).
+        association: the association's settings with ``gate_paint="alike"`` (K candidates, the pixel gate, the
+            ambiguity ratio: :class:`~pixelmpc_jax.perception.association.AssociationConfig`).
+        imu: on a filter, the IMU it reads is a racing flight controller's, named in
+            :data:`~pixelmpc_jax.sim.imu.IMU_SPECS` (:mod:`pixelmpc_jax.sim.imu`): biases drawn per lap within its
+            datasheet's tolerance and white noise of its datasheet's density on the simulator's IMU, and the filter
+            (the Kalman filter's noise densities and bias prior) configured from that datasheet; None: the
+            simulator's IMU, the filter told its noise.
+        start_error: on a filter, it starts each lap from the true start plus an error drawn per lap
+            (:mod:`pixelmpc_jax.sim.start_error`: a drone placed by hand on a start pad), its initial spread widened
+            to cover it; False: about the exact true start.
     """
 
     max_time_s: float = setting(timing.LAP_TIME_LIMIT_S, range=MAX_TIME_RANGE, help="timeout per lap")
@@ -176,6 +199,22 @@ class EnvConfig:
         "world's ends as target_mismatch); truth, when the true position passes the true gate (as races on a filter "
         "flew before)")
     target_mismatch_s: float = 0.5
+    gate_paint: str = setting(
+        "hues", choices=GATE_PAINTS, help="with the image detector, how the gates are painted: hues, each gate its own "
+        "hue, so the detector knows which gate it sees; alike, one paint for all, the detector reports the gate-like "
+        "shapes in view and the estimator names the gate from its estimate and the map (rejected or ambiguous "
+        "associations make no update and are counted)")
+    association: association_lib.AssociationConfig = dataclasses.field(
+        default_factory=association_lib.AssociationConfig)
+    imu: str | None = setting(
+        None, choices=tuple(imu_lib.IMU_SPECS), none="the simulator's IMU, the filter told its noise",
+        help="on a filter (pf or eskf), the IMU it reads is this racing flight controller IMU: biases drawn per lap "
+             "within its datasheet's tolerance and noise at its datasheet's density, the Kalman filter configured "
+             "from its datasheet")
+    start_error: bool = setting(
+        False, help="on a filter (pf or eskf), it starts each lap off the true start by an error drawn per lap (a "
+                    "drone placed by hand on a pad: 0.1 m, 5 deg of yaw, 2 deg of roll and pitch), its initial "
+                    "spread covering it")
 
     def __post_init__(self):
         check(self)  # the timeout, the detector, the estimator and the gate switch, each in its range or choices
@@ -187,6 +226,14 @@ class EnvConfig:
                              f"(eskf.max_delay_ticks={self.eskf.max_delay_ticks})")
         if self.estimator != "pf" and self.guards.active:
             raise ValueError("guards are the particle filter's: they need estimator='pf'")
+        if self.gate_paint == "alike" and self.detector != "image":
+            raise ValueError("gate_paint='alike' paints the rendered gates: it needs detector='image'")
+        if self.gate_paint == "alike" and (self.faults.has_detector_noise or delay):
+            raise ValueError("the detector's faults corrupt one gate's detection: with gate_paint='alike' (candidates "
+                             "named by the estimator) they are not modelled yet")
+        if self.estimator == "truth" and (self.imu is not None or self.start_error):
+            raise ValueError("imu and start_error act on a filter's inputs and start: they need estimator='pf' or "
+                             "'eskf'")
 
     @property
     def max_ticks(self) -> int:
@@ -213,6 +260,9 @@ class Observation(NamedTuple):
         detection: the detector's report of ``target_gate`` (a measurement, taken from the true pose as a camera
             takes it).
         position_cov_trace: () m^2, trace of the estimator's position covariance (0 for the truth).
+        association: () int32, with gates painted alike what became of the tick's candidates (an index of
+            :data:`~pixelmpc_jax.perception.association.OUTCOMES`: none in view, accepted, rejected, ambiguous);
+            :data:`~pixelmpc_jax.perception.association.NOT_ASSOCIATING` (-1) where each gate has its own hue.
     """
 
     x_est: jax.Array
@@ -220,6 +270,7 @@ class Observation(NamedTuple):
     progress_s: jax.Array
     detection: detector_lib.Detection
     position_cov_trace: jax.Array = 0.0
+    association: jax.Array = association_lib.NOT_ASSOCIATING
 
 
 class PolicyWorld(NamedTuple):
@@ -267,6 +318,8 @@ class SimState(NamedTuple):
         done: () bool, the episode has ended (finished, crashed, missed a gate or timed out).
         faults: what the faults carry from tick to tick (:class:`~pixelmpc_jax.sim.faults.FaultState`; no leaves
             without faults).
+        imu_errors: the lap's IMU biases drawn from ``EnvConfig.imu``'s datasheet
+            (:class:`~pixelmpc_jax.sim.imu.ImuErrors`); None with the simulator's IMU.
     """
 
     tick: jax.Array
@@ -282,6 +335,7 @@ class SimState(NamedTuple):
     end_cause: jax.Array
     done: jax.Array
     faults: faults_lib.FaultState = faults_lib.FaultState()
+    imu_errors: imu_lib.ImuErrors | None = None
 
 
 class Env(NamedTuple):
@@ -366,6 +420,26 @@ def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Ca
     return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), det, template)
 
 
+def _image_candidates(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array,
+                      max_candidates: int) -> detector_lib.Candidates:
+    """Render the onboard frame with every gate painted alike and report its gate-like components with OpenCV (a
+    host callback): up to ``max_candidates``, for the estimator to name the ``target``'s."""
+    from pixelmpc_jax.world import render as render_lib
+
+    palette = render_lib.gate_palette(track.num_gates, "alike")
+    frame = render_lib.render(track, x, camera, supersample=1, palette=palette)
+
+    def host_detect(rgb, gate_id):
+        import numpy as np
+
+        found = detector_lib.detect_candidates_from_image(np.asarray(rgb), int(gate_id), max_candidates, camera=camera)
+        return jax.tree_util.tree_map(np.asarray, found)
+
+    template = detector_lib.candidates_template(max_candidates)
+    found = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
+    return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), found, template)
+
+
 def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array, window_m: float) -> jax.Array:
     """() m, the progress of ``position`` (3,) along the desired path, searched around ``previous_s``."""
     spacing = track_lib.PATH_SPACING
@@ -393,11 +467,16 @@ def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, s
 def make_estimator(config: EnvConfig) -> estimator_lib.Estimator:
     """The estimator ``config.estimator`` names, built once: the truth, the particle filter with its guards
     (:func:`~pixelmpc_jax.perception.filter_guards.make_guarded_particle_filter`; without a guard on, the plain
-    filter), or the error-state Kalman filter, each about the true start with ``config.pf_initial_spread``."""
+    filter), or the error-state Kalman filter, each about its start with ``config.pf_initial_spread`` (widened to
+    cover the start's error with ``config.start_error``: :func:`~pixelmpc_jax.sim.start_error.covering`). With
+    ``config.imu`` the Kalman filter is told that IMU's datasheet (:func:`~pixelmpc_jax.sim.imu.filter_config`); the
+    particle filter keeps its own noise model."""
+    spread = start_lib.covering(config.pf_initial_spread) if config.start_error else config.pf_initial_spread
     if config.estimator == "eskf":
-        return eskf_lib.make_eskf(config.eskf, config.pf_initial_spread)
+        eskf = config.eskf if config.imu is None else imu_lib.filter_config(imu_lib.IMU_SPECS[config.imu], config.eskf)
+        return eskf_lib.make_eskf(eskf, spread)
     if config.estimator == "pf":
-        return guards_lib.make_guarded_particle_filter(config.pf, config.guards, config.pf_initial_spread)
+        return guards_lib.make_guarded_particle_filter(config.pf, config.guards, spread)
     return estimator_lib.make_truth()
 
 
@@ -407,29 +486,47 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
     map (``world.track``) and the nominal vehicle. The estimator is built here, once (:func:`make_estimator`)."""
     faults = config.faults
     estimator = make_estimator(config)
+    if config.gate_paint == "alike":  # the detector reports candidates; the estimator names the target's among them
+        estimator = association_lib.make_associating(estimator, config.association)
+    imu_spec = None if config.imu is None else imu_lib.IMU_SPECS[config.imu]
 
-    def init_filter(key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams):
-        """The estimator's first state about ``x0``, aligned on the IMU's readings at rest before the lap where it
-        aligns (the Kalman filter with ``config.eskf.align_s`` > 0: the vehicle's own IMU, its faults included)."""
-        state = estimator.init(key, x0)
+    def sensed(imu: plant_lib.TickIMU, imu_errors: imu_lib.ImuErrors | None, key: jax.Array) -> plant_lib.TickIMU:
+        """``imu`` as the filter's sensor reads it: with ``config.imu``, with that IMU's biases ``imu_errors`` and its
+        noise (:func:`~pixelmpc_jax.sim.imu.read`); else as it is."""
+        return imu if imu_spec is None else imu_lib.read(imu, imu_errors, imu_spec, key)
+
+    def init_filter(key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams,
+                    imu_errors: imu_lib.ImuErrors | None):
+        """The estimator's first state about ``x0`` (with ``config.start_error``, about ``x0`` plus the start's error
+        drawn from ``key``: :func:`~pixelmpc_jax.sim.start_error.draw_start`), aligned on the IMU's readings at rest
+        at ``x0`` before the lap where it aligns (the Kalman filter with ``config.eskf.align_s`` > 0: the vehicle's own
+        IMU, its faults and ``config.imu``'s errors included)."""
+        state = estimator.init(key, start_lib.draw_start(x0, key) if config.start_error else x0)
         if estimator.align is not None:
             pad_key = jax.random.fold_in(key, _PAD_STREAM)
-            pad = faults_lib.corrupt_imu(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
-                                         faults, pad_key)
+            pad = faults_lib.corrupt_imu(sensed(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
+                                                imu_errors, pad_key), faults, pad_key)
             state = estimator.align(state, pad.accel, pad.gyro)
         return state
 
     def estimate(world: World, state: SimState, detection: detector_lib.Detection):
         """The estimator's step with the last tick's IMU and ``detection``: ``(filter state, x_est, position
-        covariance trace, progress of the estimate, the detection as the loop uses it)``. A detection the filter
-        rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's own gate) reaches
-        the controller as none."""
+        covariance trace, progress of the estimate, the detection as the loop uses it, the association's outcome)``.
+        A detection the filter rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's
+        own gate), or with gates painted alike candidates it could not name, reaches the controller as none."""
         x = state.plant.x
         params = estimator_lib.EstimatorParams(gates=world.track.gates, camera=world.camera,
                                                delay_ticks=faults.detection_delay_ticks, x_true=x)
-        estimated, filter_state, _ = estimator.step(state.filter, state.imu, detection, params)
+        estimated, filter_state, info = estimator.step(state.filter, state.imu, detection, params)
         x_est = estimated.mean.astype(x.dtype)
-        return filter_state, x_est, estimated.position_cov_trace, progress_of(world, state, x_est), estimated.detection
+        return (filter_state, x_est, estimated.position_cov_trace, progress_of(world, state, x_est),
+                estimated.detection, association_of(info))
+
+    def association_of(info) -> jax.Array:
+        """() int32, what became of the tick's candidates (``Observation.association``)."""
+        if config.gate_paint == "alike":
+            return info.outcome
+        return jnp.asarray(association_lib.NOT_ASSOCIATING, jnp.int32)
 
     if config.estimator == "truth":
         def progress_of(world: World, state: SimState, x_est: jax.Array) -> jax.Array:
@@ -442,19 +539,21 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
 
     def reset(world: World, key: jax.Array) -> SimState:
         """The vehicle at rest at the course's start, level, with the motors at hover speed; ``key`` draws
-        the particle filter's initial cloud (and, folded, the faults' first draws)."""
+        the particle filter's initial cloud (and, folded, the faults' first draws, the IMU's biases and the filter's
+        start error)."""
         x0 = world.track.start
         hover = jnp.asarray([0.0, 0.0, 0.0, 1.0], x0.dtype) * world.plant_params.hover_thrust
+        imu_errors = None if imu_spec is None else imu_lib.draw_errors(imu_spec, key)
         return SimState(
             tick=jnp.asarray(0, jnp.int32),
             plant=plant_lib.init_plant(x0, faults_lib.plant_params(world.plant_params, faults)),
             target=jnp.asarray(0, jnp.int32), target_est=jnp.asarray(0, jnp.int32), position_est=x0[quadrotor.POS],
             mismatch_ticks=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=init_filter(key, x0, faults_lib.plant_params(world.plant_params, faults)),
-            imu=plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype),
+            filter=init_filter(key, x0, faults_lib.plant_params(world.plant_params, faults), imu_errors),
+            imu=sensed(plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype), imu_errors, key),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
-            faults=faults_lib.init_fault_state(faults, key, _course(world).gates, hover),
+            faults=faults_lib.init_fault_state(faults, key, _course(world).gates, hover), imu_errors=imu_errors,
         )
 
     def observe(world: World, state: SimState, key: jax.Array) -> tuple[SimState, Observation]:
@@ -463,26 +562,28 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         and with the estimated switch move the controller's target on from the estimate."""
         track, x = flown_track(world, state.faults), state.plant.x
         steered = _steered_gate(config, state, track.num_gates)
-        if config.detector == "image":
+        if config.detector == "image" and config.gate_paint == "alike":
+            detection = _image_candidates(track, x, world.camera, steered, config.association.max_candidates)
+        elif config.detector == "image":
             detection = _image_detection(track, x, world.camera, steered)
         else:
             detect = detector_lib.detect_in_view if config.detector == "clipped" else detector_lib.detect_from_geometry
             detection = detect(track.gate(steered), x, world.camera, key, world.detector_noise_px,
                                world.detector_dropout, steered)
         detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
-        filter_state, x_est, cov_trace, progress_est, detection = estimate(world, state, detection)
+        filter_state, x_est, cov_trace, progress_est, detection, association = estimate(world, state, detection)
         state = state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state)
         if config.switches_on_estimate:
             state, detection = _switch_on_estimate(world, state, x_est, detection)
         observation = Observation(
             x_est=x_est, target_gate=_steered_gate(config, state, track.num_gates), progress_s=progress_est,
-            detection=detection, position_cov_trace=cov_trace.astype(jnp.float32),
+            detection=detection, position_cov_trace=cov_trace.astype(jnp.float32), association=association,
         )
         return state, observation
 
     def fly(world: World, state: SimState, u: jax.Array, key: jax.Array):
         """The plant over one tick under the configured latency, model error and wind, and the IMU the filter
-        reads (with its faults). -> (plant state, TickIMU, the faults' state)."""
+        reads (with its faults, and ``config.imu``'s errors). -> (plant state, TickIMU, the faults' state)."""
         fault_state = state.faults
         if faults.latency_ticks:
             u, queue = faults_lib.fifo(fault_state.commands, u)
@@ -492,7 +593,7 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
                                                    SUBSTEPS, wind=faults_lib.wind_velocity(faults, fault_state))
         if faults.gust > 0:
             fault_state = fault_state._replace(gust=faults_lib.gust_step(fault_state.gust, key, faults))
-        return plant_state, faults_lib.corrupt_imu(imu, faults, key), fault_state
+        return plant_state, faults_lib.corrupt_imu(sensed(imu, state.imu_errors, key), faults, key), fault_state
 
     def step(world: World, state: SimState, u: jax.Array, key: jax.Array) -> SimState:
         """Fly command ``u`` (4,) for one tick (``key``: the plant's noise), then check the flown segment for

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 
 from pixelmpc_jax.devices import gather_batch, shard_batch
 from pixelmpc_jax.dynamics import quadrotor
+from pixelmpc_jax.perception import association as association_lib
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim.env import Observation, SimState, World
 from pixelmpc_jax.sim.policies import Policy
@@ -57,6 +58,10 @@ class EpisodeLog(NamedTuple):
         gates_passed: () gates passed in order.
         end_cause: () int32, 0 finished or still flying, else a key of END_NAMES.
         finished: () bool, all gates passed.
+        association: (M,) int8, with gates painted alike what became of each tick's candidates (an index of
+            :data:`~pixelmpc_jax.perception.association.OUTCOMES`: none in view, accepted, rejected, ambiguous); -1
+            (:data:`~pixelmpc_jax.perception.association.NOT_ASSOCIATING`) where each gate has its own hue. None in a
+            log built by hand.
     """
 
     states: jax.Array
@@ -73,6 +78,7 @@ class EpisodeLog(NamedTuple):
     gates_passed: jax.Array
     end_cause: jax.Array
     finished: jax.Array
+    association: jax.Array | None = None
 
 
 class _Carry(NamedTuple):
@@ -126,6 +132,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             gates_passed=jnp.asarray(0, jnp.int32),
             end_cause=jnp.asarray(0, jnp.int32),
             finished=jnp.asarray(False),
+            association=jnp.full((M,), association_lib.NOT_ASSOCIATING, jnp.int8),
         )
 
     def record(log: EpisodeLog, world: World, obs: Observation, u: jax.Array, prediction: jax.Array,
@@ -143,6 +150,7 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             predicted_uv=log.predicted_uv.at[tick - 1].set(predicted_pixels(prediction)),
             estimates=log.estimates.at[tick - 1].set(obs.x_est),
             position_cov_trace=log.position_cov_trace.at[tick - 1].set(obs.position_cov_trace),
+            association=log.association.at[tick - 1].set(jnp.asarray(obs.association, jnp.int8)),
         )
 
     def closed_loop_episode(world: World, key: jax.Array) -> EpisodeLog:

@@ -346,6 +346,13 @@ def corrupt_imu(imu: plant_lib.TickIMU, faults: Faults, key: jax.Array) -> plant
         jax.random.normal(key_accel, (3,), imu.accel.dtype)
     gyro = jnp.asarray(faults.imu_gyro_bias, imu.gyro.dtype) + faults.imu_gyro_noise * per_sample * \
         jax.random.normal(key_gyro, (3,), imu.gyro.dtype)
+    return imu_with_error(imu, accel, gyro)
+
+
+def imu_with_error(imu: plant_lib.TickIMU, accel: jax.Array, gyro: jax.Array) -> plant_lib.TickIMU:
+    """The tick's IMU with an error of its mean readings, ``accel`` (3,) m/s^2 and ``gyro`` (3,) rad/s (a bias plus
+    the tick's mean noise): the rotation gains ``exp(gyro dt)`` on the right, the velocity and position integrals
+    ``accel dt`` and ``accel dt^2 / 2``."""
     dt = imu.dt
     return imu._replace(accel=imu.accel + accel, gyro=imu.gyro + gyro,
                         delta_q=quadrotor.normalize_quat(quadrotor.quat_multiply(imu.delta_q,

@@ -10,6 +10,9 @@ floats, -1 for the target):
   (the floor's input, :func:`~pixelmpc_jax.sim.metrics.pointed_visibility`: its optical axis, the tilt included);
 - ``states`` (L, S, 10), the true states; ``estimates`` (L, S, 10), the state the controller acted on at each
   state's tick (NaN at the last state, where no tick followed);
+- ``association`` (L, S) int8, only where the gates were painted alike: what the estimator made of each state's tick's
+  candidates (an index of :data:`~pixelmpc_jax.perception.association.OUTCOMES`: none in view, accepted, rejected,
+  ambiguous; -1 at the last state and past the lap's end);
 - ``gate_centre`` (L, G, 3), ``gate_rotation`` (L, G, 3, 3), ``gate_width``, ``gate_height``, ``gate_border``,
   ``gate_depth`` (L, G): each lap's gates as flown (perturbed or moved);
 - ``camera_fx``, ``camera_fy``, ``camera_cx``, ``camera_cy``, ``camera_tilt``, ``camera_width``,
@@ -25,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pixelmpc_jax.perception.association import NOT_ASSOCIATING
 from pixelmpc_jax.sim import metrics as metrics_lib
 from pixelmpc_jax.strict_json import write_atomic
 from pixelmpc_jax.timing import CONTROL_DT
@@ -43,9 +47,13 @@ def lap_ticks(log, gates: track_lib.Gate, camera: camera_lib.Camera, seed: int) 
     estimates = np.full(states.shape, np.nan, np.float32)
     estimates[:n] = np.asarray(log.estimates)[:n]
     pointed, _ = metrics_lib.tick_geometry(states, target, gates, camera)
-    return {"seed": seed, "num_ticks": n, "finished": bool(log.finished), "target": target,
-            "visibility": np.asarray(log.visibility)[: n + 1], "pointed_visibility": pointed, "states": states,
-            "estimates": estimates, **{f"gate_{f}": np.asarray(getattr(gates, f)) for f in GATE_FIELDS}}
+    lap = {"seed": seed, "num_ticks": n, "finished": bool(log.finished), "target": target,
+           "visibility": np.asarray(log.visibility)[: n + 1], "pointed_visibility": pointed, "states": states,
+           "estimates": estimates, **{f"gate_{f}": np.asarray(getattr(gates, f)) for f in GATE_FIELDS}}
+    association = np.asarray(log.association)  # none in a log built by hand
+    if association.ndim == 1 and np.any(association[:n] != NOT_ASSOCIATING):  # the gates painted alike
+        lap["association"] = np.append(association[:n], NOT_ASSOCIATING).astype(np.int8)
+    return lap
 
 
 def _pad(arrays: list[np.ndarray], size: int, fill) -> np.ndarray:
@@ -67,6 +75,8 @@ def stack(laps: list[dict], camera: camera_lib.Camera, target_speed: float, dt: 
               "target": _pad([lap["target"].astype(np.int32) for lap in laps], size, -1)}
     for key in ("visibility", "pointed_visibility", "states", "estimates"):
         record[key] = _pad([np.asarray(lap[key], np.float32) for lap in laps], size, np.nan)
+    if all("association" in lap for lap in laps):
+        record["association"] = _pad([lap["association"] for lap in laps], size, NOT_ASSOCIATING)
     for field in GATE_FIELDS:
         record[f"gate_{field}"] = np.stack([lap[f"gate_{field}"] for lap in laps])
     for field in CAMERA_FIELDS:

@@ -21,6 +21,7 @@ from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.devices import Execution, usable_sample_devices
 from pixelmpc_jax.dynamics import dof, vdof
+from pixelmpc_jax.perception import association as association_lib
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
@@ -41,7 +42,8 @@ def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool, map: str = 
     for seed in seeds:
         world = base
         if perturb:
-            course = course_lib.perturb_course(base.track, jax.random.PRNGKey(10_000 + seed))
+            gates = course_lib.perturb_gates(base.track, jax.random.PRNGKey(10_000 + seed))
+            course = course_lib.move_gates(base.track, gates)
             world = base.replace(course=course) if map == "surveyed" else base.replace(track=course)
         worlds.append(world)
     return env_lib.stack_worlds(worlds)
@@ -108,9 +110,17 @@ def _fly_worlds(flight: _Flight, worlds: env_lib.World, seeds: list[int]) -> lis
 def lap_record(log, track: track_lib.Track, camera, seed: int, target_speed: float, estimator: str) -> dict:
     """One lap's metrics (:func:`~pixelmpc_jax.sim.metrics.lap_metrics`) at ``target_speed``, with the filter's figures
     when the lap flies on the estimate of ``estimator`` (its mean and largest position error), whether the vehicle
-    turned upside down, and the lap's seed."""
+    turned upside down, and the lap's seed. With gates painted alike, the ticks whose candidates the estimator named the
+    target's (``associations_accepted``), rejected (``associations_rejected``: none within the gate) or found ambiguous
+    (``associations_ambiguous``): the last two made no update."""
     lap = metrics_lib.lap_metrics(log, track=track, camera=camera, target_speed=target_speed)
     n = int(log.num_ticks)
+    association = np.asarray(log.association)  # none in a log built by hand
+    if association.ndim == 1 and np.any(association[:n] != association_lib.NOT_ASSOCIATING):
+        association = association[:n]
+        for outcome in ("accepted", "rejected", "ambiguous"):
+            code = association_lib.OUTCOMES.index(outcome)
+            lap[f"associations_{outcome}"] = int(np.sum(association == code))
     if estimator != "truth":
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
