@@ -75,6 +75,8 @@ SEED_RANGE = Range(0, 2**31 - 1, integer=True)  # a PRNG seed is a non-negative 
 # m/s, a race's target; the vehicle's top speed is about 19 m/s (36.98 N against 0.1 |v| v)
 TARGET_SPEED_RANGE = Range(0.0, 50.0, lo_open=True, unit="m/s")
 MAX_TIME_RANGE = Range(0.0, 600.0, lo_open=True, unit="s")  # a lap's timeout (a lap of the course takes 20-35 s)
+# deg, the onboard camera's upward tilt on its mount (0: the paper's); racing drones mount it tilted up 20-50 deg
+CAMERA_TILT_RANGE = Range(0.0, 60.0, unit="deg")
 
 
 def setting(default=dataclasses.MISSING, *, help: str, range: Range | None = None, choices: tuple | None = None,

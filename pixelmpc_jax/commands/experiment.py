@@ -13,9 +13,9 @@ from pathlib import Path
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax.apps.experiments.reproduce import SEED
 from pixelmpc_jax.apps.racing.presets import LOOPS
-from pixelmpc_jax.apps.racing.spec import CAMERA_TILT_RANGE
 from pixelmpc_jax.arguments import SEED_MAX
 from pixelmpc_jax.control.pixelmpc import C_PIXEL_RANGE, T_F_RANGE
+from pixelmpc_jax.settings import CAMERA_TILT_RANGE
 
 # frontier --cells: both pixel costs and models, the border cost alone, the best preset beside the exact projection,
 # the best preset beside its target's pixel from the detector for a gate cut by the image border, or none (nominal

@@ -74,6 +74,12 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
     _setting("--perturb", "perturb"),
     _setting("--map", "map"),
     _setting("--gate-switch", "gate_switch"),
+    _setting("--gate-paint", "gate_paint"),
+    _setting("--candidates", "association.max_candidates", metavar="K"),
+    _setting("--association-gate", "association.gate_px", metavar="PX"),
+    _setting("--association-ratio", "association.ratio", metavar="RATIO"),
+    _setting("--imu", "imu"),
+    _setting("--start-error", "start_error"),
     _setting("--camera-tilt", "camera_tilt_deg", metavar="DEG"),
     _setting("--max-time", "max_time_s"),
     _setting("--model-latency", "config.model_latency_ticks"),
@@ -168,27 +174,37 @@ def race_spec(args):
     kalman = [flag.flag for flag in RACE_FLAGS if flag.field in fields and flag.field.startswith("eskf.")]
     if kalman and spec.estimator != "eskf":
         raise ValueError(f"{kalman[0]} sets the Kalman filter: fly it with --estimator eskf")
+    if fields.get("gate_paint") == "alike" and spec.detector != "image":
+        raise ValueError("--gate-paint alike paints the rendered gates: fly it with --detector image (or --loop "
+                         "onboard)")
+    associated = [flag.flag for flag in RACE_FLAGS if flag.field in fields and flag.field.startswith("association.")]
+    if associated and spec.gate_paint != "alike":
+        raise ValueError(f"{associated[0]} sets the association of gates painted alike: fly it with --gate-paint alike")
+    filtered = [flag.flag for flag in RACE_FLAGS if flag.field in ("imu", "start_error") and fields.get(flag.field)]
+    if filtered and spec.estimator == "truth":
+        raise ValueError(f"{filtered[0]} acts on a filter: fly it with --estimator pf or eskf")
     if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
         if spec.config.pixel_model != "vdof":
             raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
         spec = spec.replace(dof_weights=None)
     dof_params = None
     if spec.dof_weights is not None and spec.dof_weights not in PACKAGED_VARIANTS:
-        dof_params = _read_weights(Path(spec.dof_weights), spec.config.pixel_model)
+        dof_params, record = _read_weights(Path(spec.dof_weights), spec.config.pixel_model)
         spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
+        spec.check_weights(dof_params, record)  # weights from a file serve the camera their record states
     return spec, dof_params
 
 
 def _read_weights(path: Path, pixel_model: str):
     """The pixel model's weights in the weights file ``--dof-weights`` names (a DOF or, for "vdof", a vdof
-    checkpoint)."""
+    checkpoint) and their record."""
     if pixel_model == "vdof":
         from pixelmpc_jax.dynamics import vdof
 
-        return vdof.load_vdof(path)[0]
+        return vdof.load_vdof(path)
     from pixelmpc_jax.dynamics import dof
 
-    return dof.load_checkpoint(path)[0]
+    return dof.load_checkpoint(path)
 
 
 def _controllers(args) -> tuple[str, ...]:

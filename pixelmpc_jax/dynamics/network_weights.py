@@ -6,7 +6,8 @@ record of how the weights were made (both as JSON), and the parameters as state 
 bit-exact round trips; no pickle, so loading an untrusted file cannot run code), written atomically. Each model
 names its format, checks the architecture it reads against its own, and keeps its parameters' layout; the reading,
 writing and shape checks are here, once. So is the weights' fingerprint (:func:`dof_weights_hash`), by which a race
-names the weights it flies, and its cache for the weights shipped in the package (:func:`packaged_weights_hash`).
+names the weights it flies, and its cache for the weights shipped in the package (:func:`packaged_weights_hash`),
+and the camera the weights serve, as their record states it (:func:`trained_camera_tilt_deg`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ import numpy as np
 from flax import serialization
 
 from pixelmpc_jax import strict_json
+
+# The record's entry (deg) of the upward tilt of the camera the weights were trained for (the dataset's)
+CAMERA_TILT_KEY = "camera_tilt_deg"
 
 
 def dense_kernel_shapes(weights, network: str) -> list[tuple[int, ...]]:
@@ -122,6 +126,18 @@ def restore_params(path: Path, template, state, model: str):
     if bad:
         raise ValueError(f"{path}: architecture mismatch: " + "; ".join(bad))
     return jax.tree_util.tree_map(jnp.asarray, params)
+
+
+def trained_camera_tilt_deg(record: Mapping) -> float:
+    """The upward tilt (deg) of the camera weights were trained for, as their record states it; 0, the paper's
+    untilted camera, for a record without it (every record written before the tilt was recorded)."""
+    return float(record.get(CAMERA_TILT_KEY, 0.0))
+
+
+def weights_record(path: Path) -> dict:
+    """The readable record shipped beside a weights file (its ``.json``), or ``{}`` where there is none."""
+    beside = Path(path).with_suffix(".json")
+    return json.loads(beside.read_text()) if beside.exists() else {}
 
 
 def dof_weights_hash(params) -> str:

@@ -1,11 +1,13 @@
 """Self-supervised DOF data, the first loop of the paper's Algorithm 1: fly, render, compute optical flow.
 
 Nominal MPPI laps (the racing cost only, ground-truth state) are flown on the AlphaPilot course at target
-speeds spread over 6-14 m/s across laps. Every 1/40 s tick of a lap is rendered (``render_batch``, one
-compiled chunk size), Farneback flow (the paper's parameters) is computed between consecutive grey
-frames, and each flow frame ``t`` is stored with the orientation ``q_t``, the control ``u_t`` applied
-between ``t`` and ``t + 1``, the body rates actually flown between ``t`` and ``t + 1``, the full state and
-the target gate (the files: :mod:`pixelmpc_jax.learn.dataset`).
+speeds spread over 6-14 m/s across laps (``speed_min``, ``speed_max``: up to the racing pace, 16 m/s), seen through
+the paper's camera or one tilted up on its mount (``camera_tilt_deg``: the racing camera; the manifest's ``config``
+records it, and whatever trains or evaluates on the dataset sees through it, ``dataset.dataset_camera``).
+Every 1/40 s tick of a lap is rendered (``render_batch``, one compiled chunk size), Farneback flow (the paper's
+parameters) is computed between consecutive grey frames, and each flow frame ``t`` is stored with the orientation
+``q_t``, the control ``u_t`` applied between ``t`` and ``t + 1``, the body rates actually flown between ``t`` and
+``t + 1``, the full state and the target gate (the files: :mod:`pixelmpc_jax.learn.dataset`).
 
 With ``CollectConfig.excitation`` the TRAIN laps add held rate pulses and dither to the nominal MPPI's
 body-rate command (:func:`excited_policy`, within the rate bounds), so the flown rates vary independently
@@ -27,6 +29,7 @@ import dataclasses
 import datetime
 import functools
 import hashlib
+import math
 import shlex
 import sys
 import time
@@ -38,20 +41,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pixelmpc_jax import strict_json, timing
+from pixelmpc_jax import devices, strict_json, timing
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.perception import detector as detector_lib
 from pixelmpc_jax.perception import flow as flow_lib
+from pixelmpc_jax.settings import CAMERA_TILT_RANGE, Range, check, setting
 from pixelmpc_jax.sim import controllers, policies
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
 from pixelmpc_jax.sim import metrics as metrics_lib
+from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world import render as render_lib
 from pixelmpc_jax.world import track as track_lib
 
 # End causes after which the last logged state lies past the impact (its frame pair is dropped).
 _COLLISION_CAUSES = (track_lib.CRASH_GATE, track_lib.CRASH_GROUND, track_lib.CRASH_WALL)
+# m/s, a collected lap's target speed: up to past the racing pace (14-16 m/s), below the vehicle's top speed (~19 m/s)
+COLLECT_SPEED_RANGE = Range(0.0, 18.0, lo_open=True, unit="m/s")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,7 +68,8 @@ class CollectConfig:
 
     Attributes:
         laps: number of laps flown.
-        speed_min, speed_max: target speeds (m/s), spread linearly over the laps (one lap: their mean).
+        speed_min, speed_max: target speeds (m/s), spread linearly over the laps (one lap: their mean), in
+            :data:`COLLECT_SPEED_RANGE`.
         seed: lap ``i`` uses PRNG key ``seed + i`` (plant noise and controller).
         test_every: without ``test_laps``, lap ``i`` is a test lap when ``i % test_every == test_every // 2``
             (the middle of each block: interior speeds), or the last lap if that selects none of >= 2 laps.
@@ -79,11 +87,13 @@ class CollectConfig:
         excitation_hold_s: a pulse is held for a time uniform in [hold / 3, hold] (s).
         excitation_gap_s: mean time between the end of one pulse and the start of the next, per axis (s).
         excitation_dither_rad_s: std of the white dither added every tick, per axis (rad/s).
+        camera_tilt_deg: the camera's upward tilt on its mount (deg, in ``settings.CAMERA_TILT_RANGE``; 0: the
+            paper's camera): the frames, flows and detections are the tilted camera's (:meth:`camera`).
     """
 
     laps: int = 4
-    speed_min: float = 6.0
-    speed_max: float = 14.0
+    speed_min: float = setting(6.0, range=COLLECT_SPEED_RANGE, help="the slowest lap's target speed, in {range}")
+    speed_max: float = setting(14.0, range=COLLECT_SPEED_RANGE, help="the fastest lap's target speed, in {range}")
     seed: int = 0
     test_every: int = 5
     test_laps: tuple[int, ...] | None = None
@@ -97,12 +107,16 @@ class CollectConfig:
     excitation_hold_s: float = 0.3
     excitation_gap_s: float = 0.5
     excitation_dither_rad_s: float = 0.3
+    camera_tilt_deg: float = setting(0.0, range=CAMERA_TILT_RANGE,
+                                     help="the camera tilted up on its mount by DEG degrees (0: the paper's; racing "
+                                          "drones: 20-50), in {range}")
 
     def __post_init__(self):
+        check(self)  # the speeds and the camera's tilt, each in its field's range
         if int(self.laps) < 1:
             raise ValueError(f"CollectConfig.laps must be >= 1, got {self.laps}")
-        if not (0 < self.speed_min <= self.speed_max):
-            raise ValueError(f"CollectConfig needs 0 < speed_min <= speed_max, got {self.speed_min}, {self.speed_max}")
+        if not self.speed_min <= self.speed_max:
+            raise ValueError(f"CollectConfig needs speed_min <= speed_max, got {self.speed_min}, {self.speed_max}")
         if int(self.test_every) < 1:
             raise ValueError(f"CollectConfig.test_every must be >= 1, got {self.test_every}")
         if self.test_laps is not None:
@@ -136,6 +150,10 @@ class CollectConfig:
 
     def seeds(self) -> list[int]:
         return [self.seed + i for i in range(self.laps)]
+
+    def camera(self) -> camera_lib.Camera:
+        """The camera the laps are seen through: the paper's, tilted up by ``camera_tilt_deg``."""
+        return camera_lib.default_camera(tilt=math.radians(self.camera_tilt_deg))
 
     def test_indices(self) -> list[int]:
         if self.test_laps is not None:
@@ -279,14 +297,14 @@ def render_lap(world: env_lib.World, states: np.ndarray, config: CollectConfig, 
     its last pose so every call has one shape (compiled once).
     """
     chunk = int(config.render_batch)
+    render_batch = devices.compiled(render_lib.render_batch, ("supersample", "chunk"))
     greys, depths = [], []
     for start in range(0, states.shape[0], chunk):
         xs = states[start:start + chunk]
         count = xs.shape[0]
         if count < chunk:
             xs = np.concatenate([xs, np.repeat(xs[-1:], chunk - count, axis=0)])
-        frame = render_lib.render_batch(world.track, jnp.asarray(xs), world.camera,
-                                        supersample=int(config.supersample), chunk=1)
+        frame = render_batch(world.track, jnp.asarray(xs), world.camera, supersample=int(config.supersample), chunk=1)
         greys.append(np.asarray(frame.grey)[:count])
         if with_depth:
             depths.append(np.asarray(frame.depth)[:count])
@@ -295,7 +313,8 @@ def render_lap(world: env_lib.World, states: np.ndarray, config: CollectConfig, 
     return np.concatenate(greys), (np.concatenate(depths) if with_depth else None)
 
 
-_exact_flow_batch = jax.jit(jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, None)))
+# the exact flow of a batch of frame pairs (their poses, the first frames' depth), compiled where it runs
+_exact_flow_batch = jax.vmap(render_lib.exact_flow, in_axes=(0, 0, 0, None))
 
 
 @jax.jit
@@ -336,10 +355,11 @@ def lap_arrays(world: env_lib.World, states: np.ndarray, controls: np.ndarray, t
         exact = np.empty((frames, H, W, 2), np.float16)
         valid = np.empty((frames, H, W), bool)
         chunk = int(config.render_batch)
+        exact_flow_batch = devices.compiled(_exact_flow_batch)
         for start in range(0, frames, chunk):
             stop = min(start + chunk, frames)
-            f, v = _exact_flow_batch(jnp.asarray(states[start:stop]), jnp.asarray(states[start + 1:stop + 1]),
-                                     jnp.asarray(depth[start:stop]), world.camera)
+            f, v = exact_flow_batch(jnp.asarray(states[start:stop]), jnp.asarray(states[start + 1:stop + 1]),
+                                    jnp.asarray(depth[start:stop]), world.camera)
             exact[start:stop], valid[start:stop] = np.asarray(f), np.asarray(v)
         arrays["exact_flow"], arrays["exact_valid"] = exact, valid
     return arrays
@@ -370,7 +390,7 @@ def collect(out_dir, config: CollectConfig = CollectConfig(), progress: bool = T
         raise ValueError(f"{root} holds a dataset collected with another config ({previous.get('config')}, policy "
                          f"{previous.get('policy')!r}); use a new directory or the same config to resume")
     runner_of = _lap_runners(config, policy)
-    base = env_lib.make_world()
+    base = env_lib.make_world(camera=config.camera())  # the tilt is a value of the world: the same compiled lap
     manifest = _initial_manifest(config, policy, base, previous)
     recorded_sha256 = {e["lap"]: e.get("sha256") for e in (previous or {}).get("laps", [])}
     done: dict[int, dict] = {}
@@ -515,14 +535,15 @@ def _write_manifest(root: Path, manifest: dict, done: dict[int, dict], config: C
 def run_collect(out_dir, laps: int = 4, seed: int = 0, max_lap_time_s: float = 10.0, speed_min: float = 6.0,
                 speed_max: float = 14.0, supersample: int = 1, test_laps: Sequence[int] | None = None,
                 paper: bool = False, progress: bool = True, excitation: bool = False,
-                excitation_pulse_rad_s: float = 1.5, excitation_dither_rad_s: float = 0.3) -> dict:
+                excitation_pulse_rad_s: float = 1.5, excitation_dither_rad_s: float = 0.3,
+                camera_tilt_deg: float = 0.0) -> dict:
     """Collect a dataset and print a short summary. ``paper=True`` starts from :meth:`CollectConfig.paper`
     (10 laps of 30 s) and ignores ``laps`` and ``max_lap_time_s``. ``excitation``: held rate pulses and
-    dither on the train laps (see :func:`excited_policy`)."""
+    dither on the train laps (see :func:`excited_policy`). ``camera_tilt_deg``: the racing camera, tilted up."""
     fields = dict(seed=seed, speed_min=speed_min, speed_max=speed_max, supersample=supersample,
                   test_laps=None if test_laps is None else tuple(test_laps), excitation=bool(excitation),
                   excitation_pulse_rad_s=float(excitation_pulse_rad_s),
-                  excitation_dither_rad_s=float(excitation_dither_rad_s))
+                  excitation_dither_rad_s=float(excitation_dither_rad_s), camera_tilt_deg=float(camera_tilt_deg))
     config = (CollectConfig.paper(**fields) if paper
               else CollectConfig(laps=laps, max_lap_time_s=max_lap_time_s, **fields))
     manifest = collect(out_dir, config, progress=progress)

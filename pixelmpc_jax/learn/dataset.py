@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import zipfile
 import zlib
 from collections.abc import Mapping
@@ -46,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pixelmpc_jax import timing
+from pixelmpc_jax.world import camera as camera_lib
 from pixelmpc_jax.world.camera import PAPER_HEIGHT, PAPER_WIDTH
 
 DATASET_FORMAT = "pixelmpc_jax.flow_dataset"
@@ -362,13 +364,26 @@ def load_dataset(data_dir, split: str = "train", input: str = "command") -> Flow
     return FlowData(q, u, flow)
 
 
+def camera_tilt_deg(manifest: Mapping) -> float:
+    """The upward tilt (deg) of the camera a dataset was collected through, as its manifest's config records it
+    (``camera_tilt_deg``); a dataset collected before the tilt was recorded: 0, the paper's camera."""
+    return float(manifest["config"].get("camera_tilt_deg", 0.0))
+
+
+def dataset_camera(manifest: Mapping) -> camera_lib.Camera:
+    """The camera a dataset's frames, flows and detections were seen through: the paper's, tilted up by
+    :func:`camera_tilt_deg`. What trains or evaluates on the dataset sees through it, not the default camera."""
+    return camera_lib.default_camera(tilt=math.radians(camera_tilt_deg(manifest)))
+
+
 def load_test_laps(data_dir: Path, manifest: dict, with_flow: bool = True) -> tuple[list[Lap], Any]:
     """The dataset's test laps (with their Farneback and exact flow unless ``with_flow`` is False) and the
-    :class:`~pixelmpc_jax.sim.env.World` they were flown in (its camera must render the images' size)."""
+    :class:`~pixelmpc_jax.sim.env.World` they were flown in, seen through the dataset's camera
+    (:func:`dataset_camera`; it must render the images' size)."""
     from pixelmpc_jax.sim.env import make_world
 
     laps = load_laps(data_dir, "test", with_flow=with_flow, with_exact=with_flow)
-    world = make_world()
+    world = make_world(camera=dataset_camera(manifest))
     W, H = manifest["image_size_wh"]
     if (world.camera.width, world.camera.height) != (W, H):
         raise ValueError(f"{data_dir}: images are {W}x{H}, the camera renders {world.camera.width}x"
@@ -384,4 +399,5 @@ def data_record(data_dir: Path, manifest: dict) -> dict:
                       manifest["laps"] if e["split"] == "test"],
         "train_laps_for_baseline": [e["lap"] for e in manifest["laps"] if e["split"] == "train"],
         "collect_config": manifest["config"],
+        "camera_tilt_deg": camera_tilt_deg(manifest),  # the camera the laps were seen through, and evaluated with
     }

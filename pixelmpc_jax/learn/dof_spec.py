@@ -84,9 +84,13 @@ class DOFConfig:
             that much more, label and rate changed exactly); 0 (the paper's) trains on the rows as flown.
             Needs ``input="flown"``: the turn is a rate flown, not commanded.
         rotation_augment_fraction: the share of rows turned when ``rotation_augment`` > 0.
+        camera_tilt_deg: the upward tilt (deg) of the camera the data were seen through (set from the dataset:
+            ``dataset.camera_tilt_deg``); the turned rows turn that camera, and the weights' record states it as the
+            camera they serve.
     """
 
-    DATA_FIELDS: ClassVar[tuple[str, ...]] = ("width", "height", "dt")  # facts of the dataset, not settings
+    # facts of the dataset, not settings
+    DATA_FIELDS: ClassVar[tuple[str, ...]] = ("width", "height", "dt", "camera_tilt_deg")
 
     steps: int = 20_000
     batch_size: int = 4096
@@ -102,6 +106,7 @@ class DOFConfig:
     input: str = "command"
     rotation_augment: float = 0.0
     rotation_augment_fraction: float = 1.0
+    camera_tilt_deg: float = 0.0
 
     def __post_init__(self):
         for name in ("steps", "batch_size", "width", "height", "probe_size", "eval_chunk_pixels"):
@@ -123,9 +128,10 @@ class DOFConfig:
                              "the frame, which a commanded rate is not")
 
     def with_data(self, manifest: dict) -> DOFConfig:
-        """This config with the dataset's image size and frame interval."""
+        """This config with the dataset's image size, frame interval and camera tilt."""
         width, height = manifest["image_size_wh"]
-        return dataclasses.replace(self, width=int(width), height=int(height), dt=float(manifest["frame_dt_s"]))
+        return dataclasses.replace(self, width=int(width), height=int(height), dt=float(manifest["frame_dt_s"]),
+                                   camera_tilt_deg=dataset_lib.camera_tilt_deg(manifest))
 
     def spec(self) -> ModelSpec:
         """The DOF as the pipeline trains it: one stage of Adam on :func:`dof_loss` over every pixel's row."""

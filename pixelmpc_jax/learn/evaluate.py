@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import os
 import time
@@ -28,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from pixelmpc_jax import strict_json, timing
+from pixelmpc_jax import devices, strict_json, timing
 from pixelmpc_jax.dynamics import dof, network_weights, vdof
 from pixelmpc_jax.learn import collect as collect_lib
 from pixelmpc_jax.learn import control_response, curves
@@ -264,8 +265,9 @@ def default_cache_dir() -> Path:
 
 def heldout_dataset(cache_dir=None, config: collect_lib.CollectConfig = HELDOUT_CONFIG, progress: bool = True,
                     policy: policies.Policy | None = None) -> Path:
-    """Collect (or reuse) the seeded held-out set in the cache; returns its directory."""
+    """Collect (or reuse) the seeded held-out set in the cache; returns its directory (one per camera tilt)."""
     tag = f"dof_heldout_seed{config.seed}_laps{config.laps}_t{config.max_lap_time_s:g}_ss{config.supersample}"
+    tag += f"_tilt{config.camera_tilt_deg:g}" if config.camera_tilt_deg else ""  # (the untilted set's name as before)
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir() / tag
     collect_lib.collect(root, config, progress=progress, policy=policy)
     return root
@@ -373,8 +375,8 @@ def _write_figures(out: Path, dof_params: dof.DOFParams, lap: dataset_lib.Lap, w
     W, H = manifest["image_size_wh"]
     dt = float(manifest["frame_dt_s"])
     t = _figure_frame(lap)
-    frame = render_lib.render(world.track, jnp.asarray(lap.states[t]), world.camera,
-                              supersample=int(manifest["config"]["supersample"]))
+    frame = devices.compiled(render_lib.render, ("supersample",))(
+        world.track, jnp.asarray(lap.states[t]), world.camera, supersample=int(manifest["config"]["supersample"]))
     lap_u = dataset_lib.lap_input(lap, input)
     predicted = np.asarray(predict_flow_fields(dof_params, lap.q[t:t + 1], lap_u[t:t + 1], W, H, dt))[0]
     exact = None if lap.exact_flow is None else lap.exact_flow[t].astype(np.float32)
@@ -454,18 +456,22 @@ def run_evaluate(weights=None, data_dir=None, out_dir="runs/dof_eval", horizon: 
     """Evaluate a weights file (default: the shipped DOF) and print a short summary. A DOF file: see
     :func:`evaluate`; the network is given the input its record names (``dof.checkpoint_variant``: command or
     flown). A vdof file: :func:`vdof_eval.evaluate_vdof` (the same figures, beside the packaged "turned" DOF on
-    the same frames). Either writes ``out_dir/dof_eval.json``."""
+    the same frames). Either writes ``out_dir/dof_eval.json``. Without ``data_dir`` the held-out set is seen through
+    the camera the weights' record states (``network_weights.trained_camera_tilt_deg``); a dataset is seen through
+    its own camera, whatever the weights were trained for."""
     kind, params, record = read_weights(shipped_weights_path() if weights is None else weights)
+    heldout = dataclasses.replace(HELDOUT_CONFIG, camera_tilt_deg=network_weights.trained_camera_tilt_deg(record))
     if kind == "vdof":
         from pixelmpc_jax.learn import vdof_eval  # it builds on this module's data loading
 
         if data_dir is None:
-            data_dir = heldout_dataset(progress=progress)
+            data_dir = heldout_dataset(config=heldout, progress=progress)
         results = vdof_eval.evaluate_vdof(params, record, data_dir, out_dir, horizon=horizon, progress=progress)
         print(vdof_eval.summarise(results))
     else:
         variant = dof.checkpoint_variant(record)
-        results = evaluate(params, data_dir, out_dir, horizon=horizon, progress=progress, input=variant["input"])
+        results = evaluate(params, data_dir, out_dir, horizon=horizon, progress=progress, input=variant["input"],
+                           heldout_config=heldout)
         print(summarise(results))
     print(f"wrote {Path(out_dir) / 'dof_eval.json'}")
     return results

@@ -20,6 +20,8 @@ known (the paper's calibrated camera), and the labels stay Farneback's: the trai
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -86,8 +88,9 @@ def turn_training_rows(key: jax.Array, u: jax.Array, i: jax.Array, j: jax.Array,
                        config) -> tuple[jax.Array, jax.Array]:
     """Training rows (control input ``u`` (B, 4) = flown rates and thrust, pixel column ``i`` and row ``j``
     (B,), label flow (B, 2) px/frame) turned as ``config`` (a ``dof_spec.DOFConfig``: ``rotation_augment``,
-    ``rotation_augment_fraction``, ``width``, ``height``, ``dt``) says, for the default camera at that size."""
-    camera = camera_lib.default_camera(wh=(config.width, config.height))
+    ``rotation_augment_fraction``, ``width``, ``height``, ``dt``, ``camera_tilt_deg``) says, for the dataset's camera:
+    the default one at that size, tilted up as the data's was."""
+    camera = camera_lib.default_camera(tilt=math.radians(config.camera_tilt_deg), wh=(config.width, config.height))
     pixel_px = jnp.stack([i + 0.5, j + 0.5], axis=-1).astype(jnp.float32)
     w, flow_px = augment_batch(key, u[:, :3], pixel_px, flow_px, config.rotation_augment,
                                config.rotation_augment_fraction, camera, config.dt)

@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from pixelmpc_jax import strict_json
 from pixelmpc_jax.devices import batch_shardings
+from pixelmpc_jax.dynamics import network_weights
 from pixelmpc_jax.learn import curves
 from pixelmpc_jax.learn import dataset as dataset_lib
 
@@ -410,6 +411,7 @@ def train(config: TrainConfig, train_data, test_data=None, resume_from=None) -> 
 def _run_record(config: TrainConfig, spec: ModelSpec, train_data, test_data) -> dict:
     """The record every checkpoint of a run carries: the config whole, the model's description, the data."""
     return {"model": spec.name, "train_config": dataclasses.asdict(config), **spec.describe(),
+            network_weights.CAMERA_TILT_KEY: float(config.model.camera_tilt_deg),
             "command": shlex.join(sys.argv), "data": spec.data_record(train_data, test_data),
             "versions": {"jax": jax.__version__, "optax": optax.__version__}}
 
@@ -487,6 +489,8 @@ def _weights_record(config: TrainConfig, spec: ModelSpec, data_dir: Path, out: P
         "model": spec.name,
         "train_config": {**dataclasses.asdict(config), "checkpoint_path": None},
         **spec.describe(),
+        # the camera the weights serve (the dataset's): a race checks it against its own (RaceSpec.check_weights)
+        network_weights.CAMERA_TILT_KEY: float(config.model.camera_tilt_deg),
         "train_wall_s": wall,
         "steps_done": history["step"][-1] if history["step"] else 0,
         "interrupted": history["interrupted"],

@@ -204,6 +204,8 @@ def evaluate_vdof(vdof_params: vdof.VDOFParams, record: dict, data_dir, out_dir,
                            "rotation_response": rotation["dof"], "pixel_cost_rank_correlation": ranking["dof"]},
         "not_reported": NOT_REPORTED,
         "image_size_wh": list(manifest["image_size_wh"]),
+        # the camera the weights were trained for; the data's, which the figures see through, is data.camera_tilt_deg
+        "trained_camera_tilt_deg": network_weights.trained_camera_tilt_deg(record),
         "units": "pixels at the image size; target_aee_px: pixels per frame (1/40 s)",
         "data": dataset_lib.data_record(data_dir, manifest),
         "created": datetime.datetime.now().isoformat(timespec="seconds"),

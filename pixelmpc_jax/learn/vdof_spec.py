@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import ClassVar, NamedTuple
 
 import jax
@@ -61,9 +62,12 @@ class VDOFConfig:
             gradients clipped to norm 1), peak rate (cosine decay) and windows per step.
         dt: seconds between frames, the labels' finite difference and the rollouts' step (set from the dataset).
         comparison_dof: the packaged DOF (``dof.PACKAGED_VARIANTS``) the held-out figures are reported beside.
+        camera_tilt_deg: the upward tilt (deg) of the camera the data were seen through (set from the dataset:
+            ``dataset.camera_tilt_deg``); its detector gives the rows, and the weights' record states it as the camera
+            they serve.
     """
 
-    DATA_FIELDS: ClassVar[tuple[str, ...]] = ("dt",)  # facts of the dataset, not settings
+    DATA_FIELDS: ClassVar[tuple[str, ...]] = ("dt", "camera_tilt_deg")  # facts of the dataset, not settings
 
     hidden_sizes: tuple[int, ...] = vdof.HIDDEN_SIZES
     steps: int = 6000
@@ -78,6 +82,7 @@ class VDOFConfig:
     rollout_batch_size: int = 256
     dt: float = timing.CONTROL_DT
     comparison_dof: str = "turned"
+    camera_tilt_deg: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "hidden_sizes", tuple(int(h) for h in self.hidden_sizes))
@@ -106,8 +111,13 @@ class VDOFConfig:
         return self.rollout_steps > 0 and self.rollout_train_steps > 0
 
     def with_data(self, manifest: dict) -> VDOFConfig:
-        """This config with the dataset's frame interval."""
-        return dataclasses.replace(self, dt=float(manifest["frame_dt_s"]))
+        """This config with the dataset's frame interval and camera tilt."""
+        return dataclasses.replace(self, dt=float(manifest["frame_dt_s"]),
+                                   camera_tilt_deg=dataset_lib.camera_tilt_deg(manifest))
+
+    def camera(self) -> camera_lib.Camera:
+        """The camera the data were seen through: the paper's, tilted up by ``camera_tilt_deg``."""
+        return camera_lib.default_camera(tilt=math.radians(self.camera_tilt_deg))
 
     def spec(self) -> ModelSpec:
         """vdof as the pipeline trains it: the one-step stage, then the rollout stage (when it runs)."""
@@ -265,7 +275,7 @@ def stage_data(config: VDOFConfig, train: VDOFData, test: VDOFData | None, seed:
 def held_out(config: VDOFConfig, params: vdof.VDOFParams, test: VDOFData) -> dict:
     """The trained vdof's held-out figures beside the packaged ``comparison_dof`` on the same frames: the target
     pixel's one-step error and the gate centre's error k steps ahead (``vdof_eval``'s definitions)."""
-    track, camera = course_lib.load_course(), camera_lib.default_camera()
+    track, camera = course_lib.load_course(), config.camera()
     dof_params, dof_record = dof.load_checkpoint(dof.PACKAGED_VARIANTS[config.comparison_dof])
     dof_input = dof.checkpoint_variant(dof_record)["input"]
     one_step = vdof_eval.target_one_step_errors(params, dof_params, test.laps, track, camera, config.dt,
@@ -313,8 +323,9 @@ def data_record(train: VDOFData, test: VDOFData | None) -> dict:
 
 def load_data(config: VDOFConfig, data_dir, manifest: dict) -> tuple[VDOFData, VDOFData | None]:
     """The detector's rows (and windows, for the rollout stage) of the dataset's train and test laps; the test
-    windows scaled as the train windows; no test data without test laps."""
-    track, camera = course_lib.load_course(), camera_lib.default_camera()
+    windows scaled as the train windows; no test data without test laps. The detector sees through the config's
+    camera (``with_data``: the dataset's)."""
+    track, camera = course_lib.load_course(), config.camera()
 
     def split(name: str, scale=None) -> VDOFData:
         laps = dataset_lib.load_laps(data_dir, name, with_flow=False, with_exact=False)

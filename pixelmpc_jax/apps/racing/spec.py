@@ -27,10 +27,11 @@ import numpy as np
 
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.dynamics import dof, vdof
-from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
+from pixelmpc_jax.dynamics.network_weights import dof_weights_hash, trained_camera_tilt_deg, weights_record
+from pixelmpc_jax.perception.association import AssociationConfig
 from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
-from pixelmpc_jax.settings import SEED_RANGE, TARGET_SPEED_RANGE, Range, check, like, setting
+from pixelmpc_jax.settings import CAMERA_TILT_RANGE, SEED_RANGE, TARGET_SPEED_RANGE, Range, check, like, setting
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.env import EnvConfig
 from pixelmpc_jax.sim.episode import EpisodeConfig
@@ -38,12 +39,15 @@ from pixelmpc_jax.sim.faults import Faults
 from pixelmpc_jax.world.course import COURSES
 
 MAPS = ("surveyed", "known")
-CAMERA_TILT_MAX_DEG = 60.0  # racing drones mount the camera tilted up 20-50 deg
-CAMERA_TILT_RANGE = Range(0.0, CAMERA_TILT_MAX_DEG, unit="deg")
 
 
 def _default_config() -> ControllerConfig:
     return ControllerConfig()
+
+
+# Settings added after races were recorded and keyed: left out of the key at their defaults, so that a recorded
+# race (which flew them at their defaults) keeps its key and its cells are reused.
+KEYED_ONLY_OFF_DEFAULT = ("gate_paint", "association", "imu", "start_error")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +92,16 @@ class RaceSpec:
         gate_switch: on a filter, when the controller's target moves on (:class:`~pixelmpc_jax.sim.env.EnvConfig`):
             "estimate", when the estimate crosses the map's gate, or "truth", the world's switch (as every race on a
             filter flew before the setting). On the true state: "estimate" (the two are one).
+        gate_paint: with the image detector, how the gates are painted (:class:`~pixelmpc_jax.sim.env.EnvConfig`):
+            "hues", each its own (the detector knows the gate), or "alike", one paint (the estimator names the gate);
+            reset to "hues" for a geometric detector, which sees no paint.
+        association: with gates painted alike, how the estimator names the gate
+            (:class:`~pixelmpc_jax.perception.association.AssociationConfig`); reset to the defaults otherwise.
+        imu: on a filter, the racing flight controller IMU its readings come from (:mod:`pixelmpc_jax.sim.imu`:
+            biases drawn per lap, noise at the datasheet's density, the Kalman filter told the datasheet), or None,
+            the simulator's IMU; reset to None on the true state.
+        start_error: on a filter, it starts each lap off the true start by an error drawn per lap
+            (:mod:`pixelmpc_jax.sim.start_error`); reset to False on the true state.
     """
 
     controller: str = "mppi"
@@ -119,6 +133,10 @@ class RaceSpec:
         "the nominal course, while the world flies the perturbed gates; known, the perturbed course itself (as "
         "perturbed races flew before)")
     gate_switch: str = like(EnvConfig, "gate_switch")
+    gate_paint: str = like(EnvConfig, "gate_paint")
+    association: AssociationConfig = dataclasses.field(default_factory=AssociationConfig)
+    imu: str | None = like(EnvConfig, "imu")
+    start_error: bool = like(EnvConfig, "start_error")
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -144,22 +162,31 @@ class RaceSpec:
             object.__setattr__(self, "guards", GuardConfig())
         if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
             object.__setattr__(self, "eskf", ESKFConfig())
-        for name in ("map", "gate_switch"):  # the map flies nothing on an unperturbed course, the switch on the truth
+        # the map flies nothing on an unperturbed course; the switch, the filter's IMU and its start on the truth
+        for name in ("map", "gate_switch", "imu", "start_error"):
             if not self.flies(name):
                 object.__setattr__(self, name, RaceSpec.__dataclass_fields__[name].default)
+        if not isinstance(self.association, AssociationConfig):
+            raise ValueError(f"association must be an AssociationConfig, got {type(self.association).__name__}")
+        if self.detector != "image":  # only the rendered gates wear paint
+            object.__setattr__(self, "gate_paint", RaceSpec.__dataclass_fields__["gate_paint"].default)
+        if self.gate_paint != "alike":  # the association names the candidates of gates painted alike only
+            object.__setattr__(self, "association", AssociationConfig())
         packaged_dof_name = self.dof_weights in dof.PACKAGED_VARIANTS
         if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
             object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
 
     def flies(self, name: str) -> bool:
-        """Whether the setting ``name`` ("map" or "gate_switch") changes a lap: the map with ``perturb``, the gate
-        switch on a filter."""
+        """Whether the setting ``name`` ("map", "gate_switch", "imu" or "start_error") changes a lap: the map with
+        ``perturb``, the others on a filter."""
         return bool(self.perturb) if name == "map" else self.estimator != "truth"
 
     def episode_config(self) -> EpisodeConfig:
         """The environment and driver the race's laps fly in (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`)."""
         return EpisodeConfig(max_time_s=self.max_time_s, detector=self.detector, estimator=self.estimator,
-                             guards=self.guards, eskf=self.eskf, faults=self.faults, gate_switch=self.gate_switch)
+                             guards=self.guards, eskf=self.eskf, faults=self.faults, gate_switch=self.gate_switch,
+                             imu=self.imu, start_error=self.start_error, gate_paint=self.gate_paint,
+                             association=self.association)
 
     @property
     def uses_dof(self) -> bool:
@@ -229,6 +256,11 @@ class RaceSpec:
         same race however it was written, and for the two geometric detectors under nominal MPPI on the true state,
         which uses no detection; any other setting, seed, number of laps or DOF weights gives another key."""
         record = {**self.record(), "dof_weights": self.dof_fingerprint(), "course": self.course_fingerprint()}
+        for name in KEYED_ONLY_OFF_DEFAULT:  # a race that leaves them at their defaults keeps the key it had before
+            field = RaceSpec.__dataclass_fields__[name]
+            default = field.default if field.default is not dataclasses.MISSING else field.default_factory()
+            if getattr(self, name) == default:
+                del record[name]
         if self.controller == "mppi" and self.estimator == "truth" and self.detector == "clipped":
             record["detector"] = "ideal"  # no detection reaches nominal MPPI on the true state: the same laps
         text = json.dumps(_canonical(record), sort_keys=True)
@@ -248,16 +280,25 @@ class RaceSpec:
 
         return make_policy(self.controller, self.config, Execution(sample_devices=sample_devices))
 
-    def check_weights(self, dof_params) -> None:
+    def check_weights(self, dof_params, record: dict | None = None) -> None:
         """Raise a ValueError unless ``dof_params`` (None: the packaged weights) are the weights the spec names, and
-        they suit its camera (the packaged ones were trained for the untilted camera). Where the race flies a learned
-        pixel model only: nominal MPPI, or PixelMPC with the projection, flies any camera tilt."""
+        they suit its camera: the camera tilt their record states (``record``, that of weights read from a file; the
+        packaged weights' own, read here; no tilt stated: the untilted camera). Where the race flies a learned pixel
+        model only: nominal MPPI, or PixelMPC with the projection, flies any camera tilt."""
         if not self.uses_dof:
             return
-        if self.camera_tilt_deg and (self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS):
-            raise ValueError(f"the packaged {self.config.pixel_model} weights were trained for the untilted camera: "
-                             f"with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection pixel model or "
-                             f"weights trained for that camera")
+        packaged = self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS
+        if packaged and record is None:
+            record = weights_record(vdof.PACKAGED_VDOF if self.config.pixel_model == "vdof"
+                                    else dof.PACKAGED_VARIANTS[self.dof_weights or "paper"])
+        trained = None if record is None else trained_camera_tilt_deg(record)
+        if trained is not None and abs(trained - self.camera_tilt_deg) > 1e-9:
+            def camera(tilt: float) -> str:
+                return f"the camera tilted up {tilt:g} deg" if tilt else "the untilted camera"
+
+            raise ValueError(f"the {'packaged ' if packaged else ''}{self.config.pixel_model} weights were trained for "
+                             f"{camera(trained)}: with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection "
+                             f"pixel model or weights trained for that camera")
         if dof_params is None:
             if self.dof_weights is not None and (self.config.pixel_model == "vdof"
                                                  or self.dof_weights not in dof.PACKAGED_VARIANTS):
