@@ -299,6 +299,13 @@ def paint_mask(
     return mask.astype(np.uint8) * 255
 
 
+def _camera_image(rgb_or_frame, camera: camera_lib.Camera | None) -> tuple[np.ndarray, int, int]:
+    """An RGB image or a ``render.Frame``'s checked as the ``camera``'s (default: the paper's): the image, W, H."""
+    camera = camera or camera_lib.default_camera()
+    image = rgb_or_frame.rgb if isinstance(rgb_or_frame, render_lib.Frame) else rgb_or_frame
+    return _check_rgb(image, (camera.height, camera.width)), camera.width, camera.height
+
+
 def _check_rgb(image, shape: tuple[int, int]) -> np.ndarray:
     rgb = np.asarray(image)
     expected = f"uint8 RGB image of shape {(*shape, 3)}"
@@ -399,10 +406,7 @@ def detect_from_image(
     Raises:
         ValueError: the image is not uint8 (H, W, 3) of the camera's size.
     """
-    camera = camera or camera_lib.default_camera()
-    H, W = camera.height, camera.width
-    image = rgb_or_frame.rgb if isinstance(rgb_or_frame, render_lib.Frame) else rgb_or_frame
-    rgb = _check_rgb(image, (H, W))
+    rgb, W, H = _camera_image(rgb_or_frame, camera)
     mask = gate_mask(rgb, gate_id, hue_tol_deg)
     if int(np.count_nonzero(mask)) < min_pixels:
         return _not_found(gate_id)
@@ -445,10 +449,7 @@ def detect_candidates_from_image(
     Raises:
         ValueError: the image is not uint8 (H, W, 3) of the camera's size.
     """
-    camera = camera or camera_lib.default_camera()
-    H, W = camera.height, camera.width
-    image = rgb_or_frame.rgb if isinstance(rgb_or_frame, render_lib.Frame) else rgb_or_frame
-    rgb = _check_rgb(image, (H, W))
+    rgb, W, H = _camera_image(rgb_or_frame, camera)
     k = int(max_candidates)
     found, centre = np.zeros(k, bool), np.full((k, 2), 0.5, np.float32)
     bbox, corners = np.zeros((k, 4), np.float32), np.zeros((k, 4, 2), np.float32)
