@@ -62,15 +62,44 @@ def laps(seed, lap_time, avoidable) -> Laps:
     return out
 
 
-def completed_laps(result: dict) -> Laps:
+def completed_laps(result: dict, figure: str = "time_vis_avoidable_s") -> Laps:
     """The completed laps with an avoidable time of one race's results (``{"laps": [...], "seed": first}``); a lap
-    that does not record its seed is lap i of the run, seed ``first + i``."""
+    that does not record its seed is lap i of the run, seed ``first + i``. With ``figure``, each lap's value of that
+    figure (e.g. ``share_target_in_view``) stands where the avoidable time would (:func:`paired_figure`)."""
     first = result.get("seed", 0)
-    rows = [(lap.get("seed", first + i), lap["lap_time_s"], lap["time_vis_avoidable_s"])
+    rows = [(lap.get("seed", first + i), lap["lap_time_s"], lap[figure])
             for i, lap in enumerate(result.get("laps", []))
             if lap.get("success") and lap.get("lap_time_s") is not None
-            and lap.get("time_vis_avoidable_s") is not None]
+            and lap.get("time_vis_avoidable_s") is not None and lap.get(figure) is not None]
     return laps(*zip(*rows)) if rows else laps([], [], [])
+
+
+class PairedFigure(NamedTuple):
+    """One lap figure of a race and of nominal MPPI at the same lap times (:func:`paired_figure`).
+
+    Attributes:
+        nominal: nominal's figure read at each paired lap's time on that lap's seed, the mean over the paired laps.
+        cell: the race's own figure, the mean over the same laps.
+        laps_paired: how many laps pair (a lap outside its seed's nominal lap times does not).
+    """
+
+    nominal: float
+    cell: float
+    laps_paired: int
+
+
+def paired_figure(cell: dict, nominal: list[dict], figure: str) -> PairedFigure | None:
+    """Nominal MPPI's lap ``figure`` at the race's lap times, paired as the gain pairs them: each completed lap of
+    the race ``cell`` read on its own seed's nominal laps (``nominal``: one race's results per target speed) joined
+    by lap time (:func:`paired_frontier`), beside the race's own figure, each the mean over the laps that pair; None
+    where none pairs. Joining per-speed means instead overstates nominal's loss where the frontier curves."""
+    laps_of_cell = completed_laps(cell, figure)
+    value, _ = paired_frontier(laps_of_cell, [completed_laps(n, figure) for n in nominal])
+    paired = ~np.isnan(value)
+    if not paired.any():
+        return None
+    return PairedFigure(float(np.mean(value[paired])), float(np.mean(laps_of_cell.avoidable[paired])),
+                        int(paired.sum()))
 
 
 def seed_frontiers(nominal: list[Laps]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
