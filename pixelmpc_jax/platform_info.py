@@ -59,3 +59,16 @@ def device_line() -> str:
     d = device_description()
     return (f"{d['platform']} ({d['device_kind']}, {d['num_devices']} device(s)); CPU {d['cpu_model']}, "
             f"{d['cpu_count']} cores; jax {d['jax']}, jaxlib {d['jaxlib']}")
+
+
+def invocation(argv: list[str] | None = None) -> str:
+    """The command line a record keeps, as a user would type it again: the program by its name (``pixelmpc``, or
+    ``python -m pixelmpc_jax.cli``), never by the path it was installed at on this machine."""
+    import shlex
+    import sys
+
+    argv = list(sys.argv if argv is None else argv)
+    program = os.path.basename(argv[0]) if argv else "pixelmpc"
+    if program in ("cli.py", "__main__.py"):
+        program = "python -m pixelmpc_jax.cli"
+    return " ".join([program, *(shlex.quote(arg) for arg in argv[1:])])

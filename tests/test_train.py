@@ -455,3 +455,10 @@ def test_train_flags_make_the_model_config(tmp_path, capsys, monkeypatch):
     assert calls[0][1]["resume"] and calls[0][1]["ship"] and calls[0][1]["out_dir"] == tmp_path
     code, _, calls = _train_cli(["--model", "vdof"], tmp_path, capsys, monkeypatch)
     assert calls[0][1]["config"].model == VDOFConfig() and str(calls[0][1]["out_dir"]) == "runs/vdof_train"
+
+
+def test_a_record_keeps_the_command_as_a_user_types_it_not_the_path_it_ran_from():
+    from pixelmpc_jax.platform_info import invocation
+
+    assert invocation(["/opt/venv/bin/pixelmpc", "train", "--data", "my data"]) == "pixelmpc train --data 'my data'"
+    assert invocation(["/opt/src/pixelmpc_jax/cli.py", "collect"]) == "python -m pixelmpc_jax.cli collect"

@@ -30,7 +30,6 @@ import datetime
 import functools
 import hashlib
 import math
-import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -41,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pixelmpc_jax import devices, strict_json, timing
+from pixelmpc_jax import devices, platform_info, strict_json, timing
 from pixelmpc_jax.control.pixelmpc import ControllerConfig, paper_mppi_config
 from pixelmpc_jax.learn import dataset as dataset_lib
 from pixelmpc_jax.perception import detector as detector_lib
@@ -468,7 +467,7 @@ def _initial_manifest(config: CollectConfig, policy: policies.Policy | None, bas
         "frames": {"train": 0, "test": 0},
         "versions": _versions(),
         "controller_source_sha256": _controller_source() if policy is None else None,
-        "command": shlex.join(sys.argv),
+        "command": platform_info.invocation(),
         "created": (previous or {}).get("created", datetime.datetime.now().isoformat(timespec="seconds")),
         "complete": False,
     }

@@ -22,9 +22,7 @@ import dataclasses
 import datetime
 import functools
 import json
-import shlex
 import shutil
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -37,7 +35,7 @@ import optax
 from flax import serialization, struct
 from tqdm.auto import tqdm
 
-from pixelmpc_jax import strict_json
+from pixelmpc_jax import platform_info, strict_json
 from pixelmpc_jax.devices import batch_shardings
 from pixelmpc_jax.dynamics import network_weights
 from pixelmpc_jax.learn import curves
@@ -412,7 +410,7 @@ def _run_record(config: TrainConfig, spec: ModelSpec, train_data, test_data) -> 
     """The record every checkpoint of a run carries: the config whole, the model's description, the data."""
     return {"model": spec.name, "train_config": dataclasses.asdict(config), **spec.describe(),
             network_weights.CAMERA_TILT_KEY: float(config.model.camera_tilt_deg),
-            "command": shlex.join(sys.argv), "data": spec.data_record(train_data, test_data),
+            "command": platform_info.invocation(), "data": spec.data_record(train_data, test_data),
             "versions": {"jax": jax.__version__, "optax": optax.__version__}}
 
 
@@ -508,7 +506,7 @@ def _weights_record(config: TrainConfig, spec: ModelSpec, data_dir: Path, out: P
             f"CollectConfig(**{json.dumps(manifest['config'])}))",
             _train_call(config, data_dir, out),
         ],
-        "command": shlex.join(sys.argv),
+        "command": platform_info.invocation(),
         "versions": manifest.get("versions", {}) | {"jax": jax.__version__, "optax": optax.__version__},
         "created": datetime.datetime.now().isoformat(timespec="seconds"),
     }
