@@ -311,17 +311,19 @@ def gains_text(gains: dict, finished: int) -> str:
             f"paired); joined means {gain(joined)}, local fit {gain(local)}")
 
 
-def paired_side_figure(root: Path, folder: Path, record: dict, cell: str, figure: str) -> gains_lib.PairedFigure:
+def paired_side_figures(root: Path, folder: Path, record: dict, cell: str,
+                        *figures: str) -> list[gains_lib.PairedFigure]:
     """A frontier folder's cell and nominal MPPI at the same lap times, paired by seed as the gain is
-    (:func:`~pixelmpc_jax.apps.experiments.gains.paired_figure`), from the folder's compact per-tick record where it
-    commits one (its results.json otherwise); a ValueError where no lap pairs."""
+    (:func:`~pixelmpc_jax.apps.experiments.gains.paired_figure`), one per lap figure named, from the folder's compact
+    per-tick record where it commits one (its results.json otherwise); a ValueError where no lap pairs."""
     if per_tick(root / folder) == "yes":
         races = ticks_compact.load(root / folder / ticks_compact.FILE_NAME)
         results = {name: {"laps": ticks_compact.race_laps(race)} for name, race in races.items()}
     else:
         results = _json(root / folder / "results.json")
-    paired = gains_lib.paired_figure(results[cell], [results[point["name"]] for point in record["nominal"]], figure)
-    if paired is None:
+    nominal = [results[point["name"]] for point in record["nominal"]]
+    paired = [gains_lib.paired_figure(results[cell], nominal, figure) for figure in figures]
+    if any(figure is None for figure in paired):
         raise ValueError(f"{folder}: no lap of {cell} lies within its seed's nominal lap times")
     return paired
 
@@ -336,7 +338,7 @@ def frontier_gain(root: Path, entry: dict) -> Row:
     paired gain [interval] at its lap time against nominal MPPI flown slower, beside the joined means and the local
     fit (the bars apply to the smallest of the three), and its share of time with the target in view beside
     nominal's at the same lap times; the tail of its laps and its worst lap's avoidable time beside nominal's mean at
-    the same lap times (nominal's figures paired by seed as the gain is, :func:`paired_side_figure`; every nominal
+    the same lap times (nominal's figures paired by seed as the gain is, :func:`paired_side_figures`; every nominal
     point nominal MPPI on the cell's loop, :func:`_frontier`). The claim names the controller as ``{controller}``,
     filled from what the folder's race flew (:func:`flown_preset`)."""
     path, cell = Path(entry["folder"]), entry["cell"]
@@ -345,8 +347,7 @@ def frontier_gain(root: Path, entry: dict) -> Row:
     laps = [lap for lap in results["laps"] if lap["success"]]
     worst = max(lap["time_vis_avoidable_s"] for lap in laps)
     lap_change = cell_row["lap_time_s"] / at_target["lap_time_s"] - 1
-    in_view = paired_side_figure(root, path, record, cell, "share_target_in_view")
-    avoidable = paired_side_figure(root, path, record, cell, "time_vis_avoidable_s")
+    in_view, avoidable = paired_side_figures(root, path, record, cell, "share_target_in_view", "time_vis_avoidable_s")
     return Row(entry["claim"].format(controller=flown_preset(results["config"])),
                f"{gains_text(cell_row['gains'], len(laps))}; at {lap_change:+.1%} lap time; in view "
                f"{in_view.cell:.1%} over the {in_view.laps_paired} paired laps ({_paired_text(in_view, '%')})",
@@ -400,14 +401,14 @@ def courses_gain(root: Path, entry: dict) -> Row:
 def visibility_at_same_lap_time(root: Path, entry: dict) -> Row:
     """Time below 50 % a lap, nominal MPPI at `best`'s lap times -> `best`, beside the paper's nominal -> best cell,
     from the entry's frontier folder and cell: each the mean over `best`'s laps that pair with their seed's nominal
-    laps, nominal's read at the same lap time on the same seed (:func:`paired_side_figure`)."""
+    laps, nominal's read at the same lap time on the same seed (:func:`paired_side_figures`)."""
     path, cell = Path(entry["folder"]), entry["cell"]
     record, cell_row, _ = _frontier(root, path, cell)
     results = _json(root / path / "results.json")[cell]
     worst = max(lap["time_vis_below_50_s"] for lap in results["laps"] if lap["success"])
     (nominal, _), (best, _) = PAPER["nominal_vis_below_50_s"], PAPER["pixelmpc_vis_below_50_s"]
     (nominal_lap, _), (best_lap, _) = PAPER["nominal_lap_s"], PAPER["pixelmpc_lap_s"]
-    below = paired_side_figure(root, path, record, cell, "time_vis_below_50_s")
+    (below,) = paired_side_figures(root, path, record, cell, "time_vis_below_50_s")
     return Row(entry["claim"].format(controller=flown_preset(results["config"])),
                f"{below.nominal:.2f} -> **{below.cell:.2f}** s (paired by seed, {below.laps_paired} of "
                f"{sum(lap['success'] for lap in results['laps'])} laps)",

@@ -399,45 +399,48 @@ def lap_finished(world: World, state: SimState) -> jax.Array:
     return (state.target >= world.track.num_gates) & (state.end_cause == 0)
 
 
-def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
-                     ) -> detector_lib.Detection:
-    """Render the onboard frame and detect the target gate in it with OpenCV (a host callback)."""
+def _image_report(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array, detect,
+                  template, palette=None):
+    """Render the onboard frame (its gates in ``palette``; None: each its own hue) and run the OpenCV detector
+    ``detect(rgb, gate_id)`` on it in a host callback, its report shaped as ``template``."""
     from pixelmpc_jax.world import render as render_lib
 
-    frame = render_lib.render(track, x, camera, supersample=1)
-
-    def host_detect(rgb, gate_id):
-        import numpy as np
-
-        det = detector_lib.detect_from_image(np.asarray(rgb), int(gate_id), camera=camera)
-        return jax.tree_util.tree_map(np.asarray, det)
-
-    template = detector_lib.Detection(
-        found=jax.ShapeDtypeStruct((), jnp.bool_), centre=jax.ShapeDtypeStruct((2,), jnp.float32),
-        bbox=jax.ShapeDtypeStruct((4,), jnp.float32), corners=jax.ShapeDtypeStruct((4, 2), jnp.float32),
-        corners_visible=jax.ShapeDtypeStruct((4,), jnp.bool_), gate_id=jax.ShapeDtypeStruct((), jnp.int32))
-    det = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
-    return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), det, template)
-
-
-def _image_candidates(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array,
-                      max_candidates: int) -> detector_lib.Candidates:
-    """Render the onboard frame with every gate painted alike and report its gate-like components with OpenCV (a
-    host callback): up to ``max_candidates``, for the estimator to name the ``target``'s."""
-    from pixelmpc_jax.world import render as render_lib
-
-    palette = render_lib.gate_palette(track.num_gates, "alike")
     frame = render_lib.render(track, x, camera, supersample=1, palette=palette)
 
     def host_detect(rgb, gate_id):
         import numpy as np
 
-        found = detector_lib.detect_candidates_from_image(np.asarray(rgb), int(gate_id), max_candidates, camera=camera)
-        return jax.tree_util.tree_map(np.asarray, found)
+        return jax.tree_util.tree_map(np.asarray, detect(np.asarray(rgb), int(gate_id)))
 
-    template = detector_lib.candidates_template(max_candidates)
     found = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
     return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), found, template)
+
+
+_DETECTION_TEMPLATE = detector_lib.Detection(
+    found=jax.ShapeDtypeStruct((), jnp.bool_), centre=jax.ShapeDtypeStruct((2,), jnp.float32),
+    bbox=jax.ShapeDtypeStruct((4,), jnp.float32), corners=jax.ShapeDtypeStruct((4, 2), jnp.float32),
+    corners_visible=jax.ShapeDtypeStruct((4,), jnp.bool_), gate_id=jax.ShapeDtypeStruct((), jnp.int32))
+
+
+def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
+                     ) -> detector_lib.Detection:
+    """The target gate found by its paint in the onboard frame (each gate its own hue)."""
+    return _image_report(track, x, camera, target,
+                         lambda rgb, gate_id: detector_lib.detect_from_image(rgb, gate_id, camera=camera),
+                         _DETECTION_TEMPLATE)
+
+
+def _image_candidates(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array,
+                      max_candidates: int) -> detector_lib.Candidates:
+    """The gate-like components of the onboard frame with every gate painted alike: up to ``max_candidates``, for
+    the estimator to name the ``target``'s."""
+    from pixelmpc_jax.world import render as render_lib
+
+    def detect(rgb, gate_id):
+        return detector_lib.detect_candidates_from_image(rgb, gate_id, max_candidates, camera=camera)
+
+    return _image_report(track, x, camera, target, detect, detector_lib.candidates_template(max_candidates),
+                         palette=render_lib.gate_palette(track.num_gates, "alike"))
 
 
 def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array, window_m: float) -> jax.Array:
