@@ -137,6 +137,9 @@ def test_a_preset_is_the_race_and_one_flag_overrides_one_field(monkeypatch, tmp_
                                 presets.preset("best").config, c_pixel=1e7))),
                            (["--preset", "paper", "--dof-weights", "turned"],
                             presets.preset("paper").replace(dof_weights="turned")),
+                           (["--preset", "racing"], presets.preset("racing")),
+                           (["--camera-tilt", "30", "--speed", "14"],
+                            presets.preset("racing")),  # best on the racing camera at 14 m/s: the racing preset
                            (["--controller", "mppi"], presets.preset("best"))):
         cli.main(["race", "--out", str(tmp_path), *argv])
         assert seen["spec"] == expected and seen["spec"].key() == expected.key()

@@ -198,15 +198,21 @@ def test_checkpoint_variant_defaults_to_the_papers_for_old_records():
 
 
 def test_every_packaged_variant_loads_and_its_record_says_how_it_was_trained():
-    """The shipped weights: the paper's (command input), the flown-rate ones, and those trained with turned
-    rows; each record names its input, and only the turned one was trained with rotation augmentation."""
-    expected = {"paper": ("command", 0.0), "flown": ("flown", 0.0), "turned": ("flown", 1.0)}
+    """The shipped weights: the paper's (command input), the flown-rate ones, those trained with turned rows, and the
+    paper's trained through the racing camera; each record names its input and its camera, and only the turned one
+    was trained with rotation augmentation."""
+    expected = {"paper": ("command", 0.0, 0.0), "flown": ("flown", 0.0, 0.0), "turned": ("flown", 1.0, 0.0),
+                "paper_tilt30": ("command", 0.0, 30.0)}
     assert set(dof.PACKAGED_VARIANTS) == set(expected)
-    for variant, (input_, sigma) in expected.items():
+    for variant, (input_, sigma, tilt) in expected.items():
         params, record = dof.load_checkpoint(dof.PACKAGED_VARIANTS[variant])
         assert network_weights.num_trainable_params(params) == 34_690
         assert dof.checkpoint_variant(record)["input"] == input_, variant
-        assert record.get("train_config", {}).get("rotation_augment", 0.0) == sigma, variant
+        train_config = record.get("train_config", {})
+        assert train_config.get("model", train_config).get("rotation_augment", 0.0) == sigma, variant
+        beside = network_weights.weights_record(dof.PACKAGED_VARIANTS[variant])
+        assert network_weights.trained_camera_tilt_deg(record) == network_weights.trained_camera_tilt_deg(beside) \
+            == tilt, variant
         leaves = jax.tree_util.tree_leaves(dof.load_packaged_dof(variant))
         assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
     with pytest.raises(ValueError, match="turned"):

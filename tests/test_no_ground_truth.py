@@ -27,7 +27,8 @@ from pixelmpc_jax.world.course import load_course
 # What a policy may read. A field added to what the driver hands over must be added here on purpose: if it is true
 # (the course flown, the vehicle as it flies, the metric's visibility), it does not belong to a policy.
 OBSERVATION_FIELDS = ("x_est", "target_gate", "progress_s", "detection", "position_cov_trace",
-                      "association")  # what the estimator made of the candidates of gates painted alike
+                      "association",  # what the estimator made of the candidates of gates painted alike
+                      "track")  # the map with its gates where the estimator places them (None: the map as it is)
 DETECTION_FIELDS = ("found", "centre", "bbox", "corners", "corners_visible", "gate_id")
 POLICY_WORLD_FIELDS = ("track", "target_speed", "camera", "dof")
 

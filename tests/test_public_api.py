@@ -36,7 +36,7 @@ def test_each_public_name_is_the_one_from_where_it_lives():
 
     assert pixelmpc_jax.make_mppi is mppi.make_mppi and pixelmpc_jax.MPPIConfig is mppi.MPPIConfig
     assert pixelmpc_jax.fly is race.fly and pixelmpc_jax.race is race.race and pixelmpc_jax.quadrotor is quadrotor
-    assert pixelmpc_jax.PRESETS == ("best", "paper")
+    assert pixelmpc_jax.PRESETS == ("best", "paper", "racing")
 
 
 def test_the_front_door_only_imports_and_lists():

@@ -91,7 +91,7 @@ def test_the_report_opens_with_the_presets_and_the_measured_pace(tmp_path):
     (tmp_path / "frontier").mkdir()
     (tmp_path / "frontier" / "frontier.json").write_text(json.dumps({"nominal": nominal}))
     text = "\n".join(R._overview(tmp_path))
-    assert "`best`:" in text and "`paper`:" in text
+    assert "`best`:" in text and "`paper`:" in text and "`racing`:" in text
     # 31.8 s lies between 33.0 s (8 m/s) and 31.0 s (8.5 m/s): 8 + 0.5 * 1.2 / 2 = 8.30 m/s
     assert "| 14 m/s | 31.8 | 8.5 m/s | 31.0 ± 0.5 | 8.30 m/s |" in text
     assert "| 20 m/s | - (straight lane) | 10.3 m/s | - | - |" in text

@@ -172,25 +172,23 @@ def _weights_for(tmp_path, name: str, model_path, tilt_deg: float):
 
 
 @pytest.mark.parametrize("model", ["dof", "vdof"])
-def test_a_race_flies_weights_on_the_camera_their_record_states_and_refuses_another(model, tmp_path, monkeypatch):
+def test_a_race_flies_weights_on_the_camera_their_record_states_and_refuses_another(model, tmp_path):
     packaged = vdof.PACKAGED_VDOF if model == "vdof" else dof.PACKAGED_WEIGHTS
+    tilted_variant = f"{'vdof' if model == 'vdof' else 'paper'}_tilt30"
     path, record = _weights_for(tmp_path, f"{model}_weights.msgpack", packaged, TILT_DEG)
     race = RaceSpec("pixelmpc", ControllerConfig(pixel_model=model), camera_tilt_deg=TILT_DEG)
     flat = race.replace(camera_tilt_deg=0.0)
-    # the packaged weights: trained for the untilted camera, refused on the tilted one (and flown on their own)
+    # the packaged weights for each camera: the untilted camera's on it, the racing camera's (30 deg) on that one
     flat.check_weights(None)
-    with pytest.raises(ValueError, match="trained for the untilted camera: with camera_tilt_deg=30"):
-        race.check_weights(None)
-    # packaged weights whose record states 30 degrees: flown on the tilted camera, refused on the untilted one
-    if model == "vdof":
-        monkeypatch.setattr(vdof, "PACKAGED_VDOF", path)
-    else:
-        monkeypatch.setitem(dof.PACKAGED_VARIANTS, "paper", path)
     race.check_weights(None)
+    assert race.packaged_variant() == tilted_variant and flat.packaged_variant() != tilted_variant
+    # at a tilt no packaged weights were trained for, the default (the untilted camera's) is refused
+    with pytest.raises(ValueError, match="trained for the untilted camera: with camera_tilt_deg=20"):
+        race.replace(camera_tilt_deg=20.0).check_weights(None)
+    # packaged weights named, whose record states 30 degrees: refused on the untilted camera
     with pytest.raises(ValueError, match="trained for the camera tilted up 30 deg: with camera_tilt_deg=0"):
-        flat.check_weights(None)
+        flat.replace(dof_weights=tilted_variant).check_weights(None)
     # weights passed with their record (a file): the same rule; the record read beside the file agrees
-    monkeypatch.undo()
     params = vdof.load_vdof(path)[0] if model == "vdof" else dof.load_checkpoint(path)[0]
     named = network_weights.dof_weights_hash(params)
     race.replace(dof_weights=named).check_weights(params, record)

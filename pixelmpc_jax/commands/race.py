@@ -18,10 +18,9 @@ from pathlib import Path
 from pixelmpc_jax import arguments as arg
 from pixelmpc_jax import settings
 from pixelmpc_jax.apps.racing.presets import DEFAULT_PRESET, LOOPS, PRESETS, preset, with_loop
-from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import PACKAGED_NAMES, PACKAGED_WEIGHTS, RaceSpec
 from pixelmpc_jax.arguments import FieldFlag
 from pixelmpc_jax.commands import EXIT_FAILED, EXIT_INTERRUPTED
-from pixelmpc_jax.dynamics.dof import PACKAGED_VARIANTS
 from pixelmpc_jax.dynamics.network_weights import dof_weights_hash
 from pixelmpc_jax.sim.controllers import CONTROLLERS
 from pixelmpc_jax.sim.faults import FAULT_LEVELS
@@ -38,11 +37,11 @@ def _setting(flag: str, field: str, **options) -> FieldFlag:
 
 # Every flag of the race after --preset/--config, in the order --help lists them: a flag and the field of the race it
 # sets, its help, range and choices read from that field (each setting's range lives once, in its field). A flag of a
-# controller setting (a field under "config") lists both presets' value in its help.
+# controller setting (a field under "config") lists each preset's value in its help.
 RACE_FLAGS: tuple[FieldFlag, ...] = (
     FieldFlag("--controller", None, "fly one controller alone: pixelmpc or mppi, the paper's nominal baseline "
               "(default: both, at the same target and seeds)", {"choices": CONTROLLERS, "default": None}),
-    _setting("--dof-weights", "dof_weights", metavar="|".join(PACKAGED_VARIANTS) + "|vdof|FILE"),
+    _setting("--dof-weights", "dof_weights", metavar="|".join(PACKAGED_NAMES) + "|FILE"),
     _setting("--detector", "detector"),
     _setting("--course", "course", type=arg.course, metavar="|".join(COURSES) + "|FILE"),
     _setting("--estimator", "estimator"),
@@ -106,8 +105,9 @@ def add_race(sub) -> None:
     start = p.add_mutually_exclusive_group()
     start.add_argument("--preset", choices=PRESETS, default=DEFAULT_PRESET,
                        help="the race to start from: best (default), the best configuration measured on the speed "
-                            "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target. Every "
-                            "other flag overrides one field of it")
+                            "frontier at the paper's pace; paper, the paper's formulation at its 14 m/s target; "
+                            "racing, best's settings on the racing camera (tilted up 30 deg, its own vdof weights) at "
+                            "14 m/s. Every other flag overrides one field of it")
     start.add_argument("--config", type=Path, default=None, metavar="FILE",
                        help="start from a saved race instead of a preset: a RaceSpec record in JSON, as `pixelmpc "
                             "tune` writes its best.json; every other flag overrides one field of it")
@@ -116,7 +116,7 @@ def add_race(sub) -> None:
                         "only what the drone has (--detector image, --estimator eskf, --gate-switch estimate, "
                         "--map surveyed); truth, the controller on the true state (--detector clipped, --estimator "
                         "truth) (default: the starting race's, the presets' truth)")
-    presets = {name: preset(name) for name in ("best", "paper")}
+    presets = {name: preset(name) for name in PRESETS}
     for flag in RACE_FLAGS:
         flag.add_to(p, _help(flag, presets))
     p.set_defaults(func=_cmd_race, validate=arg.seed_range, precheck=_check_race)
@@ -183,12 +183,12 @@ def race_spec(args):
     filtered = [flag.flag for flag in RACE_FLAGS if flag.field in ("imu", "start_error") and fields.get(flag.field)]
     if filtered and spec.estimator == "truth":
         raise ValueError(f"{filtered[0]} acts on a filter: fly it with --estimator pf or eskf")
-    if args.dof_weights == "vdof":  # the packaged vdof weights: the vdof model's default
-        if spec.config.pixel_model != "vdof":
-            raise ValueError("--dof-weights vdof names the vdof model's weights: fly it with --pixel-model vdof")
-        spec = spec.replace(dof_weights=None)
+    for model, packaged in PACKAGED_WEIGHTS.items():  # a packaged name names one model's weights
+        if args.dof_weights in packaged.variants and spec.config.pixel_model != model:
+            raise ValueError(f"--dof-weights {args.dof_weights} names the {model} model's weights: fly it with "
+                             f"--pixel-model {model}")
     dof_params = None
-    if spec.dof_weights is not None and spec.dof_weights not in PACKAGED_VARIANTS:
+    if spec.dof_weights is not None and spec.dof_weights not in PACKAGED_NAMES:
         dof_params, record = _read_weights(Path(spec.dof_weights), spec.config.pixel_model)
         spec = spec.replace(dof_weights=dof_weights_hash(dof_params))
         spec.check_weights(dof_params, record)  # weights from a file serve the camera their record states

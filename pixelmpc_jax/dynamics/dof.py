@@ -286,13 +286,17 @@ PACKAGED_VARIANTS = {
     "flown": PACKAGED_WEIGHTS.with_name("dof_weights_flown.msgpack"),
     # the flown-rate variant trained with rows turned by an extra camera rotation (train --rotation-augment 1)
     "turned": PACKAGED_WEIGHTS.with_name("dof_weights_turned.msgpack"),
+    # the paper's formulation trained through the racing camera, tilted up 30 degrees (its record's camera_tilt_deg):
+    # what a race on that camera flies by default
+    "paper_tilt30": PACKAGED_WEIGHTS.with_name("dof_weights_tilt30.msgpack"),
 }
 
 
 def load_packaged_dof(variant: str = "paper") -> DOFParams:
     """DOF weights shipped inside the package: ``variant`` "paper" (``data/dof_weights.msgpack``, the paper's
-    command input; the default), "flown" (``data/dof_weights_flown.msgpack``) or "turned"
-    (``data/dof_weights_turned.msgpack``); each has a ``.json`` beside it saying how it was made."""
+    command input; the default), "flown" (``data/dof_weights_flown.msgpack``), "turned"
+    (``data/dof_weights_turned.msgpack``) or "paper_tilt30" (``data/dof_weights_tilt30.msgpack``, the paper's trained
+    for the camera tilted up 30 degrees); each has a ``.json`` beside it saying how it was made and for which camera."""
     if variant not in PACKAGED_VARIANTS:
         raise ValueError(f"unknown packaged DOF weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
     path = PACKAGED_VARIANTS[variant]

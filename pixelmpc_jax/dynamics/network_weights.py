@@ -7,7 +7,8 @@ bit-exact round trips; no pickle, so loading an untrusted file cannot run code),
 names its format, checks the architecture it reads against its own, and keeps its parameters' layout; the reading,
 writing and shape checks are here, once. So is the weights' fingerprint (:func:`dof_weights_hash`), by which a race
 names the weights it flies, and its cache for the weights shipped in the package (:func:`packaged_weights_hash`),
-and the camera the weights serve, as their record states it (:func:`trained_camera_tilt_deg`).
+and the camera the weights serve, as their record states it (:func:`trained_camera_tilt_deg`), by which a race picks
+the packaged weights trained for its camera (:func:`variant_for_camera`).
 """
 
 from __future__ import annotations
@@ -132,6 +133,29 @@ def trained_camera_tilt_deg(record: Mapping) -> float:
     """The upward tilt (deg) of the camera weights were trained for, as their record states it; 0, the paper's
     untilted camera, for a record without it (every record written before the tilt was recorded)."""
     return float(record.get(CAMERA_TILT_KEY, 0.0))
+
+
+def variant_for_camera(variants: Mapping[str, Path], camera_tilt_deg: float) -> str | None:
+    """The first of the packaged weights ``variants`` (``{name: weights file}``, the model's default first) whose
+    record states the camera tilt ``camera_tilt_deg`` (:func:`trained_camera_tilt_deg`, to 1e-9 deg); None where none
+    was trained for that camera."""
+    for name, path in variants.items():
+        if abs(packaged_camera_tilt_deg(path) - float(camera_tilt_deg)) <= 1e-9:
+            return name
+    return None
+
+
+def packaged_camera_tilt_deg(path: Path) -> float:
+    """:func:`trained_camera_tilt_deg` of the record shipped beside the weights at ``path``, read again only when the
+    record changes (its mtime or size)."""
+    beside = Path(path).with_suffix(".json")
+    stat = beside.stat() if beside.exists() else None
+    return _record_tilt(str(path), stat and (stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=32)
+def _record_tilt(path: str, version) -> float:
+    return trained_camera_tilt_deg(weights_record(Path(path)))
 
 
 def weights_record(path: Path) -> dict:

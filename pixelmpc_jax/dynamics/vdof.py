@@ -262,17 +262,29 @@ def box_cue_of(config: Mapping) -> str:
 
 
 PACKAGED_VDOF = Path(__file__).resolve().parent.parent / "data" / "vdof_weights.msgpack"
+PACKAGED_VARIANTS = {
+    # trained for the paper's untilted camera (the default)
+    "vdof": PACKAGED_VDOF,
+    # trained through the racing camera, tilted up 30 degrees (its record's camera_tilt_deg): what a race on that
+    # camera flies by default
+    "vdof_tilt30": PACKAGED_VDOF.with_name("vdof_weights_tilt30.msgpack"),
+}
 
 
-def load_packaged_vdof() -> VDOFParams:
-    """The vdof weights shipped inside the package (``data/vdof_weights.msgpack``), when they are there."""
-    if not PACKAGED_VDOF.exists():
-        raise FileNotFoundError(f"{PACKAGED_VDOF}: the package ships no vdof weights; train them with `pixelmpc "
+def load_packaged_vdof(variant: str = "vdof") -> VDOFParams:
+    """vdof weights shipped inside the package: ``variant`` "vdof" (``data/vdof_weights.msgpack``, trained for the
+    untilted camera; the default) or "vdof_tilt30" (``data/vdof_weights_tilt30.msgpack``, for the camera tilted up
+    30 degrees); each has a ``.json`` beside it saying how it was made and for which camera."""
+    if variant not in PACKAGED_VARIANTS:
+        raise ValueError(f"unknown packaged vdof weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
+    path = PACKAGED_VARIANTS[variant]
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: the package ships no vdof weights; train them with `pixelmpc "
                                 f"train --model vdof --ship`")
-    return load_vdof(PACKAGED_VDOF)[0]
+    return load_vdof(path)[0]
 
 
-def packaged_vdof_hash() -> str:
-    """The fingerprint (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of the vdof weights shipped
-    inside the package (computed again only when the weights file changes)."""
-    return network_weights.packaged_weights_hash(PACKAGED_VDOF, load_packaged_vdof)
+def packaged_vdof_hash(variant: str = "vdof") -> str:
+    """The fingerprint (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of the vdof weights
+    ``variant`` shipped inside the package (computed again only when the weights file changes)."""
+    return network_weights.packaged_weights_hash(PACKAGED_VARIANTS[variant], load_packaged_vdof, variant)

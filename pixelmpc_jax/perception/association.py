@@ -88,9 +88,11 @@ def predict_gates(gates, x_prior: jax.Array, camera) -> detector_lib.Detection:
 
 
 def associate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, camera,
-              config: AssociationConfig) -> tuple[detector_lib.Detection, jax.Array]:
+              config: AssociationConfig, gate_std=None) -> tuple[detector_lib.Detection, jax.Array]:
     """The detection of the target gate ``candidates.target`` among ``candidates`` (K slots), from the map's
-    ``gates`` (G-batch) seen from the estimated pose ``x_prior`` (10,) (module docstring).
+    ``gates`` (G-batch) seen from the estimated pose ``x_prior`` (10,) (module docstring). ``gate_std``: (G,) m, how
+    far each gate's centre may stand from where ``gates`` put it (1 sigma; an estimator that estimates the gates):
+    the target's pixel gate widens by three times what that std subtends at the gate's distance (None: 0).
 
     Returns:
         detection: the chosen candidate as the target's ``Detection`` (``found`` only when accepted; a detection
@@ -111,12 +113,16 @@ def associate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, ca
     to_target = distance[:, target]  # (K,)
     best = jnp.argmin(to_target)
     nearest = to_target[best]
+    limit = config.gate_px
+    if gate_std is not None:  # the target's position uncertainty, in pixels at its distance
+        depth = jnp.maximum(jnp.linalg.norm(gates.centre[target] - x_prior[:3]), 1.0)
+        limit = limit + 3.0 * camera.fx * jnp.asarray(gate_std, dtype)[target] / depth
     slots, gate_ids = jnp.arange(to_target.shape[0]), jnp.arange(num_gates)
     next_candidate = jnp.min(jnp.where(slots == best, jnp.inf, to_target))
     other_gate = jnp.min(jnp.where(gate_ids == target, jnp.inf, distance[best]))
     rival = jnp.minimum(next_candidate, other_gate)
     outcome = jnp.where(~jnp.any(candidates.found), NONE,
-                        jnp.where(~(nearest <= config.gate_px), REJECTED,
+                        jnp.where(~(nearest <= limit), REJECTED,
                                   jnp.where(~(nearest < config.ratio * rival), AMBIGUOUS, ACCEPTED)))
     taken = outcome == ACCEPTED
     detection = detector_lib.Detection(
@@ -153,18 +159,42 @@ def prior_mean(mean: jax.Array, imu) -> jax.Array:
     return propagate_preintegrated(mean, imu, zero, zero).astype(mean.dtype)
 
 
+def _next_gate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, camera, config: AssociationConfig,
+               gate_std, target: detector_lib.Detection) -> detector_lib.Detection:
+    """The gate after the target named among ``candidates`` as the target is (:func:`associate`): nothing past the last
+    gate, nor where it would take the candidate the target took."""
+    num_gates = gates.centre.shape[0]
+    following = jnp.asarray(candidates.target, jnp.int32) + 1
+    detection, _ = associate(candidates._replace(target=following), x_prior, gates, camera, config, gate_std)
+    taken = target.found & jnp.all(detection.centre == target.centre)
+    keep = detection.found & (following < num_gates) & ~taken
+    return detection.replace(found=keep, corners_visible=detection.corners_visible & keep,
+                             gate_id=jnp.minimum(following, num_gates - 1))
+
+
 def make_associating(estimator: Estimator, config: AssociationConfig = AssociationConfig()) -> Estimator:
     """``estimator`` fed by :func:`associate`: its ``step(state, imu, candidates, params)`` takes the image's
     :class:`~pixelmpc_jax.perception.detector.Candidates`, names the target's from the last estimate carried over the
-    tick (:func:`prior_mean`) and the map (``params.gates``), and steps ``estimator`` with that detection (none when
-    rejected or ambiguous). Its ``info`` is :class:`AssociationInfo`; ``init``, ``align`` and ``config`` are the
+    tick (:func:`prior_mean`) and the map's gates where the estimator places them (``params.gates``, or
+    ``estimator.place_gates`` of them, the association's pixel gate widened by their uncertainty), and steps
+    ``estimator`` with that detection (none when rejected or ambiguous). An estimator that takes two detections a
+    tick (``Estimator.detections_per_tick``) gets the next gate's too, named the same way. Its ``info`` is
+    :class:`AssociationInfo` (the target's outcome); ``init``, ``align``, ``place_gates`` and ``config`` are the
     inner estimator's, the state an :class:`AssociatingState`."""
+    per_tick = estimator.detections_per_tick
 
-    def init(key: jax.Array, x0: jax.Array) -> AssociatingState:
-        return AssociatingState(inner=estimator.init(key, x0), mean=checked_x0(x0))
+    def init(key: jax.Array, x0: jax.Array, *gate_std) -> AssociatingState:
+        return AssociatingState(inner=estimator.init(key, x0, *gate_std), mean=checked_x0(x0))
 
     def step(state: AssociatingState, imu, candidates: detector_lib.Candidates, params: EstimatorParams):
-        detection, outcome = associate(candidates, prior_mean(state.mean, imu), params.gates, params.camera, config)
+        gates, gate_std = params.gates, None
+        if estimator.place_gates is not None:
+            gates, gate_std = estimator.place_gates(state.inner, params.gates)
+        prior = prior_mean(state.mean, imu)
+        detection, outcome = associate(candidates, prior, gates, params.camera, config, gate_std)
+        if per_tick > 1:
+            following = _next_gate(candidates, prior, gates, params.camera, config, gate_std, detection)
+            detection = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b.astype(a.dtype)]), detection, following)
         estimate, inner, info = estimator.step(state.inner, imu, detection, params)
         state = AssociatingState(inner=inner, mean=estimate.mean.astype(state.mean.dtype))
         return estimate, state, AssociationInfo(outcome=outcome, inner=info)
@@ -184,4 +214,5 @@ def make_associating(estimator: Estimator, config: AssociationConfig = Associati
         return state._replace(inner=estimator.align(state.inner, accel_mean, gyro_mean))
 
     return Estimator(init=init, step=step, check=check_inputs, config=estimator.config,
-                     align=None if estimator.align is None else align)
+                     align=None if estimator.align is None else align, place_gates=estimator.place_gates,
+                     detections_per_tick=per_tick)

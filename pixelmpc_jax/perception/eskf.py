@@ -79,6 +79,7 @@ from pixelmpc_jax.perception.estimator import Estimate, Estimator, EstimatorPara
 from pixelmpc_jax.perception.particle_filter import GRAVITY, propagate_preintegrated
 from pixelmpc_jax.settings import Range, check, setting
 from pixelmpc_jax.world import camera as camera_lib
+from pixelmpc_jax.world import track as track_lib
 
 ERROR_DIM = 15  # [dp, dv, dtheta, dba, dbg]
 NAV_DIM = 9  # [dp, dv, dtheta]: what NEES is computed over
@@ -225,12 +226,16 @@ class ESKFBelief:
         cov: (15, 15) covariance of the error state ``[dp, dv, dtheta, dba, dbg]``.
         noise_scale: () the corners' noise variance as a multiple of ``measurement_sigma_px^2`` (1 unless
             ``ESKFConfig.noise_adapt_rate`` > 0).
+        gate_offset: (G, 4) with the gates as states (:func:`init_belief`'s ``gate_std``), each gate's estimated
+            offset from the map ``[dx, dy, dz (m), dyaw (rad)]`` (``track.offset_gates``), its error the covariance's
+            rows ``15 + 4 g`` to ``19 + 4 g``; None: the map's gates are taken as they are.
     """
 
     x: jax.Array
     bias: jax.Array
     cov: jax.Array
     noise_scale: jax.Array
+    gate_offset: jax.Array | None = None
 
 
 class ImuInput(NamedTuple):
@@ -262,7 +267,8 @@ class ESKFState:
         anchor: the belief at tick k-D, after its update: where every step's replay starts.
         imu: ImuInput, leaves with leading axis D: the IMU into each tick of the window, oldest first.
         imu_valid: (D,) bool, the tick was integrated (False: before the first step, or a step without IMU).
-        detections: CornerInput, leaves with leading axis D: the detection captured at each tick of the window.
+        detections: CornerInput, leaves with leading axis D: the detection captured at each tick of the window (D, K
+            with K > 1 detections a tick (:func:`make_eskf`'s ``detections_per_tick``): each tick's K gates').
         latest: the belief at tick k, after its update (what :func:`eskf_estimate` reports).
     """
 
@@ -280,13 +286,16 @@ class ESKFEstimate(NamedTuple):
         mean: (10,) ``[p, q, v]``, ``qw >= 0``.
         position_cov: (3, 3) m^2.
         bias: (6,) ``[b_a (m/s^2), b_g (rad/s)]``.
-        covariance: (15, 15) of the error state ``[dp, dv, dtheta, dba, dbg]``.
+        covariance: (15, 15) of the error state ``[dp, dv, dtheta, dba, dbg]`` (15 + 4G square with the gates as
+            states, their offsets' errors after the vehicle's).
+        gate_offset: (G, 4) each gate's estimated offset from the map (:class:`ESKFBelief`); None without gate states.
     """
 
     mean: jax.Array
     position_cov: jax.Array
     bias: jax.Array
     covariance: jax.Array
+    gate_offset: jax.Array | None = None
 
 
 class ESKFInfo(NamedTuple):
@@ -365,12 +374,16 @@ def state_error(x_ref: jax.Array, x: jax.Array) -> jax.Array:
 
 
 def _corrected(belief: ESKFBelief, dx: jax.Array, cov: jax.Array) -> ESKFBelief:
-    """The belief after an update: the error ``dx`` (15,) injected, and the updated covariance ``cov`` moved into the
-    new attitude's frame (the ESKF reset of the attitude block) and symmetrised."""
-    x, bias = inject(belief.x, belief.bias, dx)
-    reset = jnp.eye(ERROR_DIM, dtype=cov.dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's new frame
+    """The belief after an update: the error ``dx`` (15,) injected (15 + 4G: the gates' offsets' errors added to
+    them), and the updated covariance ``cov`` moved into the new attitude's frame (the ESKF reset of the attitude
+    block) and symmetrised."""
+    x, bias = inject(belief.x, belief.bias, dx[:ERROR_DIM])
+    gate_offset = belief.gate_offset
+    if gate_offset is not None:
+        gate_offset = gate_offset + dx[ERROR_DIM:].reshape(gate_offset.shape)
+    reset = jnp.eye(cov.shape[0], dtype=cov.dtype).at[6:9, 6:9].add(-skew(0.5 * dx[6:9]))  # the attitude error's frame
     return ESKFBelief(x=x, bias=bias, cov=_symmetric(reset @ _symmetric(cov) @ reset.T),
-                      noise_scale=belief.noise_scale)
+                      noise_scale=belief.noise_scale, gate_offset=gate_offset)
 
 
 def _symmetric(P: jax.Array) -> jax.Array:
@@ -432,9 +445,14 @@ def _predict(belief: ESKFBelief, imu: ImuInput, config: ESKFConfig) -> ESKFBelie
     mean_noise_var = densities**2 / dt_safe  # (6,) variance of the tick's mean reading
     walk = jnp.asarray([0.0] * 3 + [config.velocity_walk] * 3 + [config.attitude_walk] * 3
                        + [config.accel_bias_walk] * 3 + [config.gyro_bias_walk] * 3, dtype)
-    cov = F @ belief.cov @ F.T + (G * mean_noise_var) @ G.T + jnp.diag(walk**2 * dt)
     x_next = propagate_nominal(belief.x, belief.bias, imu, config.gravity)
-    return ESKFBelief(x=x_next, bias=belief.bias, cov=_symmetric(cov), noise_scale=belief.noise_scale)
+    if belief.gate_offset is None:
+        cov = F @ belief.cov @ F.T + (G * mean_noise_var) @ G.T + jnp.diag(walk**2 * dt)
+    else:  # the gates stand still: their block keeps, their cross-covariance with the vehicle moves with it
+        vehicle, cross = belief.cov[:ERROR_DIM, :ERROR_DIM], F @ belief.cov[:ERROR_DIM, ERROR_DIM:]
+        moved = F @ vehicle @ F.T + (G * mean_noise_var) @ G.T + jnp.diag(walk**2 * dt)
+        cov = jnp.block([[moved, cross], [cross.T, belief.cov[ERROR_DIM:, ERROR_DIM:]]])
+    return belief.replace(x=x_next, cov=_symmetric(cov))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -504,14 +522,43 @@ class _CornerReport(NamedTuple):
     nis_dof: jax.Array
 
 
+def gate_jacobian(H: jax.Array, corners: jax.Array, centre: jax.Array) -> jax.Array:
+    """(4, 2, 4) the corners' pixels' Jacobian with respect to their gate's offset ``[dx, dy, dz, dyaw]``
+    (``track.offset_gates``), from their Jacobian ``H`` (4, 2, 15) with respect to the error state: a corner moved by
+    ``d`` shows as the vehicle moved by ``-d``, and a turn ``dyaw`` about z through the gate's ``centre`` (3,) moves
+    the corner (4, 3) by ``e_z x (corner - centre) dyaw``."""
+    d_world = -H[..., 0:3]  # (4, 2, 3)
+    arm = corners - centre
+    turn = jnp.stack([-arm[:, 1], arm[:, 0], jnp.zeros_like(arm[:, 0])], axis=-1)  # (4, 3) e_z x arm
+    return jnp.concatenate([d_world, jnp.einsum("kij,kj->ki", d_world, turn)[..., None]], axis=-1)
+
+
+def estimated_gates(gates, belief: ESKFBelief):
+    """The map's ``gates`` (G-batch) where the belief places them: moved by its ``gate_offset``; as given without."""
+    return gates if belief.gate_offset is None else track_lib.offset_gates(gates, belief.gate_offset)
+
+
+def gate_position_std(belief: ESKFBelief) -> jax.Array:
+    """(G,) m, the larger horizontal std of each estimated gate's centre (the belief with gate states)."""
+    variances = jnp.diagonal(belief.cov)[ERROR_DIM:].reshape(-1, 4)
+    return jnp.sqrt(jnp.maximum(variances[:, 0], variances[:, 1]))
+
+
 def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_lib.Camera, config: ESKFConfig):
     """The gated, robustly weighted corner update of one tick (module docstring). -> (belief, _CornerReport)."""
     dtype = belief.x.dtype
     num_gates = gates.centre.shape[0]
     gate_id = jnp.asarray(detection.gate_id, jnp.int32)
-    gate = jax.tree_util.tree_map(lambda leaf: leaf[jnp.clip(gate_id, 0, num_gates - 1)], gates)
+    index = jnp.clip(gate_id, 0, num_gates - 1)
+    gate = jax.tree_util.tree_map(lambda leaf: leaf[index], estimated_gates(gates, belief))
     P = belief.cov
-    predicted, H, in_front = reproject_corners(belief.x, gate.corners().astype(dtype), camera)  # (4, 2), (4, 2, 15)
+    n = P.shape[0]
+    corners = gate.corners().astype(dtype)
+    predicted, H, in_front = reproject_corners(belief.x, corners, camera)  # (4, 2), (4, 2, 15)
+    if belief.gate_offset is not None:  # the detected gate's offset enters too; the other gates' columns are 0
+        one_hot = (jnp.arange(num_gates) == index).astype(dtype)
+        gate_columns = one_hot[None, None, :, None] * gate_jacobian(H, corners, gate.centre.astype(dtype))[:, :, None]
+        H = jnp.concatenate([H, gate_columns.reshape(NUM_CORNERS, 2, n - ERROR_DIM)], axis=-1)
     scale = jnp.asarray([camera.width, camera.height], dtype)
     observed = jnp.asarray(detection.corners, dtype) * scale
     residual = observed - predicted  # (4, 2) px
@@ -525,7 +572,7 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     if config.noise_adapt_rate > 0:  # static: without adapting the noise is the configured one, bit for bit
         r_var = r_var * belief.noise_scale
     S_corner = H @ P @ jnp.swapaxes(H, -1, -2) + r_var * jnp.eye(2, dtype=dtype)  # (4, 2, 2), >= R: invertible
-    map_var = config.map_sigma_m**2
+    map_var = config.map_sigma_m**2 if belief.gate_offset is None else 0.0  # with gate states the offset is a state
     if map_var > 0:  # the gate's offset from the map, shared by its corners (static: an exact map adds nothing)
         H_pos = H[..., 0:3]
         S_corner = S_corner + map_var * H_pos @ jnp.swapaxes(H_pos, -1, -2)
@@ -535,7 +582,7 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     accepted = usable & (mahalanobis2 <= config.gate_chi2)
 
     rows = jnp.repeat(accepted, 2)  # (8,)
-    H_used = jnp.where(rows[:, None], H.reshape(2 * NUM_CORNERS, ERROR_DIM), 0.0)  # (8, 15)
+    H_used = jnp.where(rows[:, None], H.reshape(2 * NUM_CORNERS, n), 0.0)  # (8, n)
     r_used = jnp.where(rows, residual.reshape(2 * NUM_CORNERS), 0.0)  # (8,)
     HPHt = H_used @ P @ H_used.T
     if map_var > 0:  # the map's share of the corners' noise, on the used rows (the others have H = 0)
@@ -551,9 +598,9 @@ def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_li
     weight = jnp.where(accepted, robust_weight(mahalanobis2, config), 1.0)
 
     noise = jnp.repeat(r_var / weight, 2)  # (8,) R / w per row
-    gain = _solve_spd(HPHt + jnp.diag(noise), H_used @ P).T  # (15, 8), K = P H^T S^-1
+    gain = _solve_spd(HPHt + jnp.diag(noise), H_used @ P).T  # (n, 8), K = P H^T S^-1
     dx = gain @ r_used
-    I_KH = jnp.eye(ERROR_DIM, dtype=dtype) - gain @ H_used
+    I_KH = jnp.eye(n, dtype=dtype) - gain @ H_used
     if map_var > 0:  # Joseph form with the whole measurement noise, the corners' own and the map's
         map_noise = map_var * H_used[:, 0:3] @ H_used[:, 0:3].T
         cov = I_KH @ P @ I_KH.T + gain @ (jnp.diag(noise) + map_noise) @ gain.T
@@ -606,7 +653,15 @@ def _replay(anchor: ESKFBelief, imus: ImuInput, imu_valid: jax.Array, detections
     def tick(belief, inputs):
         imu, valid, detection = inputs
         belief = _tree_where(valid, _predict(belief, imu, config), belief)
-        belief, report = _update(belief, detection, gates, camera, config)
+        if detection.gate_id.ndim == 0:
+            belief, report = _update(belief, detection, gates, camera, config)
+        else:  # several gates' detections, one after the other; the report is the first's (the target gate's)
+            reports = []
+            for k in range(detection.gate_id.shape[0]):
+                belief, seen = _update(belief, jax.tree_util.tree_map(lambda a, k=k: a[k], detection), gates, camera,
+                                       config)
+                reports.append(seen)
+            report = reports[0]
         return belief, (belief, report)
 
     _, (beliefs, reports) = jax.lax.scan(tick, anchor, (imus, imu_valid, detections))
@@ -616,7 +671,8 @@ def _replay(anchor: ESKFBelief, imus: ImuInput, imu_valid: jax.Array, detections
 def _estimate(belief: ESKFBelief) -> ESKFEstimate:
     q = belief.x[QUAT]
     mean = belief.x.at[QUAT].set(jnp.where(q[0] < 0, -q, q))
-    return ESKFEstimate(mean=mean, position_cov=belief.cov[0:3, 0:3], bias=belief.bias, covariance=belief.cov)
+    return ESKFEstimate(mean=mean, position_cov=belief.cov[0:3, 0:3], bias=belief.bias, covariance=belief.cov,
+                        gate_offset=belief.gate_offset)
 
 
 def _step(state: ESKFState, imu: ImuInput, imu_valid, detection: CornerInput, delay_ticks, gates, camera,
@@ -626,7 +682,7 @@ def _step(state: ESKFState, imu: ImuInput, imu_valid, detection: CornerInput, de
     append = functools.partial(jax.tree_util.tree_map, lambda window, new: jnp.concatenate([window, new[None]]))
     imus = append(state.imu, imu)  # (D + 1, ...): ticks k-D..k
     valid = jnp.concatenate([state.imu_valid, jnp.asarray(imu_valid, bool)[None]])
-    detections = append(state.detections, _no_corners(dtype))
+    detections = append(state.detections, _no_corners(dtype, state.detections.gate_id.shape[1:]))
     delay = jnp.asarray(delay_ticks, jnp.int32)
     in_window = (delay >= 0) & (delay <= D)
     slot = D - jnp.clip(delay, 0, D)  # the capture tick's place in the window
@@ -653,7 +709,8 @@ def tick(state: ESKFState, imu, detection, delay_ticks, gates, camera: camera_li
         imu: the IMU over the tick that led to now (``sim.plant.TickIMU``: ``delta_q``, ``delta_v``, ``delta_p``,
             ``dt``), or None: no motion update this tick.
         detection: the target gate's ``Detection`` delivered now (``found=False`` or a negative ``gate_id``: nothing
-            detected), or None.
+            detected), or None; where the state was made for K > 1 detections a tick (:func:`init_belief`), K
+            gates' detections stacked on a leading axis, the target's first.
         delay_ticks: () int, how many ticks before now the detection's image was taken (0: on time); at most
             ``config.max_delay_ticks`` (a traced later one is dropped and reported in ``info.dropped``).
         gates: the map's ``Gate`` batch (G leading axis): the known corners.
@@ -674,11 +731,11 @@ def tick(state: ESKFState, imu, detection, delay_ticks, gates, camera: camera_li
         imu_input = ImuInput(*(jnp.asarray(getattr(imu, name), dtype) for name in IMU_FIELDS))
         imu_valid = jnp.asarray(True)
     if detection is None:
-        corners = _no_corners(dtype)
+        corners = _no_corners(dtype, state.detections.gate_id.shape[1:])
     else:
         corners_xy, corners_visible, found, gate_id = (getattr(detection, name) for name in DETECTION_FIELDS)
         gate_id = jnp.asarray(gate_id, jnp.int32)
-        detected = jnp.asarray(corners_visible, bool) & jnp.asarray(found, bool) & (gate_id >= 0)
+        detected = jnp.asarray(corners_visible, bool) & (jnp.asarray(found, bool) & (gate_id >= 0))[..., None]
         corners = CornerInput(corners=jnp.asarray(corners_xy, dtype), detected=detected, gate_id=gate_id)
     return _step(state, imu_input, imu_valid, corners, jnp.asarray(delay_ticks, jnp.int32), gates, camera, config)
 
@@ -690,8 +747,10 @@ def tick(state: ESKFState, imu, detection, delay_ticks, gates, camera: camera_li
 
 def _check_state(state: ESKFState, config: ESKFConfig) -> None:
     D = config.max_delay_ticks
+    offset = state.latest.gate_offset
+    n = ERROR_DIM if offset is None else ERROR_DIM + 4 * jnp.shape(offset)[0]
     shapes = (jnp.shape(state.latest.x), jnp.shape(state.latest.cov), jnp.shape(state.imu_valid))
-    if shapes != ((STATE_DIM,), (ERROR_DIM, ERROR_DIM), (D,)):
+    if shapes != ((STATE_DIM,), (n, n), (D,)):
         raise ValueError(f"ESKFState for one filter (vmap batches) with max_delay_ticks={D} needs x ({STATE_DIM},), "
                          f"cov ({ERROR_DIM}, {ERROR_DIM}) and a window of {D} ticks; got {shapes} (from the init of "
                          f"another config?)")
@@ -712,14 +771,16 @@ def _check_imu(imu) -> None:
                              f"{jnp.shape(getattr(imu, name)) if hasattr(imu, name) else 'missing'}")
 
 
-def _check_detection(detection) -> None:
-    """The detection's fields and shapes (None: nothing delivered)."""
+def _check_detection(detection, per_tick: int = 1) -> None:
+    """The detection's fields and shapes (None: nothing delivered): one gate's, or ``per_tick`` > 1 gates' stacked."""
     if detection is None:
         return
+    leading = () if per_tick == 1 else (per_tick,)
     shapes = tuple(jnp.shape(getattr(detection, name, None)) for name in DETECTION_FIELDS)
-    if shapes != tuple(DETECTION_FIELDS.values()):
-        raise ValueError(f"detection must be one detector.Detection with corners (4, 2), corners_visible (4,), "
-                         f"found () and gate_id (); got shapes {shapes}")
+    if shapes != tuple((*leading, *shape) for shape in DETECTION_FIELDS.values()):
+        what = "one detector.Detection" if per_tick == 1 else f"{per_tick} detector.Detections stacked"
+        raise ValueError(f"detection must be {what} with corners {(*leading, 4, 2)}, corners_visible {(*leading, 4)}, "
+                         f"found {leading} and gate_id {leading}; got shapes {shapes}")
 
 
 def _check_delay(delay_ticks, config: ESKFConfig) -> None:
@@ -735,21 +796,33 @@ def _check_delay(delay_ticks, config: ESKFConfig) -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def init_belief(x0: jax.Array, bias0: jax.Array, config: ESKFConfig, spread: tuple) -> ESKFState:
+def init_belief(x0: jax.Array, bias0: jax.Array, config: ESKFConfig, spread: tuple, gate_std=None,
+                detections_per_tick: int = 1) -> ESKFState:
     """The filter at ``x0`` (10,) ``[p, q, v]`` and IMU biases ``bias0`` (6,) ``[b_a, b_g]``, with an empty window.
 
     ``spread``: prior std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, per axis, in
-    the order of the particle filter's; the biases' prior stds are the config's.
+    the order of the particle filter's; the biases' prior stds are the config's. ``gate_std``: (G, 4), the gates as
+    states: each gate's offset from the map ``[dx, dy, dz (m), dyaw (rad)]`` starts at 0 with these prior stds (what
+    the drone was told of its map: ``course.gate_prior_std``); None: the map's gates as they are.
+    ``detections_per_tick``: K, the gates' detections each tick brings (1: the target's; 2: the next gate's too).
     """
     dtype = x0.dtype
     x0 = x0.at[QUAT].set(quadrotor.normalize_quat(x0[QUAT]))
     position_std, attitude_std, velocity_std = spread
-    stds = [position_std] * 3 + [velocity_std] * 3 + [attitude_std] * 3 + [config.accel_bias_std] * 3 \
-        + [config.gyro_bias_std] * 3
-    belief = ESKFBelief(x=x0, bias=bias0, cov=jnp.diag(jnp.asarray(stds, dtype) ** 2), noise_scale=jnp.ones((), dtype))
+    stds = jnp.asarray([position_std] * 3 + [velocity_std] * 3 + [attitude_std] * 3 + [config.accel_bias_std] * 3
+                       + [config.gyro_bias_std] * 3, dtype)
+    gate_offset = None
+    if gate_std is not None:
+        gate_std = jnp.asarray(gate_std, dtype)
+        if gate_std.ndim != 2 or gate_std.shape[-1] != 4:
+            raise ValueError(f"gate_std must have shape (G, 4) = [dx, dy, dz, dyaw] per gate, got {gate_std.shape}")
+        stds, gate_offset = jnp.concatenate([stds, gate_std.reshape(-1)]), jnp.zeros_like(gate_std)
+    belief = ESKFBelief(x=x0, bias=bias0, cov=jnp.diag(stds**2), noise_scale=jnp.ones((), dtype),
+                        gate_offset=gate_offset)
     D = config.max_delay_ticks
+    per_tick = () if detections_per_tick == 1 else (detections_per_tick,)
     return ESKFState(anchor=belief, imu=_no_imu(dtype, (D,)), imu_valid=jnp.zeros((D,), bool),
-                     detections=_no_corners(dtype, (D,)), latest=belief)
+                     detections=_no_corners(dtype, (D, *per_tick)), latest=belief)
 
 
 def align(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFState:
@@ -773,15 +846,16 @@ def align(state: ESKFState, accel_mean, gyro_mean, config: ESKFConfig) -> ESKFSt
     rotation = quadrotor.rotation_matrix(quadrotor.normalize_quat(belief.x[QUAT]))
     rest_force = rotation.T @ jnp.asarray([0.0, 0.0, config.gravity], dtype)  # the specific force at rest, body frame
     # readings = [R^T (0, 0, g) + b_a, b_g] + noise; with q_true = q exp(dtheta), R_true^T g = f + f x dtheta
-    H = jnp.zeros((6, ERROR_DIM), dtype).at[0:3, 6:9].set(skew(rest_force)).at[0:3, 9:12].set(jnp.eye(3, dtype=dtype))
+    n = P.shape[0]
+    H = jnp.zeros((6, n), dtype).at[0:3, 6:9].set(skew(rest_force)).at[0:3, 9:12].set(jnp.eye(3, dtype=dtype))
     H = H.at[3:6, 12:15].set(jnp.eye(3, dtype=dtype))
     residual = jnp.concatenate([jnp.asarray(accel_mean, dtype) - rest_force - belief.bias[:3],
                                 jnp.asarray(gyro_mean, dtype) - belief.bias[3:]])
     densities = jnp.asarray([config.accel_noise_density] * 3 + [config.gyro_noise_density] * 3, dtype)
     noise = densities**2 / config.align_s  # the variance of the readings' mean over align_s
-    gain = _solve_spd(H @ P @ H.T + jnp.diag(noise), H @ P).T  # (15, 6)
+    gain = _solve_spd(H @ P @ H.T + jnp.diag(noise), H @ P).T  # (n, 6)
     dx = gain @ residual
-    I_KH = jnp.eye(ERROR_DIM, dtype=dtype) - gain @ H
+    I_KH = jnp.eye(n, dtype=dtype) - gain @ H
     cov = I_KH @ P @ I_KH.T + (gain * noise) @ gain.T  # Joseph form
     aligned = _corrected(belief, dx, cov)
     return state.replace(anchor=aligned, latest=aligned)
@@ -802,13 +876,16 @@ def _as_gated(detection, info: ESKFInfo):
     return detection.replace(found=detection.found & ~rejected, corners_visible=detection.corners_visible & ~rejected)
 
 
-def make_eskf(config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=None) -> Estimator:
+def make_eskf(config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=None,
+              detections_per_tick: int = 1) -> Estimator:
     """The error-state Kalman filter as an :class:`~pixelmpc_jax.perception.estimator.Estimator`.
 
     Args:
         config: the filter's configuration (noises, gates, window length, ``align_s``).
         spread: prior std of ``(position m, attitude rad (body-frame rotation vector), velocity m/s)``, per axis.
         bias0: (6,) initial bias estimate ``[b_a, b_g]`` (None: zeros); its prior std is the config's.
+        detections_per_tick: K, the gates' detections each step takes: 1, the target gate's; 2, the next gate's too
+            (stacked, the target's first: the gates estimated as states are seen before they become the target).
 
     ``init(key, x0)``: :func:`init_belief` (``key`` unused: the filter draws nothing). ``step(state, imu, detection,
     params)``: :func:`tick` with ``params.delay_ticks``, ``params.gates``, ``params.camera``; its ``info`` is
@@ -816,31 +893,43 @@ def make_eskf(config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=
     gate rejected every usable corner. ``align``: :func:`align` when ``config.align_s`` > 0, else None.
     """
     spread = checked_spread(spread)
+    if detections_per_tick not in (1, 2):
+        raise ValueError(f"detections_per_tick must be 1 or 2, got {detections_per_tick!r}")
     bias0 = jnp.zeros(6, jnp.float32) if bias0 is None else jnp.asarray(bias0, jnp.float32)
     if bias0.shape != (6,):
         raise ValueError(f"bias0 must have shape (6,) = [b_a, b_g], got {bias0.shape}")
 
-    def init(key: jax.Array, x0: jax.Array) -> ESKFState:
+    def init(key: jax.Array, x0: jax.Array, gate_std=None) -> ESKFState:
         del key
-        return init_belief(checked_x0(x0), bias0, config, spread)
+        return init_belief(checked_x0(x0), bias0, config, spread, gate_std, detections_per_tick)
 
     def step(state: ESKFState, imu, detection, params: EstimatorParams):
         state, estimate, info = tick(state, imu, detection, params.delay_ticks, params.gates, params.camera, config)
+        gates = None if state.latest.gate_offset is None else estimated_gates(params.gates, state.latest)
+        if detection is not None and detections_per_tick > 1:  # the target's, first of the tick's detections
+            detection = jax.tree_util.tree_map(lambda a: a[0], detection)
         return (Estimate(mean=estimate.mean, position_cov_trace=info.position_cov_trace,
-                         detection=_as_gated(detection, info)), state, info)
+                         detection=_as_gated(detection, info), gates=gates), state, info)
 
     def check(state: ESKFState, imu, detection, params: EstimatorParams):
         _check_state(state, config)
         _check_delay(params.delay_ticks, config)
         _check_imu(imu)
-        _check_detection(detection)
+        _check_detection(detection, detections_per_tick)
         return state, imu, detection, params
 
     def align_on_pad(state: ESKFState, accel_mean, gyro_mean) -> ESKFState:
         return align(state, accel_mean, gyro_mean, config)
 
+    def place_gates(state: ESKFState, gates):
+        belief = state.latest
+        if belief.gate_offset is None:
+            return gates, jnp.zeros(gates.centre.shape[:1], belief.x.dtype)
+        return estimated_gates(gates, belief), gate_position_std(belief)
+
     return Estimator(init=init, step=step, check=check, config=config,
-                     align=align_on_pad if config.align_s > 0 else None)
+                     align=align_on_pad if config.align_s > 0 else None, place_gates=place_gates,
+                     detections_per_tick=detections_per_tick)
 
 
 def nees(estimate: ESKFEstimate, x_true: jax.Array) -> jax.Array:

@@ -54,11 +54,14 @@ class Estimate(NamedTuple):
         position_cov_trace: () m^2, trace of the estimate's position covariance (0 for the truth).
         detection: the tick's ``detector.Detection`` as the filter used it: ``found`` and ``corners_visible`` cleared
             where its gate rejected the detection (as given otherwise).
+        gates: the map's ``Gate`` batch where an estimator that estimates the gates places them now (the Kalman
+            filter started with ``gate_std``); None: the map's gates as they are.
     """
 
     mean: jax.Array
     position_cov_trace: jax.Array
     detection: Any
+    gates: Any = None
 
 
 class Estimator(NamedTuple):
@@ -66,7 +69,9 @@ class Estimator(NamedTuple):
 
     Attributes:
         init: ``init(key, x0) -> state``: the estimator's first state about ``x0`` (10,); ``key`` draws what it
-            draws (a particle cloud) and travels in the state.
+            draws (a particle cloud) and travels in the state. An estimator that can estimate the gates (the Kalman
+            filter) takes ``init(key, x0, gate_std)`` too: ``gate_std`` (G, 4) the prior stds of each gate's offset
+            from the map (``course.gate_prior_std``), and reports the gates where it places them in ``Estimate.gates``.
         step: ``step(state, imu, detection, params) -> (Estimate, state, info)``: one control tick with the IMU of the
             tick that led to now (``sim.plant.TickIMU``, or None: no motion update) and the detection of the target
             gate (``detector.Detection``, or None: no sensor update); ``params`` an :class:`EstimatorParams`.
@@ -75,6 +80,11 @@ class Estimator(NamedTuple):
         config: the configuration it was built with (None for the truth).
         align: ``align(state, accel_mean, gyro_mean) -> state``: the state before the first step, updated with the IMU's
             mean readings (3,), (3,) at rest on the pad; None where the estimator has none.
+        place_gates: ``place_gates(state, gates) -> (gates, std)``: the map's ``gates`` (G-batch) where the state
+            places them, and how far each centre may still be off, (G,) m (1 sigma, horizontal); None where the
+            estimator takes the map's gates as they are.
+        detections_per_tick: K, the gates' detections a step takes: 1, the target gate's; 2 (the Kalman filter with
+            the gates as states), the next gate's too, stacked on a leading axis, the target's first.
     """
 
     init: Callable[..., Any]
@@ -82,6 +92,8 @@ class Estimator(NamedTuple):
     check: Callable[..., tuple]
     config: Any = None
     align: Callable[..., Any] | None = None
+    place_gates: Callable[..., Any] | None = None
+    detections_per_tick: int = 1
 
 
 def checked_x0(x0) -> jax.Array:

@@ -35,6 +35,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from pixelmpc_jax import timing
@@ -67,7 +68,9 @@ SUBSTEPS = timing.SUBSTEPS_PER_TICK  # plant substeps per tick
 DETECTORS = ("clipped", "ideal", "image")
 ESTIMATORS = ("truth", "pf", "eskf")
 GATE_SWITCHES = ("estimate", "truth")
+GATE_MAPS = ("map", "estimated")
 _PAD_STREAM = 2901  # folded into the reset key: the IMU's noise on the pad (ESKFConfig.align_s)
+_NEXT_GATE_STREAM = 2902  # folded into the observation's key: the next gate's detector noise and dropout
 
 
 @struct.dataclass
@@ -84,6 +87,9 @@ class World:
         detector_dropout: () probability that a detection is missed.
         course: the course as it stands where it differs from the map (the perturbed gates of a race on a surveyed
             map; the same gates in number and order); None: the map is the course.
+        gate_std: (G, 4) what the drone was told of its map: the stds of each gate's offset from where the map puts it
+            ``[dx, dy, dz (m), dyaw (rad)]`` (``course.gate_prior_std``), the prior of the gates it estimates
+            (``EnvConfig.gates`` "estimated"); None: the map is taken as it is.
     """
 
     track: track_lib.Track
@@ -94,20 +100,27 @@ class World:
     detector_noise_px: jax.Array = 0.0
     detector_dropout: jax.Array = 0.0
     course: track_lib.Track | None = None
+    gate_std: jax.Array | None = None
 
 
 def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                plant_params: plant_lib.PlantParams | None = None,
                camera: camera_lib.Camera | None = None, dof=None, detector_noise_px: float = 0.0,
-               detector_dropout: float = 0.0, course: track_lib.Track | None = None) -> World:
+               detector_dropout: float = 0.0, course: track_lib.Track | None = None, gate_std=None) -> World:
     """A World with defaults: the AlphaPilot course as the map and the course flown (``course``: the course flown
-    where it differs from the map ``track``), the reference vehicle, the paper's camera."""
+    where it differs from the map ``track``), the reference vehicle, the paper's camera; ``gate_std`` (G, 4): what
+    the drone was told of its map's accuracy (:class:`World`)."""
     if not (isinstance(target_speed, (int, float)) and target_speed > 0):
         raise ValueError(f"target_speed must be a positive number of m/s, got {target_speed!r}")
     track = track if track is not None else course_lib.load_course()
     if course is not None and course.num_gates != track.num_gates:
         raise ValueError(f"the course flown has {course.num_gates} gates, the map {track.num_gates}: a map names the "
                          "same gates in the same order")
+    if gate_std is not None:
+        gate_std = jnp.asarray(gate_std, jnp.float32)
+        if gate_std.shape != (track.num_gates, 4) or not bool(jnp.all(jnp.isfinite(gate_std) & (gate_std >= 0))):
+            raise ValueError(f"gate_std must be ({track.num_gates}, 4) finite stds >= 0 [dx, dy, dz, dyaw] per gate, "
+                             f"got shape {gate_std.shape}")
     plant_params = plant_params if plant_params is not None else plant_lib.PlantParams()
     camera = camera if camera is not None else camera_lib.default_camera()
     leaves = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32)
@@ -115,7 +128,7 @@ def make_world(track: track_lib.Track | None = None, target_speed: float = 14.0,
                                     (plant_params, camera))
     return World(track=track, target_speed=jnp.asarray(target_speed, jnp.float32), plant_params=leaves[0],
                  camera=leaves[1], dof=dof, detector_noise_px=jnp.asarray(detector_noise_px, jnp.float32),
-                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32), course=course)
+                 detector_dropout=jnp.asarray(detector_dropout, jnp.float32), course=course, gate_std=gate_std)
 
 
 def stack_worlds(worlds: list[World]) -> World:
@@ -215,6 +228,10 @@ class EnvConfig:
         False, help="on a filter (pf or eskf), it starts each lap off the true start by an error drawn per lap (a "
                     "drone placed by hand on a pad: 0.1 m, 5 deg of yaw, 2 deg of roll and pitch), its initial "
                     "spread covering it")
+    gates: str = setting(
+        "map", choices=GATE_MAPS, help="map: the filter and the controller take the map's gates where the map puts "
+        "them; estimated: the Kalman filter estimates each gate's offset from the map (prior: what the drone was told "
+        "of its map, World.gate_std) and the controller's path, target and gate switch follow the estimated gates")
 
     def __post_init__(self):
         check(self)  # the timeout, the detector, the estimator and the gate switch, each in its range or choices
@@ -231,6 +248,8 @@ class EnvConfig:
         if self.gate_paint == "alike" and (self.faults.has_detector_noise or delay):
             raise ValueError("the detector's faults corrupt one gate's detection: with gate_paint='alike' (candidates "
                              "named by the estimator) they are not modelled yet")
+        if self.gates == "estimated" and self.estimator != "eskf":
+            raise ValueError("gates='estimated' are the Kalman filter's states: they need estimator='eskf'")
         if self.estimator == "truth" and (self.imu is not None or self.start_error):
             raise ValueError("imu and start_error act on a filter's inputs and start: they need estimator='pf' or "
                              "'eskf'")
@@ -263,6 +282,9 @@ class Observation(NamedTuple):
         association: () int32, with gates painted alike what became of the tick's candidates (an index of
             :data:`~pixelmpc_jax.perception.association.OUTCOMES`: none in view, accepted, rejected, ambiguous);
             :data:`~pixelmpc_jax.perception.association.NOT_ASSOCIATING` (-1) where each gate has its own hue.
+        track: with the gates estimated (``EnvConfig.gates``), the map as the estimator places its gates now, the
+            desired path rebuilt through them (``track.with_gates``): the policy flies it in place of the map; None:
+            the map as it is.
     """
 
     x_est: jax.Array
@@ -271,6 +293,7 @@ class Observation(NamedTuple):
     detection: detector_lib.Detection
     position_cov_trace: jax.Array = 0.0
     association: jax.Array = association_lib.NOT_ASSOCIATING
+    track: track_lib.Track | None = None
 
 
 class PolicyWorld(NamedTuple):
@@ -365,13 +388,15 @@ def _steered_gate(config: EnvConfig, state: SimState, num_gates: int) -> jax.Arr
     return state.target
 
 
-def _switch_on_estimate(world: World, state: SimState, x_est: jax.Array, detection: detector_lib.Detection):
+def _switch_on_estimate(known: track_lib.Track, state: SimState, x_est: jax.Array,
+                        detection: detector_lib.Detection):
     """The controller's gate switch from the estimate ``x_est`` (10,): its target moves on when the estimate
-    crossed the map's target gate since the last check (:func:`estimated_switch`). The tick's detection was of the
-    gate just left behind: the controller gets none for its new target this tick. -> (state, detection)."""
-    num_gates = world.track.num_gates
+    crossed the target gate of the map as the drone knows it (``known``: the map, or its gates where the estimator
+    places them) since the last check (:func:`estimated_switch`). The tick's detection was of the gate just left
+    behind: the controller gets none for its new target this tick. -> (state, detection)."""
+    num_gates = known.num_gates
     position = x_est[quadrotor.POS].astype(state.position_est.dtype)
-    gate = world.track.gate(jnp.minimum(state.target_est, num_gates - 1))
+    gate = known.gate(jnp.minimum(state.target_est, num_gates - 1))
     switched = (state.target_est < num_gates) & estimated_switch(gate, state.position_est, position)
     detection = detection.replace(found=detection.found & ~switched,
                                   corners_visible=detection.corners_visible & ~switched)
@@ -408,9 +433,9 @@ def _image_report(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camer
     frame = render_lib.render(track, x, camera, supersample=1, palette=palette)
 
     def host_detect(rgb, gate_id):
-        import numpy as np
-
-        return jax.tree_util.tree_map(np.asarray, detect(np.asarray(rgb), int(gate_id)))
+        gate_id = np.asarray(gate_id)
+        return jax.tree_util.tree_map(np.asarray, detect(np.asarray(rgb), int(gate_id) if gate_id.ndim == 0
+                                                         else gate_id))
 
     found = jax.pure_callback(host_detect, template, frame.rgb, target, vmap_method="sequential")
     return jax.tree_util.tree_map(lambda a, t: a.astype(t.dtype), found, template)
@@ -424,10 +449,20 @@ _DETECTION_TEMPLATE = detector_lib.Detection(
 
 def _image_detection(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array
                      ) -> detector_lib.Detection:
-    """The target gate found by its paint in the onboard frame (each gate its own hue)."""
-    return _image_report(track, x, camera, target,
-                         lambda rgb, gate_id: detector_lib.detect_from_image(rgb, gate_id, camera=camera),
-                         _DETECTION_TEMPLATE)
+    """The target gate found by its paint in the onboard frame (each gate its own hue); with ``target`` (K,) gate
+    indices, each of those gates in the one frame, stacked."""
+    if jnp.ndim(target) == 0:
+        return _image_report(track, x, camera, target,
+                             lambda rgb, gate_id: detector_lib.detect_from_image(rgb, gate_id, camera=camera),
+                             _DETECTION_TEMPLATE)
+
+    def detect_each(rgb, gate_ids):
+        found = [detector_lib.detect_from_image(rgb, int(gate_id), camera=camera) for gate_id in gate_ids]
+        return jax.tree_util.tree_map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *found)
+
+    template = jax.tree_util.tree_map(lambda t: jax.ShapeDtypeStruct((*jnp.shape(target), *t.shape), t.dtype),
+                                      _DETECTION_TEMPLATE)
+    return _image_report(track, x, camera, target, detect_each, template)
 
 
 def _image_candidates(track: track_lib.Track, x: jax.Array, camera: camera_lib.Camera, target: jax.Array,
@@ -452,6 +487,22 @@ def _progress(track: track_lib.Track, position: jax.Array, previous_s: jax.Array
     return track_lib.path_query(track, position, window).progress_s
 
 
+def _with_next_gate(config: EnvConfig, world: World, track: track_lib.Track, x: jax.Array, steered: jax.Array,
+                    detection: detector_lib.Detection, key: jax.Array, second=None) -> detector_lib.Detection:
+    """The target's ``detection`` and the next gate's, stacked (2 leading): the estimated gates are seen before they
+    become the target. The next gate's detector is the target's (``second``: the image detector's report of it in
+    the same frame); past the last gate it reports nothing."""
+    following = steered + 1
+    index = jnp.minimum(following, track.num_gates - 1)
+    if second is None:
+        detect = detector_lib.detect_in_view if config.detector == "clipped" else detector_lib.detect_from_geometry
+        second = detect(track.gate(index), x, world.camera, jax.random.fold_in(key, _NEXT_GATE_STREAM),
+                        world.detector_noise_px, world.detector_dropout, index)
+    exists = following < track.num_gates
+    second = second.replace(found=second.found & exists, corners_visible=second.corners_visible & exists)
+    return jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b.astype(a.dtype)]), detection, second)
+
+
 def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, state: SimState,
                       detection: detector_lib.Detection, key: jax.Array):
     """The detector's report with the configured detector faults (noise, misses, false detections: another gate's
@@ -473,11 +524,13 @@ def make_estimator(config: EnvConfig) -> estimator_lib.Estimator:
     filter), or the error-state Kalman filter, each about its start with ``config.pf_initial_spread`` (widened to
     cover the start's error with ``config.start_error``: :func:`~pixelmpc_jax.sim.start_error.covering`). With
     ``config.imu`` the Kalman filter is told that IMU's datasheet (:func:`~pixelmpc_jax.sim.imu.filter_config`); the
-    particle filter keeps its own noise model."""
+    particle filter keeps its own noise model. With ``config.gates`` "estimated" the Kalman filter takes two
+    detections a tick, the target gate's and the next one's (``make_eskf``'s ``detections_per_tick``)."""
     spread = start_lib.covering(config.pf_initial_spread) if config.start_error else config.pf_initial_spread
     if config.estimator == "eskf":
         eskf = config.eskf if config.imu is None else imu_lib.filter_config(imu_lib.IMU_SPECS[config.imu], config.eskf)
-        return eskf_lib.make_eskf(eskf, spread)
+        # with the gates estimated the next gate is seen too, before it becomes the target
+        return eskf_lib.make_eskf(eskf, spread, detections_per_tick=2 if config.gates == "estimated" else 1)
     if config.estimator == "pf":
         return guards_lib.make_guarded_particle_filter(config.pf, config.guards, spread)
     return estimator_lib.make_truth()
@@ -499,12 +552,19 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         return imu if imu_spec is None else imu_lib.read(imu, imu_errors, imu_spec, key)
 
     def init_filter(key: jax.Array, x0: jax.Array, plant_params: plant_lib.PlantParams,
-                    imu_errors: imu_lib.ImuErrors | None):
+                    imu_errors: imu_lib.ImuErrors | None, gate_std: jax.Array | None):
         """The estimator's first state about ``x0`` (with ``config.start_error``, about ``x0`` plus the start's error
-        drawn from ``key``: :func:`~pixelmpc_jax.sim.start_error.draw_start`), aligned on the IMU's readings at rest
-        at ``x0`` before the lap where it aligns (the Kalman filter with ``config.eskf.align_s`` > 0: the vehicle's own
-        IMU, its faults and ``config.imu``'s errors included)."""
-        state = estimator.init(key, start_lib.draw_start(x0, key) if config.start_error else x0)
+        drawn from ``key``: :func:`~pixelmpc_jax.sim.start_error.draw_start`), with the gates as states about the map
+        within ``gate_std`` where it estimates them, aligned on the IMU's readings at rest at ``x0`` before the lap
+        where it aligns (the Kalman filter with ``config.eskf.align_s`` > 0: the vehicle's own IMU, its faults and
+        ``config.imu``'s errors included)."""
+        start = start_lib.draw_start(x0, key) if config.start_error else x0
+        if config.gates == "estimated":
+            if gate_std is None:
+                raise ValueError("gates='estimated' needs what the drone was told of its map: World.gate_std (G, 4)")
+            state = estimator.init(key, start, gate_std)
+        else:
+            state = estimator.init(key, start)
         if estimator.align is not None:
             pad_key = jax.random.fold_in(key, _PAD_STREAM)
             pad = faults_lib.corrupt_imu(sensed(plant_lib.resting_imu(x0, config.eskf.align_s, pad_key, plant_params),
@@ -514,7 +574,8 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
 
     def estimate(world: World, state: SimState, detection: detector_lib.Detection):
         """The estimator's step with the last tick's IMU and ``detection``: ``(filter state, x_est, position
-        covariance trace, progress of the estimate, the detection as the loop uses it, the association's outcome)``.
+        covariance trace, progress of the estimate, the detection as the loop uses it, the association's outcome, the
+        map as the drone now knows it: with its gates where the estimator places them, or as it is)``.
         A detection the filter rejects (the particle filter's detection gate in ``config.guards``, the Kalman filter's
         own gate), or with gates painted alike candidates it could not name, reaches the controller as none."""
         x = state.plant.x
@@ -522,8 +583,9 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
                                                delay_ticks=faults.detection_delay_ticks, x_true=x)
         estimated, filter_state, info = estimator.step(state.filter, state.imu, detection, params)
         x_est = estimated.mean.astype(x.dtype)
-        return (filter_state, x_est, estimated.position_cov_trace, progress_of(world, state, x_est),
-                estimated.detection, association_of(info))
+        known = world.track if estimated.gates is None else track_lib.with_gates(world.track, estimated.gates)
+        return (filter_state, x_est, estimated.position_cov_trace, progress_of(known, state, x_est),
+                estimated.detection, association_of(info), known)
 
     def association_of(info) -> jax.Array:
         """() int32, what became of the tick's candidates (``Observation.association``)."""
@@ -532,13 +594,14 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         return jnp.asarray(association_lib.NOT_ASSOCIATING, jnp.int32)
 
     if config.estimator == "truth":
-        def progress_of(world: World, state: SimState, x_est: jax.Array) -> jax.Array:
+        def progress_of(known: track_lib.Track, state: SimState, x_est: jax.Array) -> jax.Array:
             """() m, the true progress (tracked on the course flown): the truth's estimate is the true state."""
             return state.progress_s
     else:
-        def progress_of(world: World, state: SimState, x_est: jax.Array) -> jax.Array:
-            """() m, the estimate's progress along the map's desired path, searched around the last."""
-            return _progress(world.track, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
+        def progress_of(known: track_lib.Track, state: SimState, x_est: jax.Array) -> jax.Array:
+            """() m, the estimate's progress along the desired path of the map as the drone knows it, searched
+            around the last."""
+            return _progress(known, x_est[quadrotor.POS], state.progress_est_s, config.progress_window_m)
 
     def reset(world: World, key: jax.Array) -> SimState:
         """The vehicle at rest at the course's start, level, with the motors at hover speed; ``key`` draws
@@ -553,7 +616,8 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             target=jnp.asarray(0, jnp.int32), target_est=jnp.asarray(0, jnp.int32), position_est=x0[quadrotor.POS],
             mismatch_ticks=jnp.asarray(0, jnp.int32), progress_s=jnp.asarray(0.0, jnp.float32),
             progress_est_s=jnp.asarray(0.0, jnp.float32),
-            filter=init_filter(key, x0, faults_lib.plant_params(world.plant_params, faults), imu_errors),
+            filter=init_filter(key, x0, faults_lib.plant_params(world.plant_params, faults), imu_errors,
+                               world.gate_std),
             imu=sensed(plant_lib.hover_tick_imu(CONTROL_DT, dtype=x0.dtype), imu_errors, key),
             end_cause=jnp.asarray(0, jnp.int32), done=jnp.asarray(False),
             faults=faults_lib.init_fault_state(faults, key, _course(world).gates, hover), imu_errors=imu_errors,
@@ -567,6 +631,10 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
         steered = _steered_gate(config, state, track.num_gates)
         if config.detector == "image" and config.gate_paint == "alike":
             detection = _image_candidates(track, x, world.camera, steered, config.association.max_candidates)
+        elif config.detector == "image" and config.gates == "estimated":  # the target and the next gate, one frame
+            following = jnp.minimum(steered + 1, track.num_gates - 1)
+            both = _image_detection(track, x, world.camera, jnp.stack([steered, following]))
+            detection, second = (jax.tree_util.tree_map(lambda a, k=k: a[k], both) for k in range(2))
         elif config.detector == "image":
             detection = _image_detection(track, x, world.camera, steered)
         else:
@@ -574,13 +642,18 @@ def make_env(config: EnvConfig = EnvConfig()) -> Env:
             detection = detect(track.gate(steered), x, world.camera, key, world.detector_noise_px,
                                world.detector_dropout, steered)
         detection, fault_state = _faulty_detection(config, world, track, state, detection, key)
-        filter_state, x_est, cov_trace, progress_est, detection, association = estimate(world, state, detection)
+        if config.gates == "estimated" and not (config.detector == "image" and config.gate_paint == "alike"):
+            detection = _with_next_gate(config, world, track, x, steered, detection, key,
+                                        second if config.detector == "image" else None)
+        filter_state, x_est, cov_trace, progress_est, detection, association, known = estimate(world, state,
+                                                                                                detection)
         state = state._replace(filter=filter_state, progress_est_s=progress_est, faults=fault_state)
         if config.switches_on_estimate:
-            state, detection = _switch_on_estimate(world, state, x_est, detection)
+            state, detection = _switch_on_estimate(known, state, x_est, detection)
         observation = Observation(
             x_est=x_est, target_gate=_steered_gate(config, state, track.num_gates), progress_s=progress_est,
             detection=detection, position_cov_trace=cov_trace.astype(jnp.float32), association=association,
+            track=known if config.gates == "estimated" else None,
         )
         return state, observation
 

@@ -62,6 +62,11 @@ class EpisodeLog(NamedTuple):
             :data:`~pixelmpc_jax.perception.association.OUTCOMES`: none in view, accepted, rejected, ambiguous); -1
             (:data:`~pixelmpc_jax.perception.association.NOT_ASSOCIATING`) where each gate has its own hue. None in a
             log built by hand.
+        gate_centre_error: (G,) m, for each gate passed, how far the centre the drone held for it (the map's, or
+            where the estimator placed it) stood from the gate's true centre at the tick the vehicle passed it; NaN
+            for a gate not passed. None in a log built by hand.
+        target_centre_est: (M, 3) m, at each tick the centre the drone held for the world's target gate (the map's, or
+            where the estimator placed it). None in a log built by hand.
     """
 
     states: jax.Array
@@ -79,6 +84,8 @@ class EpisodeLog(NamedTuple):
     end_cause: jax.Array
     finished: jax.Array
     association: jax.Array | None = None
+    gate_centre_error: jax.Array | None = None
+    target_centre_est: jax.Array | None = None
 
 
 class _Carry(NamedTuple):
@@ -133,13 +140,23 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
             end_cause=jnp.asarray(0, jnp.int32),
             finished=jnp.asarray(False),
             association=jnp.full((M,), association_lib.NOT_ASSOCIATING, jnp.int8),
+            gate_centre_error=jnp.full((world.track.num_gates,), jnp.nan, jnp.float32),
+            target_centre_est=jnp.zeros((M, 3), jnp.float32),
         )
 
     def record(log: EpisodeLog, world: World, obs: Observation, u: jax.Array, prediction: jax.Array,
-               sim: SimState) -> EpisodeLog:
-        """Write tick ``sim.tick - 1``: what was observed and commanded, and the state it led to."""
+               sim: SimState, passing: jax.Array) -> EpisodeLog:
+        """Write tick ``sim.tick - 1``: what was observed and commanded, the state it led to, and the error of the
+        drone's centre of the gate ``passing`` (the world's target before the tick) where the tick passed it."""
         tick, num_gates = sim.tick, world.track.num_gates
+        known = world.track if obs.track is None else obs.track
+        gate = jnp.minimum(passing, num_gates - 1)
+        error = jnp.linalg.norm(known.gates.centre[gate] - env_lib.flown_track(world, sim.faults).gates.centre[gate])
+        passed = sim.target > passing
         return log._replace(
+            target_centre_est=log.target_centre_est.at[tick - 1].set(known.gates.centre[gate].astype(jnp.float32)),
+            gate_centre_error=log.gate_centre_error.at[gate].set(
+                jnp.where(passed, error.astype(jnp.float32), log.gate_centre_error[gate])),
             states=log.states.at[tick].set(sim.plant.x),
             controls=log.controls.at[tick - 1].set(u),
             body_rates=log.body_rates.at[tick].set(sim.plant.rates),
@@ -162,10 +179,11 @@ def episode_fn(policy: Policy, config: EpisodeConfig = EpisodeConfig()) -> Calla
         def body(c: _Carry) -> _Carry:
             key, key_step, key_observe = jax.random.split(c.key, 3)
             sim, obs = env.observe(world, c.sim, key_observe)
-            u, policy_state, prediction = policy.act(c.policy_state, obs, known)
+            now = known if obs.track is None else known._replace(track=obs.track)  # the gates as estimated
+            u, policy_state, prediction = policy.act(c.policy_state, obs, now)
             sim = env.step(world, sim, u, key_step)
             return _Carry(sim=sim, policy_state=policy_state, key=key,
-                          log=record(c.log, world, obs, u, prediction, sim))
+                          log=record(c.log, world, obs, u, prediction, sim, c.sim.target))
 
         final = jax.lax.while_loop(lambda c: ~c.sim.done, body, _varying_with(key, carry))
         sim = final.sim

@@ -140,8 +140,9 @@ def racing_policy(ctrl, mppi_config: MPPIConfig, cost_config: costs.RacingCostCo
     def act(state: RacingPolicyState, obs: Observation, world: PolicyWorld):
         # First tick: no previous plan, every step's path window starts at the current progress.
         step_progress = jnp.where(jnp.isnan(state.step_progress), obs.progress_s, state.step_progress)
-        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config,
-                                     state.racing_constants)
+        # the map's constants, computed once; where the estimator places the gates (obs.track) the path moves
+        constants = state.racing_constants if obs.track is None else costs.racing_constants(world.track, cost_config)
+        racing = costs.racing_params(world.track, step_progress, world.target_speed, cost_config, constants)
         x_now, disturbance = obs.x_est, None
         if disturbance_tau:
             disturbance = disturbance_update(state.disturbance, state.expected, x_now, disturbance_tau)

@@ -37,12 +37,14 @@ from pixelmpc_jax.world.track import (
     PATH_RUNOUT,
     Gate,
     Track,
-    build_path,
     dense_path,
     gate_outer_corners,
     make_gate,
+    offset_gates,
     path_point_count,
     resample_path,
+    with_gates,
+    yaw_rotation,
 )
 
 COURSE_FILE = Path(__file__).resolve().parent.parent / "data" / "alphapilot_course.json"
@@ -309,9 +311,7 @@ def perturb_course(track: Track, key: jax.Array, bounds=None) -> Track:
     traces it. On the host, ``move_gates(track, perturb_gates(track, key))`` builds the same course with the path's
     halves compiled as a loaded course's are (:func:`move_gates`), within float rounding of this one.
     """
-    gates = perturb_gates(track, key, bounds)
-    pts, tan, s_path, gate_s = build_path(track.start[:3], gates, track.num_path_points)
-    return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
+    return with_gates(track, perturb_gates(track, key, bounds))
 
 
 def move_gates(track: Track, gates: Gate) -> Track:
@@ -334,13 +334,32 @@ def perturb_gates(track: Track, key: jax.Array, bounds=None) -> Gate:
     b = jnp.broadcast_to(jnp.abs(b), (track.num_gates, 3))
     draw = jax.random.uniform(key, (track.num_gates, 3), jnp.float32, minval=-1.0, maxval=1.0) * b
     centre = track.gates.centre + jnp.concatenate([draw[:, :2], jnp.zeros((track.num_gates, 1))], axis=-1)
-    yaw = jnp.deg2rad(draw[:, 2])
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
-    zero, one = jnp.zeros_like(yaw), jnp.ones_like(yaw)
-    rz = jnp.stack(
-        [jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)], -2
-    )  # (G, 3, 3)
-    return track.gates.replace(centre=centre, rotation=rz @ track.gates.rotation)
+    return track.gates.replace(centre=centre, rotation=yaw_rotation(jnp.deg2rad(draw[:, 2])) @ track.gates.rotation)
+
+
+# The error of a surveyed map, per gate (1 sigma): where a gate stands against where a tape-measured map of the hall
+# puts it, [x, y, z (m), yaw (rad)]: a tape over tens of metres is good to about 0.1 m, a gate's height to 0.05 m, its
+# heading to a degree. A lap on the surveyed course draws its gates from it (:func:`survey_gates`).
+SURVEY_SIGMA = (0.1, 0.1, 0.05, math.radians(1.0))
+
+
+def survey_gates(track: Track, key: jax.Array) -> Gate:
+    """The track's gates as they stand against a surveyed map: each moved by an offset drawn from a normal
+    distribution of :data:`SURVEY_SIGMA`. Pure and deterministic for a key."""
+    offset = jax.random.normal(key, (track.num_gates, 4), jnp.float32) * jnp.asarray(SURVEY_SIGMA, jnp.float32)
+    return offset_gates(track.gates, offset)
+
+
+def gate_prior_std(track: Track, perturbed: bool) -> jax.Array:
+    """(G, 4) what a drone given ``track`` as its map knows of where each gate stands, as the standard deviations of
+    its offset ``[dx, dy, dz (m), dyaw (rad)]``: the survey's error (:data:`SURVEY_SIGMA`) and, with ``perturbed``,
+    each gate moved anywhere within its published bounds (``track.perturbation_bounds``, uniform: ``b / sqrt(3)``)."""
+    survey = jnp.broadcast_to(jnp.asarray(SURVEY_SIGMA, jnp.float32), (track.num_gates, 4))
+    if not perturbed:
+        return survey
+    b = jnp.abs(jnp.asarray(track.perturbation_bounds, jnp.float32))
+    moved = jnp.stack([b[:, 0], b[:, 1], jnp.zeros_like(b[:, 0]), jnp.deg2rad(b[:, 2])], axis=-1) / math.sqrt(3.0)
+    return jnp.sqrt(survey**2 + moved**2)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -173,6 +173,22 @@ def gate_rotation(normal: jax.Array) -> jax.Array:
     return jnp.stack([n, lateral, up], axis=-1)
 
 
+def yaw_rotation(yaw: jax.Array) -> jax.Array:
+    """(..., 3, 3) rotations about world z by ``yaw`` (...,) rad."""
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    zero, one = jnp.zeros_like(yaw), jnp.ones_like(yaw)
+    return jnp.stack([jnp.stack([c, -s, zero], -1), jnp.stack([s, c, zero], -1), jnp.stack([zero, zero, one], -1)],
+                     -2)
+
+
+def offset_gates(gates: Gate, offset: jax.Array) -> Gate:
+    """``gates`` (a G-batch) each moved by its ``offset`` (G, 4) ``[dx, dy, dz (m), dyaw (rad)]``: the centre shifted,
+    the gate turned about world z through its centre by ``dyaw`` (as ``course.perturb_gates`` moves one)."""
+    offset = jnp.asarray(offset, gates.centre.dtype)
+    return gates.replace(centre=gates.centre + offset[..., :3],
+                         rotation=yaw_rotation(offset[..., 3]) @ gates.rotation)
+
+
 def gate_passed(gate: Gate, p0: jax.Array, p1: jax.Array) -> jax.Array:
     """Whether the segment p0 -> p1 crosses the gate plane, forwards along the normal, inside the opening.
 
@@ -357,6 +373,14 @@ def build_path(start_position: jax.Array, gates: Gate, num_points: int):
     points, derivs, s, gate_s = dense_path(start_position, gates.centre, gates.normal)
     pts, tan, s_new = resample_path(points, derivs, s, num_points=num_points)
     return pts, tan, s_new, gate_s
+
+
+def with_gates(track: Track, gates: Gate) -> Track:
+    """``track`` with ``gates`` (the same G) and its desired path rebuilt through them with the same number of samples
+    (:func:`build_path`), its start, hall and bounds kept. Pure: a course perturbed inside a jit, or the map as an
+    estimator places its gates, tick by tick."""
+    pts, tan, s_path, gate_s = build_path(track.start[:3], gates, track.num_path_points)
+    return track.replace(gates=gates, path_points=pts, path_tangents=tan, path_s=s_path, path_gate_s=gate_s)
 
 
 def path_point_count(length: float) -> int:

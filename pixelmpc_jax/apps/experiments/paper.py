@@ -66,7 +66,7 @@ def visibility_cells(pixel_model: str = "dof", speed: float = LABEL_SPEED, t_f_v
 
 
 def preset_of(spec: RaceSpec) -> str | None:
-    """The preset ("paper" or "best") whose race ``spec`` is, at any target speed; None for other cells."""
+    """The preset (of :data:`PRESETS`) whose race ``spec`` is, at any target speed; None for other cells."""
     for name in PRESETS:
         if spec.replace(speed=LABEL_SPEED).key() == preset(name).replace(speed=LABEL_SPEED).key():
             return name

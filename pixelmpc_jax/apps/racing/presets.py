@@ -1,6 +1,6 @@
 """Named races, each a frozen :class:`~pixelmpc_jax.apps.racing.spec.RaceSpec` with one home here: ``paper``, the
-paper's formulation as faithfully as it can be flown, and ``best``, the best configuration measured on the speed
-frontier.
+paper's formulation as faithfully as it can be flown, ``best``, the best configuration measured on the speed
+frontier, and ``racing``, best's settings on the racing camera (tilted up 30 degrees) at the paper's 14 m/s target.
 
 ``pixelmpc race --preset NAME`` starts from one (``best`` by default) and any flag overrides a single field of
 it; every output records the preset's name beside the settings it resolved to.
@@ -14,7 +14,7 @@ from pixelmpc_jax.apps.racing.spec import RaceSpec
 from pixelmpc_jax.control import costs
 from pixelmpc_jax.control.pixelmpc import ControllerConfig
 
-PRESETS = ("best", "paper")
+PRESETS = ("best", "paper", "racing")
 DEFAULT_PRESET = "best"
 PAPER_LABEL_SPEEDS = (14.0, 16.0, 20.0)  # m/s, the target speeds the paper names (Tables II-IV, the straight lane)
 PAPER_NOMINAL_LAP_S = {14.0: 31.8, 16.0: 29.6}  # the paper's nominal MPPI lap at each label (Tables III, IV)
@@ -25,6 +25,7 @@ PAPER_NOMINAL_LAP_S = {14.0: 31.8, 16.0: 29.6}  # the paper's nominal MPPI lap a
 # through the two (0.3 m/s per m/s of label).
 PAPER_PACE_SPEEDS = {14.0: 8.5, 16.0: 9.1, 20.0: 10.3}
 PAPER_PACE_SPEED = PAPER_PACE_SPEEDS[14.0]  # the pace of the paper's main label, where the presets fly
+RACING_CAMERA_TILT_DEG = 30.0  # the racing camera: tilted up on its mount, the packaged vdof_tilt30 trained through it
 
 WHY = {
     "paper": "the paper's formulation: its L1 pixel cost (Eq. 18) at its best cell (t_f 1 s, c_pixel 9e6), its DOF "
@@ -37,6 +38,9 @@ WHY = {
             "`pixelmpc tune` (58 trials on seeds 0-3; experiments/results/tune_look_ahead/), the two options against "
             "its tail chosen on seeds 1000-1199 (experiments/results/best_tail_1000/), with a 0.3 m clearance to the "
             "frames in its racing cost (the vehicle's 0.1 m plus the filter's error)",
+    "racing": "best's settings on the racing camera (tilted up 30 deg, for both controllers) at the paper's 14 m/s "
+              "target, vdof flying the packaged weights trained through that camera (vdof_tilt30); its costs are "
+              "best's, searched on the untilted camera at 8.5 m/s, not yet searched for this camera or speed",
 }
 
 # best's clearance to the gate frames, floor and walls in its racing cost (the vehicle's 0.1 m elsewhere; the world's
@@ -112,13 +116,16 @@ def with_loop(spec: RaceSpec, name: str) -> RaceSpec:
 
 def preset(name: str) -> RaceSpec:
     """The race ``name`` of :data:`PRESETS`, PixelMPC on the AlphaPilot course, one lap from seed 0: "best", the best
-    configuration measured on the speed frontier (the vdof pixel model at the paper's pace, 8.5 m/s), or "paper", the
-    paper's formulation at its 14 m/s target (:data:`WHY` says why each). :func:`nominal_of` gives its nominal MPPI
-    baseline; ``preset("best").replace(laps=10, seed=100)`` changes a field; ``race(spec)`` flies it."""
+    configuration measured on the speed frontier (the vdof pixel model at the paper's pace, 8.5 m/s), "paper", the
+    paper's formulation at its 14 m/s target, or "racing", best's settings on the camera tilted up 30 degrees at 14 m/s
+    with the vdof weights trained for that camera (:data:`WHY` says why each). :func:`nominal_of` gives its nominal
+    MPPI baseline; ``preset("best").replace(laps=10, seed=100)`` changes a field; ``race(spec)`` flies it."""
     if name == "paper":
         return RaceSpec("pixelmpc", ControllerConfig(), speed=PAPER_LABEL_SPEEDS[0])
     if name == "best":
         return RaceSpec("pixelmpc", _best(), speed=PAPER_PACE_SPEED)
+    if name == "racing":  # no weights named: the race's camera picks the packaged vdof trained for it (vdof_tilt30)
+        return RaceSpec("pixelmpc", _best(), speed=PAPER_LABEL_SPEEDS[0], camera_tilt_deg=RACING_CAMERA_TILT_DEG)
     raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
 
 

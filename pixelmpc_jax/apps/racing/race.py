@@ -17,10 +17,10 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from pixelmpc_jax.apps.racing.spec import RaceSpec
+from pixelmpc_jax.apps.racing.spec import PACKAGED_WEIGHTS, RaceSpec
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.devices import Execution, usable_sample_devices
-from pixelmpc_jax.dynamics import dof, vdof
+from pixelmpc_jax.dynamics.network_weights import variant_for_camera
 from pixelmpc_jax.perception import association as association_lib
 from pixelmpc_jax.sim import env as env_lib
 from pixelmpc_jax.sim import episode as episode_lib
@@ -34,17 +34,25 @@ from pixelmpc_jax.world import course as course_lib
 from pixelmpc_jax.world import track as track_lib
 
 
-def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool, map: str = "surveyed") -> env_lib.World:
+def lap_worlds(base: env_lib.World, seeds: list[int], perturb: bool, map: str = "surveyed",
+               survey_error: bool = False, gates: str = "map") -> env_lib.World:
     """One World per lap, stacked; with ``perturb`` each lap's course is perturbed with its own seed, and the world
     flies it while the map stays the nominal course (``map`` "surveyed") or the map is the perturbed course too
-    ("known")."""
+    ("known"). With ``survey_error`` (no ``perturb``) each lap's gates stand off the map by a survey's error drawn with
+    its seed (:func:`~pixelmpc_jax.world.course.survey_gates`). With ``gates`` "estimated" the world tells the drone
+    how far its map's gates may be off (``World.gate_std``: :func:`~pixelmpc_jax.world.course.gate_prior_std`)."""
     worlds = []
     for seed in seeds:
         world = base
         if perturb:
-            gates = course_lib.perturb_gates(base.track, jax.random.PRNGKey(10_000 + seed))
-            course = course_lib.move_gates(base.track, gates)
+            moved = course_lib.perturb_gates(base.track, jax.random.PRNGKey(10_000 + seed))
+            course = course_lib.move_gates(base.track, moved)
             world = base.replace(course=course) if map == "surveyed" else base.replace(track=course)
+        elif survey_error:
+            moved = course_lib.survey_gates(base.track, jax.random.PRNGKey(20_000 + seed))
+            world = base.replace(course=course_lib.move_gates(base.track, moved))
+        if gates == "estimated":
+            world = world.replace(gate_std=course_lib.gate_prior_std(base.track, perturb and map == "surveyed"))
         worlds.append(world)
     return env_lib.stack_worlds(worlds)
 
@@ -91,7 +99,8 @@ def fly_batch(race: Race, seeds: list[int]) -> list[tuple]:
     The seeds are padded to a whole batch (the last repeated, the copies dropped), so every batch has one
     shape and the vmapped episode compiles once."""
     padded = seeds + seeds[-1:] * (race.batch_size - len(seeds))
-    worlds = lap_worlds(race.flight.base, padded, race.spec.perturb, race.spec.map)
+    worlds = lap_worlds(race.flight.base, padded, race.spec.perturb, race.spec.map, race.spec.survey_error,
+                        race.spec.gates)
     return _fly_worlds(race.flight, worlds, padded)[:len(seeds)]
 
 
@@ -121,6 +130,10 @@ def lap_record(log, track: track_lib.Track, camera, seed: int, target_speed: flo
         for outcome in ("accepted", "rejected", "ambiguous"):
             code = association_lib.OUTCOMES.index(outcome)
             lap[f"associations_{outcome}"] = int(np.sum(association == code))
+    gate_errors = None if log.gate_centre_error is None else np.asarray(log.gate_centre_error)
+    if gate_errors is not None and np.any(np.isfinite(gate_errors)):  # the drone's gate centres at their passage
+        lap["mean_gate_centre_error_m"] = float(np.nanmean(gate_errors))
+        lap["max_gate_centre_error_m"] = float(np.nanmax(gate_errors))
     if estimator != "truth":
         lap["max_position_cov_trace"] = float(np.max(log.position_cov_trace[:n])) if n else None
         errors = np.linalg.norm(np.asarray(log.states)[:n, :3] - np.asarray(log.estimates)[:n, :3], axis=1)
@@ -346,7 +359,8 @@ def fly(controller: str | Policy = "mppi", world: env_lib.World | None = None, *
             :class:`~pixelmpc_jax.sim.env.PolicyWorld`, what the drone knows of ``world``).
         world: the course, the target speed, the vehicle and the camera
             (:func:`~pixelmpc_jax.sim.env.make_world`; None: the AlphaPilot course at 14 m/s). PixelMPC with a
-            learned pixel model flies the packaged weights when ``world.dof`` is None.
+            learned pixel model flies the packaged weights when ``world.dof`` is None: those trained for the world's
+            camera tilt where the package ships them, else the model's default (:func:`packaged_weights_for`).
         laps: lap i flies PRNG seed ``seed + i`` (the plant's noise and the controller's).
         episode: the loop (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`: time limit, detector, estimator;
             None: its defaults, the true state and the detector clipped at the image border).
@@ -372,8 +386,7 @@ def fly(controller: str | Policy = "mppi", world: env_lib.World | None = None, *
         config = ControllerConfig() if config is None else config
         runner, name = _runner(controller, config, 1, episode)
         if controller == "pixelmpc" and world.dof is None and config.pixel_model in LEARNED_PIXEL_MODELS:
-            world = world.replace(dof=vdof.load_packaged_vdof() if config.pixel_model == "vdof"
-                                  else dof.load_packaged_dof())
+            world = world.replace(dof=packaged_weights_for(config.pixel_model, world.camera))
     flight = _Flight(runner, world, name, 1)
     batch_size = min(batch_size, laps)
     seeds, flown = list(range(seed, seed + laps)), []
@@ -385,6 +398,15 @@ def fly(controller: str | Policy = "mppi", world: env_lib.World | None = None, *
                   for lap_seed, (log, lap_track) in zip(chunk, logs)]
     return RaceResult.of([lap.record for lap in flown], [lap.ticks for lap in flown], [lap.log for lap in flown],
                          name)
+
+
+def packaged_weights_for(pixel_model: str, camera: camera_lib.Camera):
+    """The learned pixel model's packaged weights (:data:`~pixelmpc_jax.apps.racing.spec.PACKAGED_WEIGHTS`) for
+    ``camera``: the first whose record states its tilt (to 1e-4 deg: a tilt held in float32), else the model's
+    default, trained for the untilted camera."""
+    packaged = PACKAGED_WEIGHTS[pixel_model]
+    tilt_deg = round(math.degrees(float(camera.tilt)), 4)
+    return packaged.load(variant_for_camera(packaged.variants, tilt_deg) or next(iter(packaged.variants)))
 
 
 def _progress_bar(spec: RaceSpec):

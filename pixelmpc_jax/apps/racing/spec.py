@@ -12,7 +12,8 @@ Settings that do not change a lap stay out of it: the batch size, the progress b
 video, and how a step runs (:class:`~pixelmpc_jax.devices.Execution`: how many devices its samples are split
 over). The DOF weights enter as their fingerprint
 (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`); the weights themselves are passed beside the
-spec.
+spec, or, for weights shipped in the package (:data:`PACKAGED_WEIGHTS`), named: by default those trained for the race's
+camera.
 """
 
 from __future__ import annotations
@@ -21,13 +22,21 @@ import dataclasses
 import hashlib
 import json
 import math
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from pixelmpc_jax.control.pixelmpc import LEARNED_PIXEL_MODELS, ControllerConfig
 from pixelmpc_jax.dynamics import dof, vdof
-from pixelmpc_jax.dynamics.network_weights import dof_weights_hash, trained_camera_tilt_deg, weights_record
+from pixelmpc_jax.dynamics.network_weights import (
+    dof_weights_hash,
+    packaged_camera_tilt_deg,
+    trained_camera_tilt_deg,
+    variant_for_camera,
+    weights_record,
+)
 from pixelmpc_jax.perception.association import AssociationConfig
 from pixelmpc_jax.perception.eskf import ESKFConfig
 from pixelmpc_jax.perception.filter_guards import GuardConfig
@@ -41,13 +50,32 @@ from pixelmpc_jax.world.course import COURSES
 MAPS = ("surveyed", "known")
 
 
+class PackagedWeights(NamedTuple):
+    """A learned pixel model's weights shipped in the package: ``variants`` ``{name: weights file}`` (the model's
+    default first, each with its record beside it), ``load(name)`` their parameters, ``fingerprint(name)`` their
+    :func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`."""
+
+    variants: Mapping[str, Path]
+    load: Callable
+    fingerprint: Callable[[str], str]
+
+
+# Each learned pixel model's packaged weights; a race names one by its name (RaceSpec.dof_weights), or by default flies
+# the first whose record states the race's camera tilt.
+PACKAGED_WEIGHTS = {
+    "dof": PackagedWeights(dof.PACKAGED_VARIANTS, dof.load_packaged_dof, dof.packaged_dof_hash),
+    "vdof": PackagedWeights(vdof.PACKAGED_VARIANTS, vdof.load_packaged_vdof, vdof.packaged_vdof_hash),
+}
+PACKAGED_NAMES = tuple(name for packaged in PACKAGED_WEIGHTS.values() for name in packaged.variants)
+
+
 def _default_config() -> ControllerConfig:
     return ControllerConfig()
 
 
 # Settings added after races were recorded and keyed: left out of the key at their defaults, so that a recorded
 # race (which flew them at their defaults) keeps its key and its cells are reused.
-KEYED_ONLY_OFF_DEFAULT = ("gate_paint", "association", "imu", "start_error")
+KEYED_ONLY_OFF_DEFAULT = ("gate_paint", "association", "imu", "start_error", "gates", "survey_error")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,10 +98,11 @@ class RaceSpec:
             MPPI on the true state uses no detection, and its key is one for both geometric detectors.
         estimator: "truth", "pf" (the particle filter) or "eskf" (the error-state Kalman filter).
         max_time_s: timeout per lap, s.
-        dof_weights: the DOF weights flown: the name of weights shipped in the package
-            (:data:`~pixelmpc_jax.dynamics.dof.PACKAGED_VARIANTS`: "flown", "turned"), or the fingerprint
-            (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of other weights; None for the packaged
-            paper weights. Always None for a race that does not evaluate the DOF.
+        dof_weights: the learned pixel model's weights flown: the name of weights shipped in the package for it
+            (:data:`PACKAGED_WEIGHTS`: the DOF's "flown", "turned", "paper_tilt30", vdof's "vdof_tilt30"), or the
+            fingerprint (:func:`~pixelmpc_jax.dynamics.network_weights.dof_weights_hash`) of other weights; None for
+            the model's packaged weights trained for the race's camera (:meth:`packaged_variant`; the name of those
+            is spelled None). Always None for a race that does not evaluate a learned pixel model.
         guards: the particle filter's guards (:class:`~pixelmpc_jax.perception.filter_guards.GuardConfig`); reset
             to none for a race on the true state.
         eskf: the error-state Kalman filter's settings (:class:`~pixelmpc_jax.perception.eskf.ESKFConfig`); reset
@@ -82,9 +111,10 @@ class RaceSpec:
             none by default).
         camera_tilt_deg: the onboard camera's upward tilt on its mount, deg (0: the paper's), in
             :data:`CAMERA_TILT_RANGE`; the detector, the controller and the visibility measure all see through
-            it. The packaged learned pixel models were trained for the untilted camera, so a tilted race flies the
-            projection pixel model, nominal MPPI, or weights trained for the tilt (refused where a learned model is
-            flown: :meth:`check_weights`).
+            it. A learned pixel model flies weights trained for the tilt: by default the packaged ones whose record
+            states it (the untilted camera's and the racing camera's, 30 deg, ship); at a tilt none was trained for,
+            a race flies the projection pixel model, nominal MPPI, or weights of its own (another camera's weights
+            are refused where a learned model is flown: :meth:`check_weights`).
         map: with ``perturb``, what the controller and the filter read: "surveyed", the nominal course, while the
             world flies the perturbed gates; or "known", the perturbed course itself (a perturbed course perfectly
             known, as every perturbed race flew before the setting). Without ``perturb`` the map is the course:
@@ -102,6 +132,13 @@ class RaceSpec:
             the simulator's IMU; reset to None on the true state.
         start_error: on a filter, it starts each lap off the true start by an error drawn per lap
             (:mod:`pixelmpc_jax.sim.start_error`); reset to False on the true state.
+        gates: on the Kalman filter, "map" (the map's gates as they are) or "estimated": the filter estimates each
+            gate's offset from the map, its prior what the drone was told (the perturbation bounds with ``perturb``
+            on a surveyed map, else the survey's error: ``course.gate_prior_std``), and the controller follows the
+            estimated gates (:class:`~pixelmpc_jax.sim.env.EnvConfig`); reset to "map" on another estimator.
+        survey_error: without ``perturb``, each lap's gates stand off the map by a survey's error drawn with the
+            lap's seed (``course.SURVEY_SIGMA``: 0.1 m across, 0.05 m up, 1 deg of yaw); reset to False with
+            ``perturb`` (the gates are moved within their bounds instead).
     """
 
     controller: str = "mppi"
@@ -117,17 +154,18 @@ class RaceSpec:
     estimator: str = like(EnvConfig, "estimator")
     max_time_s: float = like(EnvConfig, "max_time_s")
     dof_weights: str | None = setting(
-        None, none="the pixel model's packaged weights",
+        None, none="the pixel model's packaged weights for the race's camera",
         help="the learned pixel model's weights: a packaged DOF variant (paper: command input; flown: the flown-rate "
-             "weights; turned: trained with turned rows) or a weights file from `pixelmpc train`; with the vdof pixel "
-             "model: vdof, the packaged vdof weights (its default), or a file")
+             "weights; turned: trained with turned rows; paper_tilt30: the paper's for the camera tilted up 30 deg) "
+             "or a weights file from `pixelmpc train`; with the vdof pixel model: vdof, the packaged vdof weights, "
+             "vdof_tilt30, those for the camera tilted up 30 deg, or a file")
     guards: GuardConfig = dataclasses.field(default_factory=GuardConfig)
     eskf: ESKFConfig = dataclasses.field(default_factory=ESKFConfig)
     faults: Faults = dataclasses.field(default_factory=Faults)
     camera_tilt_deg: float = setting(
         0.0, range=CAMERA_TILT_RANGE, help="the onboard camera tilted up on its mount by DEG degrees, in {range}, for "
-        "both controllers, the detector and the measure; the packaged learned pixel models are trained for 0, so fly "
-        "the projection pixel model")
+        "both controllers, the detector and the measure; a learned pixel model flies the packaged weights trained for "
+        "that tilt (shipped for 0 and 30); at another tilt fly the projection pixel model or weights of your own")
     map: str = setting(
         "surveyed", choices=MAPS, help="with perturbed gates, what the controller and the filter read: surveyed, "
         "the nominal course, while the world flies the perturbed gates; known, the perturbed course itself (as "
@@ -137,6 +175,10 @@ class RaceSpec:
     association: AssociationConfig = dataclasses.field(default_factory=AssociationConfig)
     imu: str | None = like(EnvConfig, "imu")
     start_error: bool = like(EnvConfig, "start_error")
+    gates: str = like(EnvConfig, "gates")
+    survey_error: bool = setting(
+        False, help="without --perturb, each lap's gates stand off the map by a survey's error drawn per lap (0.1 m "
+                    "across, 0.05 m up, 1 deg of yaw, 1 sigma)")
 
     def __post_init__(self):
         if self.controller not in CONTROLLERS:
@@ -163,7 +205,7 @@ class RaceSpec:
         if self.estimator != "eskf":  # nor the Kalman filter's settings on another loop
             object.__setattr__(self, "eskf", ESKFConfig())
         # the map flies nothing on an unperturbed course; the switch, the filter's IMU and its start on the truth
-        for name in ("map", "gate_switch", "imu", "start_error"):
+        for name in ("map", "gate_switch", "imu", "start_error", "gates", "survey_error"):
             if not self.flies(name):
                 object.__setattr__(self, name, RaceSpec.__dataclass_fields__[name].default)
         if not isinstance(self.association, AssociationConfig):
@@ -172,21 +214,54 @@ class RaceSpec:
             object.__setattr__(self, "gate_paint", RaceSpec.__dataclass_fields__["gate_paint"].default)
         if self.gate_paint != "alike":  # the association names the candidates of gates painted alike only
             object.__setattr__(self, "association", AssociationConfig())
-        packaged_dof_name = self.dof_weights in dof.PACKAGED_VARIANTS
-        if not self.uses_dof or self.dof_weights == "paper" or (packaged_dof_name and self.config.pixel_model != "dof"):
-            object.__setattr__(self, "dof_weights", None)  # the DOF's packaged names name no other model's weights
+        if self._default_weights_named():  # one spelling of the packaged weights for the camera: None
+            object.__setattr__(self, "dof_weights", None)
+
+    def _default_weights_named(self) -> bool:
+        """Whether ``dof_weights`` names what None names: no weights where no learned pixel model flies, another
+        model's packaged weights (they name none of this model's), or this model's packaged weights for the race's
+        camera."""
+        if not self.uses_dof or self.dof_weights is None:
+            return True
+        if self.dof_weights not in PACKAGED_WEIGHTS[self.config.pixel_model].variants:
+            return self.dof_weights in PACKAGED_NAMES
+        return self.dof_weights == self._camera_variant()
+
+    def packaged_variant(self) -> str | None:
+        """The name of the packaged weights the race flies (:data:`PACKAGED_WEIGHTS`): the one ``dof_weights`` names,
+        or for None the first of the model's whose record states the race's camera tilt (the model's default, which
+        :meth:`check_weights` refuses, where the package ships none for that camera); None for weights named by a
+        fingerprint and for a race without a learned pixel model."""
+        if not self.uses_dof:
+            return None
+        if self.dof_weights is None:
+            return self._camera_variant()
+        return self.dof_weights if self.dof_weights in PACKAGED_WEIGHTS[self.config.pixel_model].variants else None
+
+    def _camera_variant(self) -> str:
+        """The learned pixel model's packaged weights for the race's camera: the first whose record states its tilt,
+        else the model's default."""
+        variants = PACKAGED_WEIGHTS[self.config.pixel_model].variants
+        return variant_for_camera(variants, self.camera_tilt_deg) or next(iter(variants))
 
     def flies(self, name: str) -> bool:
-        """Whether the setting ``name`` ("map", "gate_switch", "imu" or "start_error") changes a lap: the map with
-        ``perturb``, the others on a filter."""
-        return bool(self.perturb) if name == "map" else self.estimator != "truth"
+        """Whether the setting ``name`` ("map", "gate_switch", "imu", "start_error", "gates" or "survey_error")
+        changes a lap: the map with ``perturb``, the survey's error without, the estimated gates on the Kalman filter,
+        the others on a filter."""
+        if name == "map":
+            return bool(self.perturb)
+        if name == "survey_error":
+            return not self.perturb
+        if name == "gates":
+            return self.estimator == "eskf"
+        return self.estimator != "truth"
 
     def episode_config(self) -> EpisodeConfig:
         """The environment and driver the race's laps fly in (:class:`~pixelmpc_jax.sim.episode.EpisodeConfig`)."""
         return EpisodeConfig(max_time_s=self.max_time_s, detector=self.detector, estimator=self.estimator,
                              guards=self.guards, eskf=self.eskf, faults=self.faults, gate_switch=self.gate_switch,
                              imu=self.imu, start_error=self.start_error, gate_paint=self.gate_paint,
-                             association=self.association)
+                             association=self.association, gates=self.gates)
 
     @property
     def uses_dof(self) -> bool:
@@ -228,27 +303,23 @@ class RaceSpec:
         return dict(_changed(self.record()["config"], default, ""))
 
     def dof_fingerprint(self) -> str | None:
-        """The fingerprint of the DOF weights flown (:func:`~pixelmpc_jax.dynamics.dof.packaged_dof_hash` for a
-        packaged variant's name or None); None without the DOF."""
-        if not self.uses_dof:
-            return None
-        if self.config.pixel_model == "vdof":
-            return self.dof_weights or vdof.packaged_vdof_hash()
-        if self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS:
-            return dof.packaged_dof_hash(self.dof_weights or "paper")
-        return self.dof_weights
+        """The fingerprint of the learned pixel model's weights flown (the packaged weights' own for a packaged
+        variant's name or None: :meth:`packaged_variant`); None without a learned pixel model."""
+        variant = self.packaged_variant()
+        if variant is None:
+            return self.dof_weights
+        return PACKAGED_WEIGHTS[self.config.pixel_model].fingerprint(variant)
 
     def packaged_dof(self):
-        """The DOF weights the race names, when they ship in the package (None for a race without the DOF); a
-        ValueError for weights named by a fingerprint, which the caller must pass."""
+        """The learned pixel model's weights the race flies, when they ship in the package (:meth:`packaged_variant`;
+        None for a race without a learned pixel model); a ValueError for weights named by a fingerprint, which the
+        caller must pass."""
         if not self.uses_dof:
             return None
-        if self.dof_weights is not None and (self.config.pixel_model == "vdof"
-                                             or self.dof_weights not in dof.PACKAGED_VARIANTS):
+        variant = self.packaged_variant()
+        if variant is None:
             raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
-        if self.config.pixel_model == "vdof":
-            return vdof.load_packaged_vdof()
-        return dof.load_packaged_dof(self.dof_weights or "paper")
+        return PACKAGED_WEIGHTS[self.config.pixel_model].load(variant)
 
     def key(self) -> str:
         """The cache key: 16 hex digits of the sha256 of :meth:`record` as canonical JSON (every number as a
@@ -287,21 +358,23 @@ class RaceSpec:
         model only: nominal MPPI, or PixelMPC with the projection, flies any camera tilt."""
         if not self.uses_dof:
             return
-        packaged = self.dof_weights is None or self.dof_weights in dof.PACKAGED_VARIANTS
-        if packaged and record is None:
-            record = weights_record(vdof.PACKAGED_VDOF if self.config.pixel_model == "vdof"
-                                    else dof.PACKAGED_VARIANTS[self.dof_weights or "paper"])
+        model, variant = self.config.pixel_model, self.packaged_variant()
+        variants = PACKAGED_WEIGHTS[model].variants
+        if variant is not None and record is None:
+            record = weights_record(variants[variant])
         trained = None if record is None else trained_camera_tilt_deg(record)
         if trained is not None and abs(trained - self.camera_tilt_deg) > 1e-9:
             def camera(tilt: float) -> str:
                 return f"the camera tilted up {tilt:g} deg" if tilt else "the untilted camera"
 
-            raise ValueError(f"the {'packaged ' if packaged else ''}{self.config.pixel_model} weights were trained for "
-                             f"{camera(trained)}: with camera_tilt_deg={self.camera_tilt_deg:g} fly the projection "
-                             f"pixel model or weights trained for that camera")
+            shipped = sorted({packaged_camera_tilt_deg(path) for path in variants.values()})
+            weights = f"packaged {model} weights {variant}" if variant is not None else f"{model} weights"
+            raise ValueError(f"the {weights} were trained for {camera(trained)}: with camera_tilt_deg="
+                             f"{self.camera_tilt_deg:g} fly the projection pixel model or weights trained for that "
+                             f"camera (the package ships {model} weights for camera tilts "
+                             f"{', '.join(f'{tilt:g}' for tilt in shipped)} deg)")
         if dof_params is None:
-            if self.dof_weights is not None and (self.config.pixel_model == "vdof"
-                                                 or self.dof_weights not in dof.PACKAGED_VARIANTS):
+            if variant is None:
                 raise ValueError(f"the race flies DOF weights {self.dof_weights}: pass them as dof_params")
             return
         flown = dof_weights_hash(dof_params)

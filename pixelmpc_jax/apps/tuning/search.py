@@ -86,7 +86,13 @@ class TuneSetup:
         return preset(self.preset)
 
     def nominal_cells(self) -> list[grid.Cell]:
-        return [frontier.nominal_cell(v, self.base.max_time_s) for v in self.nominal_speeds]
+        return [self.nominal_cell(v) for v in self.nominal_speeds]
+
+    def nominal_cell(self, speed: float) -> grid.Cell:
+        """Nominal MPPI at ``speed`` with the base race's lap timeout and camera (a trial's visibility is held to
+        nominal's seen through the same camera)."""
+        cell = frontier.nominal_cell(speed, self.base.max_time_s)
+        return dataclasses.replace(cell, spec=cell.spec.replace(camera_tilt_deg=self.base.camera_tilt_deg))
 
     def record(self) -> dict:
         """In JSON types, as the study stores it (a study answers one setup)."""
@@ -297,7 +303,7 @@ def validate(study, setup: TuneSetup, out: Path, seed: int, laps: int = 10, fly:
     best = RaceSpec.from_record(trial.user_attrs["race"]).replace(laps=1, seed=0)
     tuned = grid.Cell("tuned", best)
     hand = grid.Cell(f"preset_{setup.preset}", setup.base)
-    at_target = frontier.nominal_cell(setup.base.speed, setup.base.max_time_s)
+    at_target = setup.nominal_cell(setup.base.speed)
     cells = setup.nominal_cells() + [hand, tuned]
     if course is not None:
         cells = [dataclasses.replace(cell, spec=cell.spec.replace(course=course)) for cell in cells]
