@@ -61,6 +61,19 @@ def test_the_objective_of_known_laps_is_the_hand_computed_frontier_gain():
     assert floored["score"] == pytest.approx(3.0 / 0.025)
 
 
+def test_a_trial_faster_than_nominals_fastest_scores_only_where_it_dominates():
+    """Laps faster than nominal MPPI's fastest point (28 s) are not bracketed: with less avoidable time than every
+    nominal point (2.0 s at best) they score the smallest nominal avoidable time over theirs; with more, 0."""
+    s = setup()
+    dominating = search.evaluate(flown(trial_cell(), [lap(27.0, 0.5)] * 2), trial_cell(), nominal_results(s), s)
+    assert dominating["feasible"] and not dominating["bracketed"] and dominating["dominating"]
+    assert dominating["score"] == pytest.approx(2.0 / 0.5)
+    seeing_less = search.evaluate(flown(trial_cell(), [lap(27.0, 3.0)] * 2), trial_cell(), nominal_results(s), s)
+    assert seeing_less["feasible"] and not seeing_less["dominating"] and seeing_less["score"] == 0.0
+    bracketed = search.evaluate(flown(trial_cell(), [lap(33.0, 0.5)] * 2), trial_cell(), nominal_results(s), s)
+    assert not bracketed["dominating"] and bracketed["score"] == pytest.approx(6.0)
+
+
 def test_a_failed_lap_is_penalised_below_every_feasible_score_and_never_nan():
     s = setup()
     feasible = search.evaluate(flown(trial_cell(), [lap(33.9, 1.0)] * 2), trial_cell(), nominal_results(s), s)

@@ -79,6 +79,8 @@ RACE_FLAGS: tuple[FieldFlag, ...] = (
     _setting("--association-ratio", "association.ratio", metavar="RATIO"),
     _setting("--imu", "imu"),
     _setting("--start-error", "start_error"),
+    _setting("--gates", "gates"),
+    _setting("--survey-error", "survey_error"),
     _setting("--camera-tilt", "camera_tilt_deg", metavar="DEG"),
     _setting("--max-time", "max_time_s"),
     _setting("--model-latency", "config.model_latency_ticks"),
@@ -183,6 +185,12 @@ def race_spec(args):
     filtered = [flag.flag for flag in RACE_FLAGS if flag.field in ("imu", "start_error") and fields.get(flag.field)]
     if filtered and spec.estimator == "truth":
         raise ValueError(f"{filtered[0]} acts on a filter: fly it with --estimator pf or eskf")
+    if fields.get("gates") == "estimated" and spec.estimator != "eskf":
+        raise ValueError("--gates estimated are the Kalman filter's states: fly it with --estimator eskf (or --loop "
+                         "onboard)")
+    if fields.get("survey_error") and spec.perturb:
+        raise ValueError("--survey-error draws the gates about the map: with --perturb they are moved within their "
+                         "bounds instead")
     for model, packaged in PACKAGED_WEIGHTS.items():  # a packaged name names one model's weights
         if args.dof_weights in packaged.variants and spec.config.pixel_model != model:
             raise ValueError(f"--dof-weights {args.dof_weights} names the {model} model's weights: fly it with "

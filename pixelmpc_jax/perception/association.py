@@ -13,8 +13,13 @@ With one paint for every gate (``render.GATE_PAINTS``), the image detector repor
 3. Decide. The candidate nearest the target gate's prediction is taken when it lies within
    ``AssociationConfig.gate_px`` of it (else the tick is *rejected*) and when nothing rivals it: its distance is
    less than ``AssociationConfig.ratio`` times both the next candidate's distance to the target's prediction and
-   its own distance to any other mapped gate's prediction (else the tick is *ambiguous*). A rejected or ambiguous
-   tick makes no update (the filter sees no detection) and is counted (:data:`OUTCOMES`).
+   its own distance to any other mapped gate's prediction that no other candidate lies nearer to (else the tick is
+   *ambiguous*): a far gate whose own component shows beside the target's is explained by that component. Where the
+   estimator places the gates with an uncertainty (gates estimated from the map), a prediction may lie anywhere
+   within three times what that uncertainty subtends at the gate's distance: a candidate is measured by how far it
+   lies beyond that, plus its shape's gap to the prediction's (the size the gate's distance gives it), so that a
+   near gate and a far one seen beside it are told apart by their size where their places are uncertain. A rejected or
+   ambiguous tick makes no update (the filter sees no detection) and is counted (:data:`OUTCOMES`).
 
 :func:`associate` is the decision, pure (jit- and vmap-able). :func:`make_associating` composes it in front of any
 :class:`~pixelmpc_jax.perception.estimator.Estimator`: its state carries the last estimate, which the tick's IMU
@@ -81,6 +86,17 @@ def detection_distance_px(a: detector_lib.Detection, b: detector_lib.Detection, 
     return jnp.maximum(centre_gap, jnp.where(jnp.any(shared), corner_gap, box_gap))
 
 
+def shape_distance_px(a: detector_lib.Detection, b: detector_lib.Detection, camera) -> jax.Array:
+    """() pixels between two reports' shapes, wherever they lie: the largest gap between their opening's corners both
+    show, each taken from its own centre, or with none in common the larger gap between their boxes' widths and
+    heights (single ``Detection`` s, normalised, as :func:`detection_distance_px`)."""
+    scale = jnp.asarray([camera.width, camera.height], a.centre.dtype)
+    shared = a.corners_visible & b.corners_visible
+    gaps = jnp.sqrt(jnp.sum((((a.corners - a.centre) - (b.corners - b.centre)) * scale) ** 2, axis=-1))
+    size_a, size_b = a.bbox[2:] - a.bbox[:2], b.bbox[2:] - b.bbox[:2]
+    return jnp.where(jnp.any(shared), jnp.max(jnp.where(shared, gaps, 0.0)), jnp.max(jnp.abs(size_a - size_b) * scale))
+
+
 def predict_gates(gates, x_prior: jax.Array, camera) -> detector_lib.Detection:
     """Every mapped gate (``gates``: a G-batch) as a camera's detector would report it from ``x_prior`` (10,): a
     :class:`~pixelmpc_jax.perception.detector.Detection` with a leading G axis."""
@@ -92,7 +108,10 @@ def associate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, ca
     """The detection of the target gate ``candidates.target`` among ``candidates`` (K slots), from the map's
     ``gates`` (G-batch) seen from the estimated pose ``x_prior`` (10,) (module docstring). ``gate_std``: (G,) m, how
     far each gate's centre may stand from where ``gates`` put it (1 sigma; an estimator that estimates the gates):
-    the target's pixel gate widens by three times what that std subtends at the gate's distance (None: 0).
+    within three times what that std subtends at the gate's distance its prediction may lie anywhere, and a candidate
+    is measured by how far it lies beyond that plus how far its shape is from the prediction's
+    (:func:`shape_distance_px`: the size the gate's distance gives it), in the gate and the ratio test alike (None:
+    the distance of :func:`detection_distance_px`).
 
     Returns:
         detection: the chosen candidate as the target's ``Detection`` (``found`` only when accepted; a detection
@@ -109,20 +128,29 @@ def associate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, ca
         gate_id=jnp.full(candidates.found.shape, -1, jnp.int32))
     pairwise = jax.vmap(jax.vmap(detection_distance_px, in_axes=(None, 0, None)), in_axes=(0, None, None))
     distance = pairwise(seen, predicted, camera)  # (K, G) px
-    distance = jnp.where(candidates.found[:, None] & predicted.found[None, :], distance, jnp.inf)
+    visible = candidates.found[:, None] & predicted.found[None, :]
+    distance = jnp.where(visible, distance, jnp.inf)
+    if gate_std is not None:  # each gate's position uncertainty, in pixels at its distance
+        # within its uncertainty a gate may stand anywhere: a candidate is scored by how far it lies beyond that
+        # uncertainty plus how far its shape (the size the gate's distance gives it) is from the prediction's, in
+        # pixels, and one lying beyond the gate (config.gate_px) outside that uncertainty is no match
+        depth = jnp.maximum(jnp.linalg.norm(gates.centre - x_prior[:3], axis=-1), 1.0)  # (G,)
+        slack = 3.0 * camera.fx * jnp.asarray(gate_std, dtype) / depth
+        shapes = jax.vmap(jax.vmap(shape_distance_px, in_axes=(None, 0, None)), in_axes=(0, None, None))
+        beyond = jnp.maximum(distance - slack[None, :], 0.0)
+        distance = jnp.where(beyond <= config.gate_px, beyond + shapes(seen, predicted, camera), jnp.inf)
     to_target = distance[:, target]  # (K,)
     best = jnp.argmin(to_target)
     nearest = to_target[best]
-    limit = config.gate_px
-    if gate_std is not None:  # the target's position uncertainty, in pixels at its distance
-        depth = jnp.maximum(jnp.linalg.norm(gates.centre[target] - x_prior[:3]), 1.0)
-        limit = limit + 3.0 * camera.fx * jnp.asarray(gate_std, dtype)[target] / depth
     slots, gate_ids = jnp.arange(to_target.shape[0]), jnp.arange(num_gates)
     next_candidate = jnp.min(jnp.where(slots == best, jnp.inf, to_target))
-    other_gate = jnp.min(jnp.where(gate_ids == target, jnp.inf, distance[best]))
+    # another gate rivals the candidate only where the candidate is its nearest: a gate whose own component shows
+    # (a far gate seen beside or through the target) is explained by that component, not by this one
+    claims = distance[best] <= jnp.min(jnp.where((slots == best)[:, None], jnp.inf, distance), axis=0)  # (G,)
+    other_gate = jnp.min(jnp.where((gate_ids == target) | ~claims, jnp.inf, distance[best]))
     rival = jnp.minimum(next_candidate, other_gate)
     outcome = jnp.where(~jnp.any(candidates.found), NONE,
-                        jnp.where(~(nearest <= limit), REJECTED,
+                        jnp.where(~(nearest <= config.gate_px), REJECTED,
                                   jnp.where(~(nearest < config.ratio * rival), AMBIGUOUS, ACCEPTED)))
     taken = outcome == ACCEPTED
     detection = detector_lib.Detection(
@@ -165,7 +193,7 @@ def _next_gate(candidates: detector_lib.Candidates, x_prior: jax.Array, gates, c
     gate, nor where it would take the candidate the target took."""
     num_gates = gates.centre.shape[0]
     following = jnp.asarray(candidates.target, jnp.int32) + 1
-    detection, _ = associate(candidates._replace(target=following), x_prior, gates, camera, config, gate_std)
+    detection, _ = associate(candidates.replace(target=following), x_prior, gates, camera, config, gate_std)
     taken = target.found & jnp.all(detection.centre == target.centre)
     keep = detection.found & (following < num_gates) & ~taken
     return detection.replace(found=keep, corners_visible=detection.corners_visible & keep,

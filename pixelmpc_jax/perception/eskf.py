@@ -538,10 +538,18 @@ def estimated_gates(gates, belief: ESKFBelief):
     return gates if belief.gate_offset is None else track_lib.offset_gates(gates, belief.gate_offset)
 
 
-def gate_position_std(belief: ESKFBelief) -> jax.Array:
-    """(G,) m, the larger horizontal std of each estimated gate's centre (the belief with gate states)."""
-    variances = jnp.diagonal(belief.cov)[ERROR_DIM:].reshape(-1, 4)
-    return jnp.sqrt(jnp.maximum(variances[:, 0], variances[:, 1]))
+def seen_gate_std(belief: ESKFBelief, gates) -> jax.Array:
+    """(G,) m, how far each gate's centre, seen from the estimate, may stand off where the belief places it (1 sigma):
+    its own position's larger horizontal std (with gate states), the vehicle's larger position std, and its largest
+    attitude std turning the line of sight over the gate's distance, together."""
+    diagonal = jnp.diagonal(belief.cov)
+    position_var, attitude_var = jnp.max(diagonal[0:3]), jnp.max(diagonal[6:9])
+    depth = jnp.linalg.norm(gates.centre - belief.x[POS], axis=-1)
+    variance = position_var + attitude_var * depth**2
+    if belief.gate_offset is not None:
+        own = diagonal[ERROR_DIM:].reshape(-1, 4)
+        variance = variance + jnp.maximum(own[:, 0], own[:, 1])
+    return jnp.sqrt(variance)
 
 
 def _update(belief: ESKFBelief, detection: CornerInput, gates, camera: camera_lib.Camera, config: ESKFConfig):
@@ -923,9 +931,8 @@ def make_eskf(config: ESKFConfig = ESKFConfig(), spread=(0.3, 0.03, 0.2), bias0=
 
     def place_gates(state: ESKFState, gates):
         belief = state.latest
-        if belief.gate_offset is None:
-            return gates, jnp.zeros(gates.centre.shape[:1], belief.x.dtype)
-        return estimated_gates(gates, belief), gate_position_std(belief)
+        placed = estimated_gates(gates, belief)
+        return placed, seen_gate_std(belief, placed)
 
     return Estimator(init=init, step=step, check=check, config=config,
                      align=align_on_pad if config.align_s > 0 else None, place_gates=place_gates,

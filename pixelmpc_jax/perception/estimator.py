@@ -81,8 +81,9 @@ class Estimator(NamedTuple):
         align: ``align(state, accel_mean, gyro_mean) -> state``: the state before the first step, updated with the IMU's
             mean readings (3,), (3,) at rest on the pad; None where the estimator has none.
         place_gates: ``place_gates(state, gates) -> (gates, std)``: the map's ``gates`` (G-batch) where the state
-            places them, and how far each centre may still be off, (G,) m (1 sigma, horizontal); None where the
-            estimator takes the map's gates as they are.
+            places them, and how far each centre, seen from the estimate, may still stand off that place, (G,) m (1
+            sigma: the gate's own uncertainty and the pose's over its distance); None where the estimator has no
+            covariance to tell it (the truth, the particle filter).
         detections_per_tick: K, the gates' detections a step takes: 1, the target gate's; 2 (the Kalman filter with
             the gates as states), the next gate's too, stacked on a leading axis, the target's first.
     """

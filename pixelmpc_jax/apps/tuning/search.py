@@ -14,7 +14,11 @@ cannot be bought by looking away where the avoidable time does not look. An infe
 shortfall the sum of the three figures' relative shortfalls against nominal's: below every feasible score
 (a gain is >= 0), finite, and worse the more laps it lost, the slower it flew or the less it saw, so the sampler
 still learns which way feasibility lies. A feasible trial whose lap time the nominal frontier does not bracket
-scores 0.
+scores 0, unless it dominates: faster than nominal MPPI's fastest point (where nominal's lap stops getting faster as
+its target rises, as it does on the racing camera at 13.5-14.5 m/s), with less avoidable time than every nominal
+point and seeing no worse than the fastest point; then it scores the smallest nominal avoidable time over its own
+(:func:`dominating_gain`), the gain against the nominal point that saw best, so a racing search is not pushed to
+slower laps by a frontier that cannot follow.
 
 **Engine: Optuna's TPE sampler, seeded.** Optuna is a well-kept library with the store a long search needs: the
 study lives in a database (SQLite in ``DIR/study.db`` by default), so an interrupted search resumes where it
@@ -119,21 +123,43 @@ def view_shortfall(row: dict) -> dict:
                                               row.get("frontier_mean_target_angle_deg"), True)}
 
 
-def score(row: dict, nominal_lap_s: float, bound: float) -> dict:
+def dominating_gain(row: dict, nominal: list[dict]) -> float | None:
+    """A frontier row the nominal points ``nominal`` (``frontier.build``'s, each with ``lap_time_s`` and
+    ``avoidable_s``) do not bracket, held against them where it is faster than their fastest lap: the smallest nominal
+    avoidable time over the row's (floored at one control tick as :func:`frontier.build` floors it) where that is
+    above 1 (less avoidable time than every nominal point) and the row sees no worse than the fastest point (the
+    three figures of :func:`view_shortfall`); None otherwise (slower than the fastest point, or not dominating)."""
+    points = [p for p in nominal if p.get("lap_time_s") is not None and p.get("avoidable_s") is not None]
+    if row["bracketed"] or row["lap_time_s"] is None or row["avoidable_s"] is None or not points:
+        return None
+    fastest = min(points, key=lambda p: p["lap_time_s"])
+    if row["lap_time_s"] >= fastest["lap_time_s"]:
+        return None
+    gain = min(p["avoidable_s"] for p in points) / max(row["avoidable_s"], frontier.AVOIDABLE_FLOOR_S)
+    against = {**row, **{f"frontier_{figure}": fastest.get(figure) for figure in
+                         ("vis_below_50_s", "share_target_in_view", "mean_target_angle_deg")}}
+    return gain if gain > 1.0 and not any(view_shortfall(against).values()) else None
+
+
+def score(row: dict, nominal_lap_s: float, bound: float, nominal: list[dict] | None = None) -> dict:
     """A trial's objective from its frontier row (:func:`frontier.build`) and nominal MPPI's lap time at the same
     target: the frontier gain when every lap completed within the bound and it sees no worse than nominal MPPI at
-    its lap time (:func:`view_shortfall`), else ``-(failed laps + excess / bound + view shortfall)``."""
+    its lap time (:func:`view_shortfall`), else ``-(failed laps + excess / bound + view shortfall)``. A feasible row
+    the frontier does not bracket scores its :func:`dominating_gain` against the nominal points ``nominal`` where it
+    dominates them, else 0."""
     failed = row["laps"] - row["laps_completed"]
     change = None if row["lap_time_s"] is None else row["lap_time_s"] / nominal_lap_s - 1.0
     excess = 0.0 if change is None else max(0.0, change - bound)
     shortfall = view_shortfall(row)
     feasible = failed == 0 and excess == 0.0 and not any(shortfall.values())
+    dominating = dominating_gain(row, nominal or []) if feasible else None
     if feasible:
-        value = row["frontier_gain"] if row["frontier_gain"] is not None else 0.0
+        value = row["frontier_gain"] if row["frontier_gain"] is not None else (dominating or 0.0)
     else:
         value = -(failed + excess / bound + sum(shortfall.values()))
     return {"score": float(value), "feasible": feasible, "gain": row["frontier_gain"],
             "gain_interval": row["frontier_gain_interval"], "bracketed": row["bracketed"],
+            "dominating": dominating is not None,
             "lap_time_s": row["lap_time_s"], "lap_time_change": change, "bound_excess": excess,
             "avoidable_s": row["avoidable_s"], "laps_completed": row["laps_completed"], "laps": row["laps"],
             "view_shortfall": shortfall, "vis_below_50_s": row.get("vis_below_50_s"),
@@ -148,7 +174,7 @@ def evaluate(results: dict, cell: grid.Cell, nominal: dict, setup: TuneSetup) ->
     at_target = next(p for p in built["nominal"] if p["speed"] == setup.base.speed)
     if at_target["lap_time_s"] is None:
         raise RuntimeError(f"nominal MPPI at {setup.base.speed:g} m/s completed no lap: no lap time to bound")
-    return score(built["cells"][0], at_target["lap_time_s"], setup.bound)
+    return score(built["cells"][0], at_target["lap_time_s"], setup.bound, built["nominal"])
 
 
 def open_study(storage: str, name: str, setup: TuneSetup, sampler_seed: int = 0, heartbeat_s: int = HEARTBEAT_S,
