@@ -297,13 +297,9 @@ def load_packaged_dof(variant: str = "paper") -> DOFParams:
     command input; the default), "flown" (``data/dof_weights_flown.msgpack``), "turned"
     (``data/dof_weights_turned.msgpack``) or "paper_tilt30" (``data/dof_weights_tilt30.msgpack``, the paper's trained
     for the camera tilted up 30 degrees); each has a ``.json`` beside it saying how it was made and for which camera."""
-    if variant not in PACKAGED_VARIANTS:
-        raise ValueError(f"unknown packaged DOF weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
-    path = PACKAGED_VARIANTS[variant]
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: the package ships no DOF weights; reinstall it, or train "
-                                f"your own with `pixelmpc train` and pass them explicitly")
-    return load_checkpoint(path)[0]
+    return load_checkpoint(network_weights.packaged_path(
+        PACKAGED_VARIANTS, variant, "DOF", "reinstall it, or train your own with `pixelmpc train` and pass them "
+        "explicitly"))[0]
 
 
 def packaged_dof_hash(variant: str = "paper") -> str:

@@ -158,6 +158,18 @@ def _record_tilt(path: str, version) -> float:
     return trained_camera_tilt_deg(weights_record(Path(path)))
 
 
+def packaged_path(variants: Mapping[str, Path], variant: str, model: str, missing: str) -> Path:
+    """The file of the packaged weights ``variant`` of ``variants`` (``{name: weights file}``) of the pixel model
+    ``model``; a ValueError naming the variants for an unknown one, a FileNotFoundError ending with ``missing`` (what
+    to do) where the package lacks the file."""
+    if variant not in variants:
+        raise ValueError(f"unknown packaged {model} weights {variant!r}; choose one of {', '.join(variants)}")
+    path = variants[variant]
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: the package ships no {model} weights; {missing}")
+    return path
+
+
 def weights_record(path: Path) -> dict:
     """The readable record shipped beside a weights file (its ``.json``), or ``{}`` where there is none."""
     beside = Path(path).with_suffix(".json")

@@ -275,13 +275,8 @@ def load_packaged_vdof(variant: str = "vdof") -> VDOFParams:
     """vdof weights shipped inside the package: ``variant`` "vdof" (``data/vdof_weights.msgpack``, trained for the
     untilted camera; the default) or "vdof_tilt30" (``data/vdof_weights_tilt30.msgpack``, for the camera tilted up
     30 degrees); each has a ``.json`` beside it saying how it was made and for which camera."""
-    if variant not in PACKAGED_VARIANTS:
-        raise ValueError(f"unknown packaged vdof weights {variant!r}; choose one of {', '.join(PACKAGED_VARIANTS)}")
-    path = PACKAGED_VARIANTS[variant]
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: the package ships no vdof weights; train them with `pixelmpc "
-                                f"train --model vdof --ship`")
-    return load_vdof(path)[0]
+    return load_vdof(network_weights.packaged_path(PACKAGED_VARIANTS, variant, "vdof",
+                                                   "train them with `pixelmpc train --model vdof --ship`"))[0]
 
 
 def packaged_vdof_hash(variant: str = "vdof") -> str:
