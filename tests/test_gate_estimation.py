@@ -3,6 +3,7 @@ offset from the map as states (its prior what the drone was told: the survey's e
 next gate is seen before it becomes the target, and the controller follows the gates where the filter places them.
 No test here flies a closed loop (the suite's budget of compiled closed-loop programs)."""
 
+import functools
 import math
 
 import jax
@@ -59,9 +60,9 @@ def test_the_gates_jacobian_matches_jacfwd(course):
         gate = track_lib.offset_gates(track.gates, jnp.zeros((track.num_gates, 4)).at[0].set(offset))
         return camera_lib.project(gate.corners()[0], x, camera)[0] * scale
 
-    _, H, in_front = E.reproject_corners(x, track.gates.corners()[0], camera)
+    _, H, in_front = jax.jit(E.reproject_corners)(x, track.gates.corners()[0], camera)
     assert bool(jnp.all(in_front))
-    expected = jax.jacfwd(pixels)(jnp.zeros(4))
+    expected = jax.jit(jax.jacfwd(pixels))(jnp.zeros(4))
     np.testing.assert_allclose(E.gate_jacobian(H, track.gates.corners()[0], track.gates.centre[0]), expected,
                                rtol=1e-4, atol=1e-3)
 
@@ -183,9 +184,9 @@ def test_the_association_widens_its_gate_by_the_gates_uncertainty(course):
         found=jnp.asarray([True, False]), centre=jnp.stack([seen.centre, jnp.zeros(2)]),
         bbox=jnp.stack([seen.bbox, jnp.zeros(4)]), corners=jnp.stack([seen.corners, jnp.zeros((4, 2))]),
         corners_visible=jnp.stack([seen.corners_visible, jnp.zeros(4, bool)]), target=jnp.asarray(last))
-    config = association_lib.AssociationConfig()
-    _, exact = association_lib.associate(candidates, x0, track.gates, camera, config)
+    associate = jax.jit(functools.partial(association_lib.associate, config=association_lib.AssociationConfig()))
+    _, exact = associate(candidates, x0, track.gates, camera)
     std = jnp.full((track.num_gates,), 2.0)
-    detection, uncertain = association_lib.associate(candidates, x0, track.gates, camera, config, std)
+    detection, uncertain = associate(candidates, x0, track.gates, camera, gate_std=std)
     assert int(exact) == association_lib.REJECTED and int(uncertain) == association_lib.ACCEPTED
     assert bool(detection.found) and int(detection.gate_id) == last
