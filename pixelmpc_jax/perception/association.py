@@ -222,7 +222,7 @@ def make_associating(estimator: Estimator, config: AssociationConfig = Associati
         detection, outcome = associate(candidates, prior, gates, params.camera, config, gate_std)
         if per_tick > 1:
             following = _next_gate(candidates, prior, gates, params.camera, config, gate_std, detection)
-            detection = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b.astype(a.dtype)]), detection, following)
+            detection = detector_lib.stack_detections(detection, following)
         estimate, inner, info = estimator.step(state.inner, imu, detection, params)
         state = AssociatingState(inner=inner, mean=estimate.mean.astype(state.mean.dtype))
         return estimate, state, AssociationInfo(outcome=outcome, inner=info)

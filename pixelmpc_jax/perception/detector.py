@@ -229,6 +229,12 @@ def _frame_box(gate, x_robot: jax.Array, camera: camera_lib.Camera) -> tuple[jax
     return jnp.where(jnp.any(seen), jnp.concatenate([low, high]), 0.0), jnp.any(seen)
 
 
+def stack_detections(target: Detection, following: Detection) -> Detection:
+    """Two gates' detections of one tick, stacked on a new leading axis, the target's first (the estimator that
+    takes two a tick: ``make_eskf(..., detections_per_tick=2)``); ``following`` cast to the target's dtypes."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b.astype(a.dtype)]), target, following)
+
+
 def detect_in_view(gate, x_robot: jax.Array, camera: camera_lib.Camera, key: jax.Array | None = None,
                    pixel_noise_px: float | jax.Array = 0.0, dropout: float | jax.Array = 0.0,
                    gate_id: int | jax.Array = -1) -> Detection:

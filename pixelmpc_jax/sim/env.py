@@ -500,7 +500,7 @@ def _with_next_gate(config: EnvConfig, world: World, track: track_lib.Track, x: 
                         world.detector_noise_px, world.detector_dropout, index)
     exists = following < track.num_gates
     second = second.replace(found=second.found & exists, corners_visible=second.corners_visible & exists)
-    return jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b.astype(a.dtype)]), detection, second)
+    return detector_lib.stack_detections(detection, second)
 
 
 def _faulty_detection(config: EnvConfig, world: World, track: track_lib.Track, state: SimState,
