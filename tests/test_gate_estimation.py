@@ -190,3 +190,17 @@ def test_the_association_widens_its_gate_by_the_gates_uncertainty(course):
     detection, uncertain = associate(candidates, x0, track.gates, camera, gate_std=std)
     assert int(exact) == association_lib.REJECTED and int(uncertain) == association_lib.ACCEPTED
     assert bool(detection.found) and int(detection.gate_id) == last
+
+
+def test_the_race_command_refuses_gate_settings_that_fly_nothing():
+    from pixelmpc_jax import cli
+    from pixelmpc_jax.commands import race as race_command
+
+    parser = cli.build_parser()
+    with pytest.raises(ValueError, match="--gates estimated are the Kalman filter's states"):
+        race_command._check_race(parser.parse_args(["race", "--gates", "estimated"]))
+    with pytest.raises(ValueError, match="--survey-error draws the gates about the map"):
+        race_command._check_race(parser.parse_args(["race", "--survey-error", "--perturb"]))
+    spec, _ = race_command.race_spec(parser.parse_args(["race", "--loop", "onboard", "--perturb", "--gates",
+                                                         "estimated"]))
+    assert spec.gates == "estimated" and spec.episode_config().gates == "estimated"
